@@ -1,0 +1,800 @@
+//! glTF 2.0 (`.gltf` and `.glb`) import.
+//!
+//! The `gltf` crate parses the JSON; its own validation is replaced by ours (the same checks,
+//! minus the rejection of extensions we implement) and its accessor reader by ours, because the
+//! crate panics on the integer accessors that KHR_mesh_quantization allows. Supported:
+//! node hierarchies and transforms, every triangle primitive (strips and fans converted),
+//! meshes shared by several nodes (kept once, instanced), EXT_mesh_gpu_instancing,
+//! KHR_mesh_quantization, KHR_texture_transform and KHR_materials_specular.
+//!
+//! Normal maps are ignored (with a warning): the reference renderer and the bake both shade
+//! with the interpolated vertex normals, so they agree; the bake's surface NDF captures
+//! geometric detail above the texel scale only.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use base64::Engine;
+use glam::{Affine3A, Mat4, Quat, Vec2, Vec3, Vec4};
+use gltf::accessor::{DataType, Dimensions};
+use gltf::mesh::Mode;
+use gltf::Semantic;
+
+use super::{sanitize_normals, ImportError, TriangleFilter};
+use crate::scene::{AlphaMode, Instance, Material, Mesh, Scene, TextureRef, UvTransform, WrapMode};
+
+/// Extensions whose presence in `extensionsRequired` we accept.
+const SUPPORTED_REQUIRED: &[&str] = &[
+    "KHR_mesh_quantization",
+    "KHR_texture_transform",
+    "KHR_materials_specular",
+    "EXT_mesh_gpu_instancing",
+];
+
+/// Deepest node hierarchy we follow (a cycle is an error long before this).
+const MAX_DEPTH: usize = 256;
+
+struct Ctx<'a> {
+    path: &'a Path,
+    base: PathBuf,
+    buffers: Vec<Vec<u8>>,
+    warnings: Vec<String>,
+}
+
+impl Ctx<'_> {
+    fn err(&self, element: impl Into<String>, message: impl Into<String>) -> ImportError {
+        ImportError::Invalid {
+            path: self.path.to_path_buf(),
+            element: element.into(),
+            message: message.into(),
+        }
+    }
+}
+
+pub fn load(path: &Path) -> Result<Scene, ImportError> {
+    let bytes = std::fs::read(path).map_err(|source| ImportError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let parse_err = |message: String| ImportError::Parse {
+        path: path.to_path_buf(),
+        message,
+    };
+    let gltf = gltf::Gltf::from_slice_without_validation(&bytes)
+        .map_err(|e| parse_err(format!("not a valid glTF file: {e}")))?;
+    validate(&gltf.document).map_err(parse_err)?;
+
+    let mut ctx = Ctx {
+        path,
+        base: path.parent().map(Path::to_path_buf).unwrap_or_default(),
+        buffers: Vec::new(),
+        warnings: Vec::new(),
+    };
+    ctx.buffers = load_buffers(&ctx, &gltf.document, gltf.blob.as_deref())?;
+
+    let mut scene = Scene::default();
+    let mut textures = TextureCache::default();
+    // Materials: index i of the file is scene material i; the default material is appended.
+    let mut normal_maps = 0;
+    for m in gltf.document.materials() {
+        if m.normal_texture().is_some() {
+            normal_maps += 1;
+        }
+        let mat = convert_material(&mut ctx, &m, &gltf.document, &mut textures, &mut scene)?;
+        scene.materials.push(mat);
+    }
+    if normal_maps > 0 {
+        ctx.warnings.push(format!(
+            "{normal_maps} materials have normal maps: they are ignored (vertex normals are used by the reference and the bake alike)"
+        ));
+    }
+    let default_material = scene.materials.len() as u32;
+    scene.materials.push(Material::default());
+
+    // Meshes: each triangle primitive becomes one scene mesh; a glTF mesh maps to a list.
+    let mut mesh_map: Vec<Vec<u32>> = Vec::new();
+    for mesh in gltf.document.meshes() {
+        let mut ids = Vec::new();
+        for prim in mesh.primitives() {
+            let element = format!(
+                "mesh {} '{}' primitive {}",
+                mesh.index(),
+                mesh.name().unwrap_or(""),
+                prim.index()
+            );
+            if let Some(m) = convert_primitive(&mut ctx, &prim, &element, default_material)? {
+                ids.push(scene.meshes.len() as u32);
+                scene.meshes.push(m);
+            }
+        }
+        mesh_map.push(ids);
+    }
+
+    // Nodes of the default scene (or the first, or every root node when there is none).
+    let roots: Vec<gltf::Node> = match gltf
+        .document
+        .default_scene()
+        .or_else(|| gltf.document.scenes().next())
+    {
+        Some(s) => s.nodes().collect(),
+        None => {
+            let mut is_child = vec![false; gltf.document.nodes().count()];
+            for n in gltf.document.nodes() {
+                for c in n.children() {
+                    is_child[c.index()] = true;
+                }
+            }
+            gltf.document
+                .nodes()
+                .filter(|n| !is_child[n.index()])
+                .collect()
+        }
+    };
+    let mut on_path = vec![false; gltf.document.nodes().count()];
+    for root in roots {
+        visit_node(
+            &mut ctx,
+            &gltf.document,
+            &root,
+            Mat4::IDENTITY,
+            &mesh_map,
+            &mut scene,
+            &mut on_path,
+            0,
+        )?;
+    }
+    scene.warnings = ctx.warnings;
+    Ok(scene)
+}
+
+/// The crate's validation, keeping the checks and dropping the complaint about required
+/// extensions that we implement ourselves.
+fn validate(doc: &gltf::Document) -> Result<(), String> {
+    use gltf::json::validation::Validate;
+    let root = doc.as_json();
+    let mut errors = Vec::new();
+    root.validate(root, gltf::json::Path::new, &mut |path, error| {
+        let p = path().to_string();
+        if !p.starts_with("extensionsRequired") {
+            errors.push(format!("{p}: {error}"));
+        }
+    });
+    for ext in doc.extensions_required() {
+        if !SUPPORTED_REQUIRED.contains(&ext)
+            && !gltf::json::extensions::ENABLED_EXTENSIONS.contains(&ext)
+        {
+            errors.push(format!(
+                "requires extension {ext}, which aggtool does not support"
+            ));
+        }
+    }
+    if errors.is_empty() {
+        Ok(())
+    } else {
+        Err(format!("invalid glTF: {}", errors.join("; ")))
+    }
+}
+
+fn decode_data_uri(uri: &str) -> Option<Result<Vec<u8>, String>> {
+    let rest = uri.strip_prefix("data:")?;
+    let (meta, data) = match rest.split_once(',') {
+        Some(x) => x,
+        None => return Some(Err("malformed data URI".into())),
+    };
+    if !meta.ends_with(";base64") {
+        return Some(Err("data URI is not base64".into()));
+    }
+    Some(
+        base64::engine::general_purpose::STANDARD
+            .decode(data)
+            .map_err(|e| format!("bad base64 in data URI: {e}")),
+    )
+}
+
+fn percent_decode(s: &str) -> String {
+    let b = s.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        if b[i] == b'%' && i + 2 < b.len() {
+            if let Ok(v) = u8::from_str_radix(&s[i + 1..i + 3], 16) {
+                out.push(v);
+                i += 3;
+                continue;
+            }
+        }
+        out.push(b[i]);
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+fn read_uri(ctx: &Ctx, uri: &str, element: &str) -> Result<Vec<u8>, ImportError> {
+    if let Some(r) = decode_data_uri(uri) {
+        return r.map_err(|m| ctx.err(element, m));
+    }
+    if uri.contains("://") {
+        return Err(ctx.err(element, format!("external URI '{uri}' is not a local file")));
+    }
+    let file = ctx.base.join(percent_decode(uri));
+    std::fs::read(&file)
+        .map_err(|e| ctx.err(element, format!("cannot read {}: {e}", file.display())))
+}
+
+fn load_buffers(
+    ctx: &Ctx,
+    doc: &gltf::Document,
+    blob: Option<&[u8]>,
+) -> Result<Vec<Vec<u8>>, ImportError> {
+    let mut out = Vec::new();
+    for b in doc.buffers() {
+        let element = format!("buffer {}", b.index());
+        let data = match b.source() {
+            gltf::buffer::Source::Bin => match blob {
+                Some(d) => d.to_vec(),
+                None => {
+                    return Err(ctx.err(element, "refers to the GLB binary chunk, which is missing"))
+                }
+            },
+            gltf::buffer::Source::Uri(uri) => read_uri(ctx, uri, &element)?,
+        };
+        if data.len() < b.length() {
+            return Err(ctx.err(
+                element,
+                format!("holds {} bytes but declares {}", data.len(), b.length()),
+            ));
+        }
+        out.push(data);
+    }
+    Ok(out)
+}
+
+fn component_size(t: DataType) -> usize {
+    match t {
+        DataType::I8 | DataType::U8 => 1,
+        DataType::I16 | DataType::U16 => 2,
+        DataType::U32 | DataType::F32 => 4,
+    }
+}
+
+#[inline]
+fn read_component(bytes: &[u8], t: DataType, normalized: bool) -> f32 {
+    match t {
+        DataType::F32 => f32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]]),
+        DataType::U32 => u32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]]) as f32,
+        DataType::I8 => {
+            let v = bytes[0] as i8 as f32;
+            if normalized {
+                (v / 127.0).max(-1.0)
+            } else {
+                v
+            }
+        }
+        DataType::U8 => {
+            let v = bytes[0] as f32;
+            if normalized {
+                v / 255.0
+            } else {
+                v
+            }
+        }
+        DataType::I16 => {
+            let v = i16::from_le_bytes([bytes[0], bytes[1]]) as f32;
+            if normalized {
+                (v / 32767.0).max(-1.0)
+            } else {
+                v
+            }
+        }
+        DataType::U16 => {
+            let v = u16::from_le_bytes([bytes[0], bytes[1]]) as f32;
+            if normalized {
+                v / 65535.0
+            } else {
+                v
+            }
+        }
+    }
+}
+
+/// Reads `count` elements of `dims` components laid out from `offset` in `view` with `stride`.
+#[allow(clippy::too_many_arguments)]
+fn read_elements(
+    ctx: &Ctx,
+    element: &str,
+    view: &gltf::buffer::View,
+    offset: usize,
+    count: usize,
+    dims: usize,
+    t: DataType,
+    normalized: bool,
+    stride: Option<usize>,
+    out: &mut Vec<f32>,
+) -> Result<(), ImportError> {
+    let csize = component_size(t);
+    let esize = dims * csize;
+    let stride = stride.unwrap_or(esize).max(esize);
+    let buf = ctx
+        .buffers
+        .get(view.buffer().index())
+        .ok_or_else(|| ctx.err(element, "buffer view refers to a missing buffer"))?;
+    let start = view.offset().checked_add(offset);
+    let need = count
+        .checked_sub(1)
+        .map(|c| c.checked_mul(stride).and_then(|x| x.checked_add(esize)))
+        .unwrap_or(Some(0));
+    let (start, need) = match (start, need) {
+        (Some(s), Some(n)) => (s, n),
+        _ => return Err(ctx.err(element, "accessor range overflows")),
+    };
+    let view_end = view.offset().saturating_add(view.length());
+    if offset.saturating_add(need) > view.length() || view_end > buf.len() {
+        return Err(ctx.err(
+            element,
+            format!(
+                "accessor reads {need} bytes at offset {offset} of a {}-byte buffer view (buffer has {} bytes)",
+                view.length(),
+                buf.len()
+            ),
+        ));
+    }
+    out.reserve(count * dims);
+    for i in 0..count {
+        let e = start + i * stride;
+        for c in 0..dims {
+            let p = e + c * csize;
+            out.push(read_component(&buf[p..p + csize], t, normalized));
+        }
+    }
+    Ok(())
+}
+
+/// Reads an accessor as flat f32 values (`count × components`), with quantized and normalized
+/// integer types converted as KHR_mesh_quantization specifies, and sparse substitution applied.
+fn read_accessor(
+    ctx: &Ctx,
+    acc: &gltf::Accessor,
+    element: &str,
+) -> Result<(Vec<f32>, usize), ImportError> {
+    let dims = match acc.dimensions() {
+        Dimensions::Scalar => 1,
+        Dimensions::Vec2 => 2,
+        Dimensions::Vec3 => 3,
+        Dimensions::Vec4 => 4,
+        d => return Err(ctx.err(element, format!("unsupported accessor type {d:?}"))),
+    };
+    let count = acc.count();
+    let t = acc.data_type();
+    let mut out = Vec::new();
+    match acc.view() {
+        Some(view) => read_elements(
+            ctx,
+            element,
+            &view,
+            acc.offset(),
+            count,
+            dims,
+            t,
+            acc.normalized(),
+            view.stride(),
+            &mut out,
+        )?,
+        None => out.resize(count * dims, 0.0),
+    }
+    if let Some(sparse) = acc.sparse() {
+        let n = sparse.count();
+        let idx = sparse.indices();
+        let it = match idx.index_type() {
+            gltf::accessor::sparse::IndexType::U8 => DataType::U8,
+            gltf::accessor::sparse::IndexType::U16 => DataType::U16,
+            gltf::accessor::sparse::IndexType::U32 => DataType::U32,
+        };
+        let mut indices = Vec::new();
+        read_elements(
+            ctx,
+            element,
+            &idx.view(),
+            idx.offset(),
+            n,
+            1,
+            it,
+            false,
+            None,
+            &mut indices,
+        )?;
+        let vals = sparse.values();
+        let mut values = Vec::new();
+        read_elements(
+            ctx,
+            element,
+            &vals.view(),
+            vals.offset(),
+            n,
+            dims,
+            t,
+            acc.normalized(),
+            None,
+            &mut values,
+        )?;
+        for (k, &i) in indices.iter().enumerate() {
+            let i = i as usize;
+            if i >= count {
+                return Err(ctx.err(element, format!("sparse index {i} out of range ({count})")));
+            }
+            out[i * dims..(i + 1) * dims].copy_from_slice(&values[k * dims..(k + 1) * dims]);
+        }
+    }
+    Ok((out, dims))
+}
+
+fn read_vec3s(ctx: &Ctx, acc: &gltf::Accessor, element: &str) -> Result<Vec<Vec3>, ImportError> {
+    let (v, d) = read_accessor(ctx, acc, element)?;
+    if d < 3 {
+        return Err(ctx.err(element, "expected a VEC3 accessor"));
+    }
+    Ok(v.chunks_exact(d)
+        .map(|c| Vec3::new(c[0], c[1], c[2]))
+        .collect())
+}
+
+fn convert_primitive(
+    ctx: &mut Ctx,
+    prim: &gltf::Primitive,
+    element: &str,
+    default_material: u32,
+) -> Result<Option<Mesh>, ImportError> {
+    let mode = prim.mode();
+    if !matches!(
+        mode,
+        Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
+    ) {
+        ctx.warnings.push(format!(
+            "{element}: skipped ({mode:?} primitives are not surfaces)"
+        ));
+        return Ok(None);
+    }
+    let Some(pos_acc) = prim.get(&Semantic::Positions) else {
+        ctx.warnings
+            .push(format!("{element}: skipped (no POSITION attribute)"));
+        return Ok(None);
+    };
+    let positions = read_vec3s(ctx, &pos_acc, &format!("{element} POSITION"))?;
+    let n = positions.len();
+    let mut normals = match prim.get(&Semantic::Normals) {
+        Some(a) => read_vec3s(ctx, &a, &format!("{element} NORMAL"))?,
+        None => Vec::new(),
+    };
+    if !normals.is_empty() && normals.len() != n {
+        ctx.warnings.push(format!(
+            "{element}: NORMAL count differs from POSITION; normals ignored"
+        ));
+        normals.clear();
+    }
+    sanitize_normals(&mut normals);
+    let mut uvs = match prim.get(&Semantic::TexCoords(0)) {
+        Some(a) => {
+            let (v, d) = read_accessor(ctx, &a, &format!("{element} TEXCOORD_0"))?;
+            if d < 2 {
+                return Err(ctx.err(element, "TEXCOORD_0 is not VEC2"));
+            }
+            v.chunks_exact(d).map(|c| Vec2::new(c[0], c[1])).collect()
+        }
+        None => Vec::new(),
+    };
+    if !uvs.is_empty() && uvs.len() != n {
+        ctx.warnings.push(format!(
+            "{element}: TEXCOORD_0 count differs from POSITION; ignored"
+        ));
+        uvs.clear();
+    }
+    let indices: Vec<u32> = match prim.indices() {
+        Some(a) => {
+            let (v, _) = read_accessor(ctx, &a, &format!("{element} indices"))?;
+            v.into_iter().map(|x| x as u32).collect()
+        }
+        None => (0..n as u32).collect(),
+    };
+    let tris: Vec<[u32; 3]> = match mode {
+        Mode::Triangles => indices
+            .chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect(),
+        Mode::TriangleStrip => (2..indices.len())
+            .map(|i| {
+                if i % 2 == 0 {
+                    [indices[i - 2], indices[i - 1], indices[i]]
+                } else {
+                    [indices[i - 1], indices[i - 2], indices[i]]
+                }
+            })
+            .collect(),
+        _ => (2..indices.len())
+            .map(|i| [indices[0], indices[i - 1], indices[i]])
+            .collect(),
+    };
+    let mut filter = TriangleFilter::new();
+    let mut triangles = Vec::with_capacity(tris.len());
+    for t in tris {
+        if filter
+            .accept(&positions, t)
+            .map_err(|m| ctx.err(element, m))?
+        {
+            triangles.push(t);
+        }
+    }
+    filter.report(element, &mut ctx.warnings);
+    if triangles.is_empty() {
+        ctx.warnings
+            .push(format!("{element}: skipped (no valid triangles)"));
+        return Ok(None);
+    }
+    Ok(Some(Mesh {
+        name: element.to_string(),
+        positions,
+        normals,
+        uvs,
+        triangles,
+        material: prim
+            .material()
+            .index()
+            .map(|i| i as u32)
+            .unwrap_or(default_material),
+    }))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn visit_node(
+    ctx: &mut Ctx,
+    doc: &gltf::Document,
+    node: &gltf::Node,
+    parent: Mat4,
+    mesh_map: &[Vec<u32>],
+    scene: &mut Scene,
+    on_path: &mut [bool],
+    depth: usize,
+) -> Result<(), ImportError> {
+    let element = format!("node {} '{}'", node.index(), node.name().unwrap_or(""));
+    if depth > MAX_DEPTH || on_path[node.index()] {
+        return Err(ctx.err(element, "node hierarchy has a cycle or is too deep"));
+    }
+    on_path[node.index()] = true;
+    let local = Mat4::from_cols_array_2d(&node.transform().matrix());
+    let world = parent * local;
+    if let Some(mesh) = node.mesh() {
+        let mut placements = vec![world];
+        if let Some(ext) = node.extension_value("EXT_mesh_gpu_instancing") {
+            placements = gpu_instances(ctx, doc, ext, &element)?
+                .into_iter()
+                .map(|m| world * m)
+                .collect();
+        }
+        let mut skipped = 0;
+        for m in placements {
+            match checked_affine(m) {
+                Some(t) => {
+                    for &id in &mesh_map[mesh.index()] {
+                        scene.instances.push(Instance {
+                            mesh: id,
+                            transform: t,
+                        });
+                    }
+                }
+                None => skipped += 1,
+            }
+        }
+        if skipped > 0 {
+            ctx.warnings.push(format!(
+                "{element}: skipped {skipped} placements with a non-finite, singular or absurd transform"
+            ));
+        }
+    }
+    for child in node.children() {
+        visit_node(ctx, doc, &child, world, mesh_map, scene, on_path, depth + 1)?;
+    }
+    on_path[node.index()] = false;
+    Ok(())
+}
+
+/// An affine transform if `m` is finite, non-singular and of sane scale (|scale| in
+/// [1e-8, 1e8], translation below 1e12), else `None`.
+fn checked_affine(m: Mat4) -> Option<Affine3A> {
+    if !m.is_finite() {
+        return None;
+    }
+    let a = Affine3A::from_mat4(m);
+    let det = a.matrix3.determinant().abs();
+    if !(1e-24..=1e24).contains(&det) || a.translation.abs().max_element() > 1e12 {
+        return None;
+    }
+    Some(a)
+}
+
+fn gpu_instances(
+    ctx: &mut Ctx,
+    doc: &gltf::Document,
+    ext: &gltf::json::Value,
+    element: &str,
+) -> Result<Vec<Mat4>, ImportError> {
+    let element = format!("{element} EXT_mesh_gpu_instancing");
+    let attrs = ext
+        .get("attributes")
+        .and_then(|a| a.as_object())
+        .ok_or_else(|| ctx.err(&element, "missing 'attributes'"))?;
+    let read = |name: &str| -> Result<Option<(Vec<f32>, usize)>, ImportError> {
+        match attrs.get(name).and_then(|v| v.as_u64()) {
+            None => Ok(None),
+            Some(i) => {
+                let acc = doc.accessors().nth(i as usize).ok_or_else(|| {
+                    ctx.err(&element, format!("{name} accessor {i} does not exist"))
+                })?;
+                read_accessor(ctx, &acc, &format!("{element} {name}")).map(Some)
+            }
+        }
+    };
+    let t = read("TRANSLATION")?;
+    let r = read("ROTATION")?;
+    let s = read("SCALE")?;
+    let count = [&t, &r, &s]
+        .iter()
+        .filter_map(|x| x.as_ref().map(|(v, d)| v.len() / d))
+        .max()
+        .unwrap_or(0);
+    let mut out = Vec::with_capacity(count);
+    for i in 0..count {
+        fn get(x: &Option<(Vec<f32>, usize)>, k: usize) -> Option<&[f32]> {
+            x.as_ref().and_then(|(v, d)| v.get(k * d..(k + 1) * d))
+        }
+        let tr = get(&t, i)
+            .map(|c| Vec3::new(c[0], c[1], c[2]))
+            .unwrap_or(Vec3::ZERO);
+        let ro = get(&r, i)
+            .filter(|c| c.len() >= 4)
+            .map(|c| Quat::from_xyzw(c[0], c[1], c[2], c[3]).normalize())
+            .unwrap_or(Quat::IDENTITY);
+        let sc = get(&s, i)
+            .map(|c| Vec3::new(c[0], c[1], c[2]))
+            .unwrap_or(Vec3::ONE);
+        out.push(Mat4::from_scale_rotation_translation(sc, ro, tr));
+    }
+    Ok(out)
+}
+
+#[derive(Default)]
+struct TextureCache {
+    /// (glTF texture index, sRGB) to scene texture index, or None when it failed to load.
+    map: HashMap<(usize, bool), Option<u32>>,
+}
+
+fn wrap_mode(m: gltf::texture::WrappingMode) -> WrapMode {
+    match m {
+        gltf::texture::WrappingMode::ClampToEdge => WrapMode::ClampToEdge,
+        gltf::texture::WrappingMode::MirroredRepeat => WrapMode::MirroredRepeat,
+        gltf::texture::WrappingMode::Repeat => WrapMode::Repeat,
+    }
+}
+
+fn texture_ref(
+    ctx: &mut Ctx,
+    info: Option<gltf::texture::Info>,
+    srgb: bool,
+    cache: &mut TextureCache,
+    scene: &mut Scene,
+    mat_element: &str,
+) -> Option<TextureRef> {
+    let info = info?;
+    let tex = info.texture();
+    let mut tex_coord = info.tex_coord();
+    let mut transform = UvTransform::default();
+    if let Some(t) = info.texture_transform() {
+        transform = UvTransform::from_offset_rotation_scale(
+            Vec2::from(t.offset()),
+            t.rotation(),
+            Vec2::from(t.scale()),
+        );
+        if let Some(tc) = t.tex_coord() {
+            tex_coord = tc;
+        }
+    }
+    if tex_coord != 0 {
+        ctx.warnings.push(format!(
+            "{mat_element}: texture {} uses TEXCOORD_{tex_coord}; only TEXCOORD_0 is supported and is used instead",
+            tex.index()
+        ));
+    }
+    let key = (tex.index(), srgb);
+    if let Some(&id) = cache.map.get(&key) {
+        return id.map(|texture| TextureRef { texture, transform });
+    }
+    let element = format!("texture {} (image {})", tex.index(), tex.source().index());
+    let bytes = match tex.source().source() {
+        gltf::image::Source::View { view, .. } => {
+            let buf = ctx.buffers.get(view.buffer().index());
+            match buf
+                .and_then(|b| b.get(view.offset()..view.offset().saturating_add(view.length())))
+            {
+                Some(b) => Ok(b.to_vec()),
+                None => Err(format!("{element}: image buffer view out of range")),
+            }
+        }
+        gltf::image::Source::Uri { uri, .. } => {
+            read_uri(ctx, uri, &element).map_err(|e| e.to_string())
+        }
+    };
+    let sampler = tex.sampler();
+    let decoded = bytes.and_then(|b| {
+        super::decode_texture(
+            &b,
+            tex.source().name().unwrap_or(&element),
+            srgb,
+            (wrap_mode(sampler.wrap_s()), wrap_mode(sampler.wrap_t())),
+        )
+        .map_err(|m| format!("{element}: {m}"))
+    });
+    let id = match decoded {
+        Ok(t) => {
+            scene.textures.push(t);
+            Some(scene.textures.len() as u32 - 1)
+        }
+        Err(m) => {
+            ctx.warnings
+                .push(format!("{mat_element}: {m}; the texture is ignored"));
+            None
+        }
+    };
+    cache.map.insert(key, id);
+    id.map(|texture| TextureRef { texture, transform })
+}
+
+fn convert_material(
+    ctx: &mut Ctx,
+    m: &gltf::Material,
+    _doc: &gltf::Document,
+    cache: &mut TextureCache,
+    scene: &mut Scene,
+) -> Result<Material, ImportError> {
+    let element = format!(
+        "material {} '{}'",
+        m.index().unwrap_or(0),
+        m.name().unwrap_or("")
+    );
+    let pbr = m.pbr_metallic_roughness();
+    let bc = pbr.base_color_factor();
+    let alpha_mode = match m.alpha_mode() {
+        gltf::material::AlphaMode::Opaque => AlphaMode::Opaque,
+        gltf::material::AlphaMode::Mask => AlphaMode::Mask(m.alpha_cutoff().unwrap_or(0.5)),
+        gltf::material::AlphaMode::Blend => {
+            ctx.warnings.push(format!(
+                "{element}: alphaMode BLEND is treated as MASK with cutoff 0.5"
+            ));
+            AlphaMode::Mask(0.5)
+        }
+    };
+    let base_color_texture =
+        texture_ref(ctx, pbr.base_color_texture(), true, cache, scene, &element);
+    let metallic_roughness_texture = texture_ref(
+        ctx,
+        pbr.metallic_roughness_texture(),
+        false,
+        cache,
+        scene,
+        &element,
+    );
+    let (specular_factor, specular_texture) = match m.specular() {
+        Some(s) => (
+            s.specular_factor(),
+            texture_ref(ctx, s.specular_texture(), false, cache, scene, &element),
+        ),
+        None => (1.0, None),
+    };
+    Ok(Material {
+        name: m.name().unwrap_or("").to_string(),
+        base_color: Vec4::from(bc),
+        base_color_texture,
+        metallic: pbr.metallic_factor(),
+        perceptual_roughness: pbr.roughness_factor(),
+        metallic_roughness_texture,
+        specular_factor,
+        specular_texture,
+        alpha_mode,
+    })
+}

@@ -1,0 +1,148 @@
+//! Asset import: one module per format, all producing a [`Scene`].
+//!
+//! Bad input never panics: it is either an [`ImportError`] naming the file and the element, or
+//! a warning in [`Scene::warnings`] when the element can be skipped and the rest is usable
+//! ([`ImportOptions::strict`] turns such warnings into errors).
+
+mod gltf;
+mod images;
+mod obj;
+
+use std::path::{Path, PathBuf};
+
+use glam::Vec3;
+
+use crate::scene::Scene;
+
+pub use self::images::decode_texture;
+
+/// Errors of the import stage.
+#[derive(Debug, thiserror::Error)]
+pub enum ImportError {
+    #[error("cannot read {path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: unsupported file type (expected .gltf, .glb or .obj)")]
+    UnsupportedFormat { path: PathBuf },
+    #[error("{path}: {element}: {message}")]
+    Invalid {
+        path: PathBuf,
+        element: String,
+        message: String,
+    },
+    #[error("{path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error("{path}: the scene has no usable triangles")]
+    Empty { path: PathBuf },
+    #[error("{path}: {warning} (--strict)")]
+    Strict { path: PathBuf, warning: String },
+}
+
+/// Import settings.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ImportOptions {
+    /// Treat every warning (skipped element, missing texture, ignored feature) as an error.
+    pub strict: bool,
+}
+
+/// Loads an asset by its extension: `.gltf`, `.glb` or `.obj`.
+pub fn load(path: &Path, options: ImportOptions) -> Result<Scene, ImportError> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase())
+        .unwrap_or_default();
+    // A panic inside a third-party parser on hostile input must not take the caller down.
+    let result = std::panic::catch_unwind(|| match ext.as_str() {
+        "gltf" | "glb" => gltf::load(path),
+        "obj" => obj::load(path),
+        _ => Err(ImportError::UnsupportedFormat {
+            path: path.to_path_buf(),
+        }),
+    });
+    let mut scene = match result {
+        Ok(r) => r?,
+        Err(_) => {
+            return Err(ImportError::Parse {
+                path: path.to_path_buf(),
+                message: "the file could not be parsed (internal parser failure)".into(),
+            })
+        }
+    };
+    scene.source = Some(path.to_path_buf());
+    if options.strict {
+        if let Some(w) = scene.warnings.first() {
+            return Err(ImportError::Strict {
+                path: path.to_path_buf(),
+                warning: w.clone(),
+            });
+        }
+    }
+    if scene.instanced_triangle_count() == 0 {
+        return Err(ImportError::Empty {
+            path: path.to_path_buf(),
+        });
+    }
+    Ok(scene)
+}
+
+/// Appends the triangle if all three vertices are finite, in range, and it has non-zero area;
+/// counts what it skipped. Returns an error for out-of-range indices (a broken file).
+pub(crate) struct TriangleFilter {
+    pub nan: usize,
+    pub degenerate: usize,
+}
+
+impl TriangleFilter {
+    pub fn new() -> Self {
+        TriangleFilter {
+            nan: 0,
+            degenerate: 0,
+        }
+    }
+
+    /// `Ok(true)` when the triangle is kept.
+    pub fn accept(&mut self, positions: &[Vec3], tri: [u32; 3]) -> Result<bool, String> {
+        let n = positions.len();
+        if let Some(&bad) = tri.iter().find(|&&i| i as usize >= n) {
+            return Err(format!("vertex index {bad} out of range ({n} vertices)"));
+        }
+        let [a, b, c] = tri.map(|i| positions[i as usize]);
+        if !(a.is_finite() && b.is_finite() && c.is_finite()) {
+            self.nan += 1;
+            return Ok(false);
+        }
+        let cr = (b - a).cross(c - a);
+        if !(cr.length_squared() > 0.0) || !cr.is_finite() {
+            self.degenerate += 1;
+            return Ok(false);
+        }
+        Ok(true)
+    }
+
+    pub fn report(&self, element: &str, warnings: &mut Vec<String>) {
+        if self.nan > 0 {
+            warnings.push(format!(
+                "{element}: skipped {} triangles with NaN or infinite vertices",
+                self.nan
+            ));
+        }
+        if self.degenerate > 0 {
+            warnings.push(format!(
+                "{element}: skipped {} degenerate (zero-area) triangles",
+                self.degenerate
+            ));
+        }
+    }
+}
+
+/// Normalised shading normals: invalid ones (zero, NaN) become zero, which the tracer treats as
+/// "use the geometric normal".
+pub(crate) fn sanitize_normals(normals: &mut [Vec3]) {
+    for n in normals {
+        *n = n.try_normalize().unwrap_or(Vec3::ZERO);
+    }
+}

@@ -1,0 +1,21 @@
+//! # aggtool
+//!
+//! Appearance-preserving level of detail after Zhou et al., "Efficient Scene Appearance
+//! Aggregation for Level-of-Detail Rendering". The crate follows the pipeline:
+//!
+//! - [`math`]: pure math (sampling, spherical maps, microfacets) that knows nothing of scenes;
+//! - [`scene`] and [`import`]: the scene representation and the glTF/OBJ importers;
+//! - [`bsdf`]: the surface material model of the paper (Eq. 11);
+//! - [`trace`]: two-level BVH ray tracing (obvhs) with alpha cut-outs;
+//! - [`render`]: view files, lights, the reference path tracer, image I/O and comparison;
+//! - [`gen`]: generators for the paper's hard cases;
+//! - [`validation`]: shared test harnesses (chi-square).
+
+pub mod bsdf;
+pub mod gen;
+pub mod import;
+pub mod math;
+pub mod render;
+pub mod scene;
+pub mod trace;
+pub mod validation;

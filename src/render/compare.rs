@@ -1,0 +1,125 @@
+//! Image comparison with the paper's metric.
+//!
+//! - RMSE = sqrt(mean over pixels and RGB channels of (a − b)²), on linear values; best 0.
+//! - relMSE = mean over pixels and channels of (a − b)² / (b² + 0.01), with `b` the second
+//!   (reference) image; best 0. The 0.01 keeps black reference pixels from dominating.
+
+use glam::Vec3;
+use serde::Serialize;
+
+use super::image::Image;
+
+/// Comparison figures.
+#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
+pub struct Comparison {
+    pub rmse: f64,
+    pub relmse: f64,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// Compares `a` against reference `b`. Errors when the sizes differ.
+pub fn compare(a: &Image, b: &Image) -> Result<Comparison, String> {
+    if a.width != b.width || a.height != b.height {
+        return Err(format!(
+            "image sizes differ: {}x{} against {}x{}",
+            a.width, a.height, b.width, b.height
+        ));
+    }
+    let mut se = 0f64;
+    let mut rel = 0f64;
+    for (p, q) in a.pixels.iter().zip(&b.pixels) {
+        for c in 0..3 {
+            let d = (p[c] - q[c]) as f64;
+            se += d * d;
+            rel += d * d / ((q[c] as f64).powi(2) + 0.01);
+        }
+    }
+    let n = (a.pixels.len() * 3).max(1) as f64;
+    Ok(Comparison {
+        rmse: (se / n).sqrt(),
+        relmse: rel / n,
+        width: a.width,
+        height: a.height,
+    })
+}
+
+/// A false-colour image of the per-pixel absolute difference (mean over channels), black for
+/// zero through blue, magenta and yellow to white at `scale`. Returns the image and the scale
+/// (the 99th percentile of the difference unless given).
+pub fn difference_image(a: &Image, b: &Image, scale: Option<f32>) -> (Image, f32) {
+    let diffs: Vec<f32> = a
+        .pixels
+        .iter()
+        .zip(&b.pixels)
+        .map(|(p, q)| {
+            let d = (*p - *q).abs();
+            let m = (d.x + d.y + d.z) / 3.0;
+            if m.is_finite() {
+                m
+            } else {
+                f32::MAX
+            }
+        })
+        .collect();
+    let scale = scale.unwrap_or_else(|| {
+        let mut s = diffs.clone();
+        s.sort_by(|x, y| x.total_cmp(y));
+        s.get(((s.len() as f32 * 0.99) as usize).min(s.len().saturating_sub(1)))
+            .copied()
+            .unwrap_or(1.0)
+            .max(1e-6)
+    });
+    let pixels = diffs
+        .iter()
+        .map(|&d| {
+            let t = (d / scale).clamp(0.0, 1.0);
+            // A small "inferno"-like ramp.
+            let stops = [
+                Vec3::new(0.0, 0.0, 0.0),
+                Vec3::new(0.2, 0.05, 0.5),
+                Vec3::new(0.8, 0.15, 0.4),
+                Vec3::new(1.0, 0.6, 0.1),
+                Vec3::new(1.0, 1.0, 0.9),
+            ];
+            let x = t * 4.0;
+            let i = (x as usize).min(3);
+            let f = x - i as f32;
+            let c = stops[i] * (1.0 - f) + stops[i + 1] * f;
+            // Stored linear so that the sRGB PNG shows the ramp as designed.
+            c.powf(2.2)
+        })
+        .collect();
+    (
+        Image {
+            width: a.width,
+            height: a.height,
+            pixels,
+        },
+        scale,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn known_values() {
+        let a = Image {
+            width: 2,
+            height: 1,
+            pixels: vec![Vec3::ZERO, Vec3::ONE],
+        };
+        let mut b = a.clone();
+        assert_eq!(compare(&a, &b).unwrap().rmse, 0.0);
+        b.pixels[1] = Vec3::new(1.0, 1.0, 3.0);
+        // One of six channel values differs by 2: sqrt(4/6).
+        let c = compare(&a, &b).unwrap();
+        assert!((c.rmse - (4.0f64 / 6.0).sqrt()).abs() < 1e-12);
+        assert!((c.relmse - 4.0 / 9.01 / 6.0).abs() < 1e-9);
+        assert!(compare(&a, &Image::new(1, 2)).is_err());
+        let (d, s) = difference_image(&a, &b, None);
+        assert!(s > 0.0 && d.pixels[0] == Vec3::ZERO && d.pixels[1].max_element() > 0.0);
+    }
+}

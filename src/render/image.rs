@@ -1,0 +1,212 @@
+//! Linear RGB images: EXR in and out (the `exr` crate), tonemapped sRGB PNG out, all writes
+//! atomic (temporary file in the destination folder, then rename).
+
+use std::path::{Path, PathBuf};
+
+use glam::Vec3;
+
+use crate::math::color::linear_to_srgb;
+
+/// Errors reading or writing images.
+#[derive(Debug, thiserror::Error)]
+pub enum ImageError {
+    #[error("cannot read image {path}: {message}")]
+    Read { path: PathBuf, message: String },
+    #[error("cannot write image {path}: {message}")]
+    Write { path: PathBuf, message: String },
+}
+
+/// A linear RGB image, row-major, row 0 at the top.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    pub width: u32,
+    pub height: u32,
+    pub pixels: Vec<Vec3>,
+}
+
+/// Writes through a temporary file next to `path` and renames it into place, so that readers
+/// never see a half-written file and a failure leaves any previous file intact.
+pub fn write_atomic(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<(), String>,
+) -> Result<(), String> {
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("out");
+    // Keep the extension last: encoders pick the format from it.
+    let tmp = dir.join(format!(
+        ".{}.{}.tmp.{}",
+        name,
+        std::process::id(),
+        path.extension().and_then(|e| e.to_str()).unwrap_or("bin")
+    ));
+    let result = write(&tmp).and_then(|_| {
+        std::fs::rename(&tmp, path).map_err(|e| format!("cannot rename into place: {e}"))
+    });
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+impl Image {
+    pub fn new(width: u32, height: u32) -> Self {
+        Image {
+            width,
+            height,
+            pixels: vec![Vec3::ZERO; width as usize * height as usize],
+        }
+    }
+
+    #[inline]
+    pub fn get(&self, x: u32, y: u32) -> Vec3 {
+        self.pixels[(y * self.width + x) as usize]
+    }
+
+    /// Mean of all pixels.
+    pub fn mean(&self) -> Vec3 {
+        let s: glam::DVec3 = self.pixels.iter().map(|p| p.as_dvec3()).sum();
+        (s / self.pixels.len().max(1) as f64).as_vec3()
+    }
+
+    /// Writes a linear float EXR.
+    pub fn write_exr(&self, path: &Path) -> Result<(), ImageError> {
+        let w = self.width as usize;
+        write_atomic(path, |tmp| {
+            exr::prelude::write_rgb_file(tmp, w, self.height as usize, |x, y| {
+                let p = self.pixels[y * w + x];
+                (p.x, p.y, p.z)
+            })
+            .map_err(|e| e.to_string())
+        })
+        .map_err(|message| ImageError::Write {
+            path: path.to_path_buf(),
+            message,
+        })
+    }
+
+    /// Reads the first RGB(A) layer of an EXR file.
+    pub fn read_exr(path: &Path) -> Result<Image, ImageError> {
+        let err = |message: String| ImageError::Read {
+            path: path.to_path_buf(),
+            message,
+        };
+        let img = exr::prelude::read_first_rgba_layer_from_file(
+            path,
+            |res, _| {
+                (
+                    res.width(),
+                    res.height(),
+                    vec![Vec3::ZERO; res.width() * res.height()],
+                )
+            },
+            |(w, _, px): &mut (usize, usize, Vec<Vec3>),
+             pos,
+             (r, g, b, _a): (f32, f32, f32, f32)| {
+                px[pos.y() * *w + pos.x()] = Vec3::new(r, g, b);
+            },
+        )
+        .map_err(|e| err(e.to_string()))?;
+        let (w, h, pixels) = img.layer_data.channel_data.pixels;
+        Ok(Image {
+            width: w as u32,
+            height: h as u32,
+            pixels,
+        })
+    }
+
+    /// Reads an environment or image file: `.exr`, `.hdr` (linear), or an 8-bit format
+    /// (sRGB-decoded).
+    pub fn read_any(path: &Path) -> Result<Image, ImageError> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(|e| e.to_ascii_lowercase())
+            .unwrap_or_default();
+        if ext == "exr" {
+            return Image::read_exr(path);
+        }
+        let err = |message: String| ImageError::Read {
+            path: path.to_path_buf(),
+            message,
+        };
+        let img = ::image::open(path).map_err(|e| err(e.to_string()))?;
+        let srgb = !matches!(ext.as_str(), "hdr");
+        let rgb = img.to_rgb32f();
+        let lut = |v: f32| {
+            if srgb {
+                crate::math::color::srgb_to_linear(v)
+            } else {
+                v
+            }
+        };
+        Ok(Image {
+            width: rgb.width(),
+            height: rgb.height(),
+            pixels: rgb
+                .pixels()
+                .map(|p| Vec3::new(lut(p[0]), lut(p[1]), lut(p[2])))
+                .collect(),
+        })
+    }
+
+    /// 8-bit sRGB bytes after exposure `2^stops`, clamped.
+    pub fn to_srgb8(&self, stops: f32) -> Vec<u8> {
+        let k = 2f32.powf(stops);
+        self.pixels
+            .iter()
+            .flat_map(|p| {
+                let q = *p * k;
+                [q.x, q.y, q.z].map(|c| (linear_to_srgb(c) * 255.0 + 0.5) as u8)
+            })
+            .collect()
+    }
+
+    /// Writes a tonemapped sRGB PNG (clamp after exposure).
+    pub fn write_png(&self, path: &Path, stops: f32) -> Result<(), ImageError> {
+        write_rgb8_png(path, self.width, self.height, &self.to_srgb8(stops))
+    }
+}
+
+/// Writes 8-bit RGB bytes as a PNG, atomically.
+pub fn write_rgb8_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<(), ImageError> {
+    write_atomic(path, |tmp| {
+        ::image::save_buffer_with_format(
+            tmp,
+            rgb,
+            width,
+            height,
+            ::image::ColorType::Rgb8,
+            ::image::ImageFormat::Png,
+        )
+        .map_err(|e| e.to_string())
+    })
+    .map_err(|message| ImageError::Write {
+        path: path.to_path_buf(),
+        message,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn exr_round_trip_is_exact() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut img = Image::new(7, 5);
+        for (i, p) in img.pixels.iter_mut().enumerate() {
+            *p = Vec3::new(i as f32 * 0.1, 1e4, 1e-6 * i as f32);
+        }
+        let path = dir.path().join("a.exr");
+        img.write_exr(&path).unwrap();
+        assert_eq!(Image::read_exr(&path).unwrap(), img);
+        img.write_png(&dir.path().join("a.png"), 0.0).unwrap();
+        // Only the two outputs remain: no temporary files.
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
+        assert!(Image::read_exr(&dir.path().join("missing.exr")).is_err());
+    }
+}

@@ -1,0 +1,294 @@
+//! The view file shared by every render command (JSON, `"version": 1`).
+//!
+//! ```json
+//! {
+//!   "version": 1,
+//!   "camera": { "eye": [0, 1, 4], "target": [0, 0.5, 0], "up": [0, 1, 0],
+//!               "fov_y_deg": 40, "width": 256, "height": 256 },
+//!   "environment": { "path": "sky.exr", "intensity": 1.0, "rotation_deg": 0 },
+//!   "sun": { "direction": [0.3, 1, 0.2], "irradiance": 3.0 },
+//!   "spp": 64,
+//!   "seed": 0
+//! }
+//! ```
+//!
+//! `environment` is either `{path, intensity, rotation_deg}` (equirectangular .exr or .hdr,
+//! Mitsuba 3's convention, rotated by `rotation_deg` about +Y) or `{"constant": [r, g, b]}`.
+//! `sun.direction` points towards the light; `irradiance` (a number or `[r, g, b]`) is in W/m² on
+//! a surface facing it. No environment and no sun means a constant white environment. Relative
+//! paths resolve against the view file's folder.
+
+use std::path::{Path, PathBuf};
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+/// Errors reading a view file.
+#[derive(Debug, thiserror::Error)]
+pub enum ViewError {
+    #[error("cannot read view file {path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: {message}")]
+    Invalid { path: PathBuf, message: String },
+}
+
+/// A colour given as one number or three.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(untagged)]
+pub enum Rgb {
+    Scalar(f32),
+    Rgb([f32; 3]),
+}
+
+impl Rgb {
+    pub fn to_vec3(self) -> Vec3 {
+        match self {
+            Rgb::Scalar(s) => Vec3::splat(s),
+            Rgb::Rgb(c) => Vec3::from(c),
+        }
+    }
+}
+
+fn default_up() -> [f32; 3] {
+    [0.0, 1.0, 0.0]
+}
+fn default_fov() -> f32 {
+    40.0
+}
+fn default_size() -> u32 {
+    256
+}
+fn default_one() -> f32 {
+    1.0
+}
+fn default_spp() -> u32 {
+    64
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct CameraDesc {
+    pub eye: [f32; 3],
+    pub target: [f32; 3],
+    #[serde(default = "default_up")]
+    pub up: [f32; 3],
+    #[serde(default = "default_fov")]
+    pub fov_y_deg: f32,
+    #[serde(default = "default_size")]
+    pub width: u32,
+    #[serde(default = "default_size")]
+    pub height: u32,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(untagged)]
+pub enum EnvironmentDesc {
+    Constant {
+        constant: Rgb,
+    },
+    Map {
+        path: PathBuf,
+        #[serde(default = "default_one")]
+        intensity: f32,
+        #[serde(default)]
+        rotation_deg: f32,
+    },
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SunDesc {
+    /// Towards the light.
+    pub direction: [f32; 3],
+    /// W/m² on a surface facing the sun.
+    pub irradiance: Rgb,
+}
+
+/// A parsed view file.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct View {
+    pub version: u32,
+    pub camera: CameraDesc,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub environment: Option<EnvironmentDesc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sun: Option<SunDesc>,
+    #[serde(default = "default_spp")]
+    pub spp: u32,
+    #[serde(default)]
+    pub seed: u64,
+}
+
+/// The view-file format version this build reads and writes.
+pub const VIEW_VERSION: u32 = 1;
+
+impl View {
+    /// Reads and validates a view file; relative environment paths become absolute against its
+    /// folder.
+    pub fn load(path: &Path) -> Result<View, ViewError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ViewError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let invalid = |message: String| ViewError::Invalid {
+            path: path.to_path_buf(),
+            message,
+        };
+        let mut view: View = serde_json::from_str(&text)
+            .map_err(|e| invalid(format!("not a valid view file: {e}")))?;
+        view.validate().map_err(invalid)?;
+        if let Some(EnvironmentDesc::Map { path: p, .. }) = &mut view.environment {
+            if p.is_relative() {
+                *p = path.parent().unwrap_or(Path::new(".")).join(&*p);
+            }
+        }
+        Ok(view)
+    }
+
+    /// Checks ranges: version, finite vectors, sizes, fov, spp.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.version != VIEW_VERSION {
+            return Err(format!(
+                "view file version {} is not supported (this build reads version {VIEW_VERSION})",
+                self.version
+            ));
+        }
+        let c = &self.camera;
+        let eye = Vec3::from(c.eye);
+        let target = Vec3::from(c.target);
+        let up = Vec3::from(c.up);
+        if !(eye.is_finite() && target.is_finite() && up.is_finite()) {
+            return Err("camera eye, target and up must be finite".into());
+        }
+        let fwd = target - eye;
+        if fwd.length() < 1e-12 {
+            return Err("camera eye and target coincide".into());
+        }
+        if fwd.normalize().cross(up.normalize_or_zero()).length() < 1e-6 {
+            return Err("camera up is parallel to the viewing direction".into());
+        }
+        if !(c.fov_y_deg > 0.0 && c.fov_y_deg < 179.0) {
+            return Err(format!("fov_y_deg {} must be in (0, 179)", c.fov_y_deg));
+        }
+        if c.width == 0 || c.height == 0 || c.width > 16384 || c.height > 16384 {
+            return Err(format!(
+                "image size {}x{} must be 1 to 16384 per side",
+                c.width, c.height
+            ));
+        }
+        if self.spp == 0 || self.spp > 1 << 20 {
+            return Err(format!("spp {} must be 1 to 1048576", self.spp));
+        }
+        if let Some(s) = &self.sun {
+            let d = Vec3::from(s.direction);
+            if !d.is_finite() || d.length() < 1e-12 {
+                return Err("sun direction must be a finite non-zero vector".into());
+            }
+            let e = s.irradiance.to_vec3();
+            if !e.is_finite() || e.min_element() < 0.0 {
+                return Err("sun irradiance must be finite and non-negative".into());
+            }
+        }
+        match &self.environment {
+            Some(EnvironmentDesc::Constant { constant }) => {
+                let c = constant.to_vec3();
+                if !c.is_finite() || c.min_element() < 0.0 {
+                    return Err("constant environment must be finite and non-negative".into());
+                }
+            }
+            Some(EnvironmentDesc::Map {
+                intensity,
+                rotation_deg,
+                ..
+            }) => {
+                if !intensity.is_finite() || *intensity < 0.0 || !rotation_deg.is_finite() {
+                    return Err(
+                        "environment intensity must be finite and non-negative, rotation finite"
+                            .into(),
+                    );
+                }
+            }
+            None => {}
+        }
+        Ok(())
+    }
+
+    /// A view that frames a bounding sphere: the camera looks at the centre from the front,
+    /// a little right and above, far enough that the sphere fits the smaller image side.
+    pub fn framing(center: Vec3, radius: f32, width: u32, height: u32, spp: u32) -> View {
+        let fov_y_deg: f32 = 40.0;
+        let aspect = width as f32 / height as f32;
+        let half_fov_y = (fov_y_deg * 0.5).to_radians();
+        let half_fov_x = (half_fov_y.tan() * aspect).atan();
+        let half = half_fov_y.min(half_fov_x);
+        let dist = radius / half.sin() * 1.02;
+        let dir = Vec3::new(0.45, 0.35, 1.0).normalize();
+        let eye = center + dir * dist;
+        View {
+            version: VIEW_VERSION,
+            camera: CameraDesc {
+                eye: eye.to_array(),
+                target: center.to_array(),
+                up: default_up(),
+                fov_y_deg,
+                width,
+                height,
+            },
+            environment: None,
+            sun: None,
+            spp,
+            seed: 0,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_and_rejects() {
+        let ok = r#"{"version":1,"camera":{"eye":[0,0,5],"target":[0,0,0]},
+            "environment":{"constant":[1,0.5,0.25]},"sun":{"direction":[0,1,0],"irradiance":2}}"#;
+        let v: View = serde_json::from_str(ok).unwrap();
+        v.validate().unwrap();
+        assert_eq!(v.camera.width, 256);
+        assert_eq!(
+            v.sun.as_ref().unwrap().irradiance.to_vec3(),
+            Vec3::splat(2.0)
+        );
+        let map = r#"{"version":1,"camera":{"eye":[0,0,5],"target":[0,0,0]},
+            "environment":{"path":"a.exr","rotation_deg":90}}"#;
+        let v: View = serde_json::from_str(map).unwrap();
+        assert!(
+            matches!(v.environment, Some(EnvironmentDesc::Map { intensity, .. }) if intensity == 1.0)
+        );
+        for bad in [
+            r#"{"version":2,"camera":{"eye":[0,0,5],"target":[0,0,0]}}"#,
+            r#"{"version":1,"camera":{"eye":[0,0,0],"target":[0,0,0]}}"#,
+            r#"{"version":1,"camera":{"eye":[0,5,0],"target":[0,0,0]}}"#,
+            r#"{"version":1,"camera":{"eye":[0,0,5],"target":[0,0,0],"fov_y_deg":0}}"#,
+            r#"{"version":1,"camera":{"eye":[0,0,5],"target":[0,0,0],"width":0}}"#,
+        ] {
+            let v: View = serde_json::from_str(bad).unwrap();
+            assert!(v.validate().is_err(), "{bad}");
+        }
+        assert!(serde_json::from_str::<View>(
+            r#"{"version":1,"camera":{"eye":[0,0,5],"target":[0,0,0]},"spam":1}"#
+        )
+        .is_err());
+    }
+
+    #[test]
+    fn framing_contains_sphere() {
+        let v = View::framing(Vec3::new(1.0, 2.0, 3.0), 2.0, 320, 200, 4);
+        v.validate().unwrap();
+        let d = (Vec3::from(v.camera.eye) - Vec3::new(1.0, 2.0, 3.0)).length();
+        assert!(d > 2.0 / (20f32.to_radians().sin()));
+    }
+}
