@@ -116,6 +116,95 @@ impl SceneData {
     }
 }
 
+impl SceneData {
+    /// The scene as the importer would produce it from [`to_glb`] (without the file): for
+    /// tests and benchmarks that need a scene in memory.
+    pub fn to_scene(&self) -> crate::scene::Scene {
+        use crate::scene::{
+            AlphaMode, Instance, Material, Mesh, Scene, Texture, TextureRef, WrapMode,
+        };
+        let mut scene = Scene::default();
+        for m in &self.materials {
+            let base_color_texture = m.texture.as_ref().map(|(w, h, rgba)| {
+                let lut = crate::math::color::srgb8_table();
+                scene.textures.push(Texture {
+                    name: m.name.clone(),
+                    width: *w,
+                    height: *h,
+                    texels: rgba
+                        .chunks_exact(4)
+                        .map(|p| {
+                            glam::Vec4::new(
+                                lut[p[0] as usize],
+                                lut[p[1] as usize],
+                                lut[p[2] as usize],
+                                p[3] as f32 / 255.0,
+                            )
+                        })
+                        .collect(),
+                    wrap_s: WrapMode::ClampToEdge,
+                    wrap_t: WrapMode::ClampToEdge,
+                });
+                TextureRef {
+                    texture: scene.textures.len() as u32 - 1,
+                    transform: Default::default(),
+                }
+            });
+            scene.materials.push(Material {
+                name: m.name.clone(),
+                base_color: glam::Vec4::from(m.base_color),
+                base_color_texture,
+                metallic: m.metallic,
+                perceptual_roughness: m.roughness,
+                metallic_roughness_texture: None,
+                specular_factor: m.specular_factor.unwrap_or(1.0),
+                specular_texture: None,
+                alpha_mode: m
+                    .alpha_cutoff
+                    .map(AlphaMode::Mask)
+                    .unwrap_or(AlphaMode::Opaque),
+            });
+        }
+        let mut first_mesh = Vec::new();
+        for prims in &self.meshes {
+            first_mesh.push(scene.meshes.len() as u32);
+            for (m, mat) in prims {
+                scene.meshes.push(Mesh {
+                    name: format!("generated {}", scene.meshes.len()),
+                    positions: m.positions.clone(),
+                    normals: m.normals.clone(),
+                    uvs: m.uvs.clone(),
+                    triangles: m
+                        .indices
+                        .chunks_exact(3)
+                        .map(|c| [c[0], c[1], c[2]])
+                        .collect(),
+                    material: *mat as u32,
+                });
+            }
+        }
+        for n in &self.nodes {
+            let placements: Vec<Mat4> = if n.gpu_instances.is_empty() {
+                vec![n.matrix]
+            } else {
+                n.gpu_instances
+                    .iter()
+                    .map(|&(t, r, s)| n.matrix * Mat4::from_scale_rotation_translation(s, r, t))
+                    .collect()
+            };
+            for m in placements {
+                for k in 0..self.meshes[n.mesh].len() {
+                    scene.instances.push(Instance {
+                        mesh: first_mesh[n.mesh] + k as u32,
+                        transform: glam::Affine3A::from_mat4(m),
+                    });
+                }
+            }
+        }
+        scene
+    }
+}
+
 struct Bin {
     data: Vec<u8>,
     views: Vec<Value>,

@@ -1,0 +1,178 @@
+//! The command line: outputs exist, errors are clear and never panics.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn aggtool(args: &[&str], cwd: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_aggtool"))
+        .args(args)
+        .current_dir(cwd)
+        .output()
+        .expect("run aggtool")
+}
+
+fn ok(o: &Output) -> String {
+    assert!(
+        o.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn fails_with(o: &Output, needle: &str) {
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "expected failure");
+    assert!(
+        err.contains(needle),
+        "stderr '{err}' should contain '{needle}'"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+}
+
+#[test]
+fn gen_reference_compare_round_trip() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    ok(&aggtool(
+        &["gen", "displaced-sphere", "-o", ".", "--triangles", "2000"],
+        p,
+    ));
+    let view = r#"{"version": 1, "camera": {"eye": [0, 0.3, 2.2], "target": [0, 0, 0], "fov_y_deg": 35, "width": 24, "height": 16},
+        "environment": {"constant": [0.8, 0.9, 1.0]}, "sun": {"direction": [1, 1, 0.5], "irradiance": 2}, "spp": 4, "seed": 7}"#;
+    std::fs::write(p.join("view.json"), view).unwrap();
+    let out = ok(&aggtool(
+        &[
+            "reference",
+            "displaced-sphere.glb",
+            "--view",
+            "view.json",
+            "-o",
+            "a.exr",
+        ],
+        p,
+    ));
+    assert!(out.contains("stats:") && out.contains("output:"), "{out}");
+    assert!(p.join("a.exr").exists() && p.join("a.png").exists());
+    ok(&aggtool(
+        &[
+            "reference",
+            "displaced-sphere.glb",
+            "--view",
+            "view.json",
+            "-o",
+            "b.exr",
+        ],
+        p,
+    ));
+    let json = ok(&aggtool(
+        &["compare", "a.exr", "b.exr", "--json", "--diff", "d.png"],
+        p,
+    ));
+    let v: serde_json::Value = serde_json::from_str(json.trim()).unwrap();
+    assert_eq!(v["rmse"], 0.0, "same seed, same image");
+    assert_eq!(
+        (v["width"].as_u64(), v["height"].as_u64()),
+        (Some(24), Some(16))
+    );
+    assert!(p.join("d.png").exists());
+    // A different seed gives a different image, compared with a positive RMSE.
+    ok(&aggtool(
+        &[
+            "reference",
+            "displaced-sphere.glb",
+            "--view",
+            "view.json",
+            "--seed",
+            "8",
+            "-o",
+            "c.exr",
+        ],
+        p,
+    ));
+    let v: serde_json::Value =
+        serde_json::from_str(ok(&aggtool(&["compare", "a.exr", "c.exr", "--json"], p)).trim())
+            .unwrap();
+    assert!(v["rmse"].as_f64().unwrap() > 0.0);
+    // Different sizes are a clear error.
+    ok(&aggtool(
+        &[
+            "reference",
+            "displaced-sphere.glb",
+            "--auto-view",
+            "--width",
+            "8",
+            "--height",
+            "8",
+            "--spp",
+            "1",
+            "-o",
+            "small.exr",
+        ],
+        p,
+    ));
+    fails_with(
+        &aggtool(&["compare", "a.exr", "small.exr"], p),
+        "sizes differ",
+    );
+}
+
+#[test]
+fn bad_inputs_fail_cleanly() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    fails_with(&aggtool(&["gen", "teapot", "-o", "."], p), "unknown scene");
+    fails_with(
+        &aggtool(
+            &["reference", "missing.glb", "--auto-view", "-o", "x.exr"],
+            p,
+        ),
+        "missing.glb",
+    );
+    std::fs::write(p.join("bad.obj"), "v 0 0 0\nv 1 0 0\nf 1 2 9\n").unwrap();
+    fails_with(&aggtool(&["info", "bad.obj"], p), "bad.obj");
+    ok(&aggtool(
+        &["gen", "plane45", "-o", ".", "--triangles", "100"],
+        p,
+    ));
+    std::fs::write(
+        p.join("v2.json"),
+        r#"{"version": 2, "camera": {"eye": [0,0,1], "target": [0,0,0]}}"#,
+    )
+    .unwrap();
+    fails_with(
+        &aggtool(
+            &[
+                "reference",
+                "plane45.glb",
+                "--view",
+                "v2.json",
+                "-o",
+                "x.exr",
+            ],
+            p,
+        ),
+        "version 2",
+    );
+    std::fs::write(p.join("env.json"), r#"{"version": 1, "camera": {"eye": [0,0,1], "target": [0,0,0]}, "environment": {"path": "nope.exr"}}"#).unwrap();
+    fails_with(
+        &aggtool(
+            &[
+                "reference",
+                "plane45.glb",
+                "--view",
+                "env.json",
+                "-o",
+                "x.exr",
+            ],
+            p,
+        ),
+        "nope.exr",
+    );
+    fails_with(&aggtool(&["compare", "nope.exr", "x.exr"], p), "nope.exr");
+    fails_with(
+        &aggtool(&["reference", "plane45.glb", "-o", "x.exr"], p),
+        "--auto-view",
+    );
+    assert!(!p.join("x.exr").exists(), "no output after a failure");
+}

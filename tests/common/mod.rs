@@ -1,0 +1,33 @@
+//! Helpers shared by the integration tests.
+#![allow(dead_code)]
+
+use std::path::PathBuf;
+
+/// `../shared/assets` beside the checkout, or `None` (with a message) when it is absent:
+/// tests that need it skip, they never fail for its absence.
+pub fn shared_assets() -> Option<PathBuf> {
+    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/assets");
+    if p.is_dir() {
+        Some(p)
+    } else {
+        eprintln!("skipped: {} is absent", p.display());
+        None
+    }
+}
+
+/// Generates a scene into a temporary folder and imports it.
+pub fn generated(
+    name: &str,
+    triangles: usize,
+    lambertian: bool,
+) -> (tempfile::TempDir, aggtool::scene::Scene) {
+    let dir = tempfile::tempdir().unwrap();
+    let settings = aggtool::gen::GenSettings {
+        triangles,
+        lambertian,
+        seed: 1,
+    };
+    let (path, _) = aggtool::gen::write(name, &settings, dir.path(), false).unwrap();
+    let scene = aggtool::import::load(&path, Default::default()).unwrap();
+    (dir, scene)
+}
