@@ -1,10 +1,11 @@
 //! Lights of the view file: an environment (constant or equirectangular map, importance
 //! sampled) and an optional sun (a directional light given by its irradiance).
 //!
-//! The map is evaluated exactly as Mitsuba 3's `envmap` does, so that renders can be checked
-//! against Mitsuba: texel centres sit on integer positions of a grid of `(W + 1) × H` samples
-//! whose last column repeats the first, `x = u · W`, `y = v · (H − 1)`, bilinear in between. It
-//! is sampled from a piecewise-constant density over the `W × (H − 1)` cells of that grid,
+//! The map is evaluated exactly as Mitsuba 3's `envmap` does (probed with Mitsuba 3.9: texel
+//! column `i` peaks at `u = (i + ½) / W`, row `j` at `v = j / (H − 1)`), so that renders can be
+//! checked against Mitsuba: in grid coordinates `x = u · W − ½` (wrapped around) and
+//! `y = v · (H − 1)` texel centres sit on integers and values are bilinear in between. It is
+//! sampled from a piecewise-constant density over the `W × (H − 1)` cells of that grid,
 //! weighted by the mean luminance of each cell's corners times sin θ; a cell whose corners are
 //! all black has zero radiance inside and zero density, any other cell has both positive.
 
@@ -102,10 +103,32 @@ impl EnvMap {
         }
     }
 
+    /// Map coordinate u to grid coordinate (cells start at texel centres), both in [0, 1).
     #[inline]
-    fn lookup(&self, uv: Vec2) -> Vec3 {
-        let x = (uv.x * self.width as f32).clamp(0.0, self.width as f32);
-        let y = (uv.y * (self.height - 1) as f32).clamp(0.0, (self.height - 1) as f32);
+    fn u_to_grid(&self, u: f32) -> f32 {
+        let g = u - 0.5 / self.width as f32;
+        if g < 0.0 {
+            g + 1.0
+        } else {
+            g
+        }
+    }
+
+    #[inline]
+    fn grid_to_u(&self, g: f32) -> f32 {
+        let u = g + 0.5 / self.width as f32;
+        if u >= 1.0 {
+            u - 1.0
+        } else {
+            u
+        }
+    }
+
+    /// Bilinear lookup at grid coordinates (x in [0,1) of the width, y = v).
+    #[inline]
+    fn lookup(&self, g: Vec2) -> Vec3 {
+        let x = (g.x * self.width as f32).clamp(0.0, self.width as f32);
+        let y = (g.y * (self.height - 1) as f32).clamp(0.0, (self.height - 1) as f32);
         let x0 = (x as usize).min(self.width - 1);
         let y0 = (y as usize).min(self.height - 2);
         let fx = x - x0 as f32;
@@ -118,16 +141,13 @@ impl EnvMap {
 
     #[inline]
     pub fn eval(&self, dir: Vec3) -> Vec3 {
-        self.lookup(dir_to_equirect(self.world_to_map * dir))
+        let uv = dir_to_equirect(self.world_to_map * dir);
+        self.lookup(Vec2::new(self.u_to_grid(uv.x), uv.y))
     }
 
     pub fn sample(&self, u: Vec2) -> Option<LightSample> {
-        let (uv, pdf_uv) = self.dist.sample(u);
-        let _ = pdf_uv;
-        let sin_theta = (PI * uv.y).sin();
-        if !(pdf_uv > 0.0) || !(sin_theta > 0.0) {
-            return None;
-        }
+        let (g, _) = self.dist.sample(u);
+        let uv = Vec2::new(self.grid_to_u(g.x), g.y);
         let wi = self.map_to_world * equirect_to_dir(uv);
         // The density as `pdf` will recompute it from the direction (at the poles the round
         // trip through a direction can lose the last bits of sin θ).
@@ -137,7 +157,7 @@ impl EnvMap {
         }
         Some(LightSample {
             wi,
-            radiance: self.lookup(uv),
+            radiance: self.lookup(g),
             pdf,
         })
     }
@@ -148,7 +168,8 @@ impl EnvMap {
         // sin θ from the direction itself (exact near the poles, where sin(acos(y)) is not);
         // the floor keeps the density positive on the pole's measure-zero set.
         let sin_theta = (d.x * d.x + d.z * d.z).sqrt().max(1e-7);
-        crate::math::finite_or_zero(self.dist.pdf(uv) / (2.0 * PI * PI * sin_theta))
+        let g = Vec2::new(self.u_to_grid(uv.x), uv.y);
+        crate::math::finite_or_zero(self.dist.pdf(g) / (2.0 * PI * PI * sin_theta))
     }
 }
 
@@ -279,18 +300,26 @@ mod tests {
 
     #[test]
     fn mitsuba_lookup_convention() {
-        // A 4x3 map: the texel at column 1 (u = 1/4) of the middle row is seen from +X.
+        // A 4x3 map with one lit texel, column 1 of the middle row: as in Mitsuba 3.9 (see
+        // the module documentation) it peaks at u = 1.5/4 on the horizon, falls off linearly to
+        // u = 0.5/4 and 2.5/4, and linearly in v to the poles.
         let mut img = Image::new(4, 3);
         img.pixels[4 + 1] = Vec3::ONE;
         let m = EnvMap::new(&img, 2.0, 0.0);
-        assert!((m.eval(Vec3::X) - Vec3::splat(2.0)).length() < 1e-5);
-        assert_eq!(m.eval(-Vec3::X), Vec3::ZERO);
-        // Rotating the map by 90° about +Y moves that texel to -Z... (R_y(90°) maps +X to -Z).
+        let at = |u: f32, v: f32| m.eval(equirect_to_dir(Vec2::new(u, v))).x;
+        assert!((at(0.375, 0.5) - 2.0).abs() < 1e-4);
+        assert!((at(0.25, 0.5) - 1.0).abs() < 1e-4);
+        assert!((at(0.45, 0.5) - 1.4).abs() < 1e-3);
+        assert!((at(0.375, 0.25) - 1.0).abs() < 1e-3);
+        assert!(at(0.125, 0.5).abs() < 1e-5 && at(0.9, 0.5).abs() < 1e-5);
+        // Rotating the map about +Y by 90° turns the peak's direction by R_y(90°).
         let r = EnvMap::new(&img, 1.0, 90.0);
+        let peak =
+            Mat3::from_rotation_y(90f32.to_radians()) * equirect_to_dir(Vec2::new(0.375, 0.5));
         assert!(
-            (r.eval(-Vec3::Z) - Vec3::ONE).length() < 1e-5,
+            (r.eval(peak) - Vec3::ONE).length() < 1e-4,
             "{}",
-            r.eval(-Vec3::Z)
+            r.eval(peak)
         );
     }
 }
