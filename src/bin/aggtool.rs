@@ -239,7 +239,7 @@ fn demo(output: &Path) -> Result<()> {
     println!("input: generated {} ({} triangles)", asset.display(), tris);
     let scene = load_scene(&asset, false)?;
     let (c, r) = scene.bounding_sphere();
-    let mut view = View::framing(c, r, 256, 256, 16);
+    let mut view = View::framing(c, r, 256, 256, 64);
     view.sun = Some(aggtool::render::view::SunDesc {
         direction: [0.4, 1.0, 0.3],
         irradiance: aggtool::render::view::Rgb::Scalar(3.0),

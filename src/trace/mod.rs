@@ -341,61 +341,86 @@ impl<'s> Accel<'s> {
         }
     }
 
+    /// Whether candidate `pid` of entry `e`'s BLAS is cut out.
+    #[inline]
+    fn entry_cut(&self, e: &TlasEntry, blas: &Blas, pid: usize, r: &BvhRay) -> bool {
+        let pr = blas.refs[pid];
+        let inst = if pr.instance == u32::MAX {
+            e.instance
+        } else {
+            pr.instance
+        };
+        self.cut_out(inst, pr.triangle, &blas.tris[pid], r)
+    }
+
+    /// Closest hit inside one TLAS entry: (t, BLAS primitive).
+    #[inline]
+    fn entry_closest(&self, e: &TlasEntry, r: &BvhRay) -> Option<(f32, u32)> {
+        let blas = &self.blases[e.blas as usize];
+        let or = self.object_ray(e, r);
+        let mut h = RayHit::none();
+        let hit = blas.bvh.ray_traverse(or, &mut h, |r2, pid| {
+            let t = blas.tris[pid].intersect(r2);
+            if t < r2.tmax && blas.cutout && self.entry_cut(e, blas, pid, r2) {
+                return f32::INFINITY;
+            }
+            t
+        });
+        hit.then_some((h.t, h.primitive_id))
+    }
+
+    /// Whether anything inside one TLAS entry blocks the ray.
+    #[inline]
+    fn entry_occluded(&self, e: &TlasEntry, r: &BvhRay) -> bool {
+        let blas = &self.blases[e.blas as usize];
+        let or = self.object_ray(e, r);
+        !blas.bvh.ray_traverse_miss(or, |r2, pid| {
+            let t = blas.tris[pid].intersect(r2);
+            if t < r2.tmax && blas.cutout && self.entry_cut(e, blas, pid, r2) {
+                return f32::INFINITY;
+            }
+            t
+        })
+    }
+
     /// Closest hit along the ray, honouring cut-outs.
     pub fn intersect(&self, ray: &Ray) -> Option<Hit> {
         let tlas = self.tlas.as_ref()?;
-        let mut best: Option<(u32, u32, u32)> = None; // (entry, blas prim, instance)
-        let mut top_hit = RayHit::none();
-        tlas.ray_traverse(ray.to_bvh(), &mut top_hit, |r, id| {
-            let entry_id = tlas.primitive_indices[id];
-            let e = &self.entries[entry_id as usize];
-            let blas = &self.blases[e.blas as usize];
-            let or = self.object_ray(e, r);
-            let mut h = RayHit::none();
-            let mut found = None;
-            blas.bvh.ray_traverse(or, &mut h, |r2, pid| {
-                let tri = &blas.tris[pid];
-                let t = tri.intersect(r2);
-                if t < r2.tmax && blas.cutout {
-                    let pr = blas.refs[pid];
-                    let inst = if pr.instance == u32::MAX {
-                        e.instance
-                    } else {
-                        pr.instance
-                    };
-                    if self.cut_out(inst, pr.triangle, tri, r2) {
-                        return f32::INFINITY;
+        let world = ray.to_bvh();
+        // (entry, BLAS primitive, t)
+        let (entry_id, pid, t) = if self.entries.len() == 1 {
+            // One entry (every single-placement mesh merged): skip the top level.
+            let (t, pid) = self.entry_closest(&self.entries[0], &world)?;
+            (0, pid, t)
+        } else {
+            let mut best: Option<(u32, u32)> = None;
+            let mut top_hit = RayHit::none();
+            tlas.ray_traverse(world, &mut top_hit, |r, id| {
+                let entry_id = tlas.primitive_indices[id];
+                match self.entry_closest(&self.entries[entry_id as usize], r) {
+                    Some((t, pid)) if t < r.tmax => {
+                        best = Some((entry_id, pid));
+                        t
                     }
+                    _ => f32::INFINITY,
                 }
-                if t < r2.tmax {
-                    found = Some(pid as u32);
-                }
-                t
             });
-            match found {
-                Some(pid) if h.t < r.tmax => {
-                    let pr = blas.refs[pid as usize];
-                    let inst = if pr.instance == u32::MAX {
-                        e.instance
-                    } else {
-                        pr.instance
-                    };
-                    best = Some((entry_id, pid, inst));
-                    h.t
-                }
-                _ => f32::INFINITY,
-            }
-        });
-        let (entry_id, pid, instance) = best?;
+            let (e, p) = best?;
+            (e, p, top_hit.t)
+        };
         let e = &self.entries[entry_id as usize];
         let blas = &self.blases[e.blas as usize];
-        let or = self.object_ray(e, &ray.to_bvh());
-        let bary = barycentrics(&blas.tris[pid as usize], or.origin, or.direction);
+        let pr = blas.refs[pid as usize];
+        let or = self.object_ray(e, &world);
         Some(Hit {
-            t: top_hit.t,
-            instance,
-            triangle: blas.refs[pid as usize].triangle,
-            bary,
+            t,
+            instance: if pr.instance == u32::MAX {
+                e.instance
+            } else {
+                pr.instance
+            },
+            triangle: pr.triangle,
+            bary: barycentrics(&blas.tris[pid as usize], or.origin, or.direction),
         })
     }
 
@@ -404,30 +429,15 @@ impl<'s> Accel<'s> {
         let Some(tlas) = self.tlas.as_ref() else {
             return false;
         };
-        !tlas.ray_traverse_miss(ray.to_bvh(), |r, id| {
-            let e = &self.entries[tlas.primitive_indices[id] as usize];
-            let blas = &self.blases[e.blas as usize];
-            let or = self.object_ray(e, r);
-            let miss = blas.bvh.ray_traverse_miss(or, |r2, pid| {
-                let tri = &blas.tris[pid];
-                let t = tri.intersect(r2);
-                if t < r2.tmax && blas.cutout {
-                    let pr = blas.refs[pid];
-                    let inst = if pr.instance == u32::MAX {
-                        e.instance
-                    } else {
-                        pr.instance
-                    };
-                    if self.cut_out(inst, pr.triangle, tri, r2) {
-                        return f32::INFINITY;
-                    }
-                }
-                t
-            });
-            if miss {
-                f32::INFINITY
-            } else {
+        let world = ray.to_bvh();
+        if self.entries.len() == 1 {
+            return self.entry_occluded(&self.entries[0], &world);
+        }
+        !tlas.ray_traverse_miss(world, |r, id| {
+            if self.entry_occluded(&self.entries[tlas.primitive_indices[id] as usize], r) {
                 r.tmin
+            } else {
+                f32::INFINITY
             }
         })
     }

@@ -27,7 +27,17 @@ mi = pytest.importorskip("mitsuba")
 mi.set_variant("scalar_rgb")
 
 ROOT = Path(__file__).resolve().parents[2]
-AGGTOOL = Path(os.environ.get("AGGTOOL", ROOT / "target" / "release" / "aggtool"))
+def _find_aggtool():
+    """$AGGTOOL, else the newer of target/release and target/debug builds."""
+    if "AGGTOOL" in os.environ:
+        return Path(os.environ["AGGTOOL"])
+    builds = [p for p in (ROOT / "target" / "release" / "aggtool", ROOT / "target" / "debug" / "aggtool") if p.exists()]
+    if not builds:
+        pytest.skip("no aggtool build: run `cargo build` first", allow_module_level=True)
+    return max(builds, key=lambda p: p.stat().st_mtime)
+
+
+AGGTOOL = _find_aggtool()
 
 SIZE = 48
 SPP = 256
