@@ -1,12 +1,18 @@
 //! Pure math shared by every stage: colour, frames, random numbers, sampling warps, spherical
 //! parameterisations and microfacet distributions. Nothing here knows about scenes or files.
 
+pub mod beta;
 pub mod color;
 pub mod distribution;
 pub mod frame;
+pub mod lowdiscrepancy;
 pub mod microfacet;
 pub mod rng;
 pub mod sampling;
+pub mod sg;
+pub mod sggx;
+pub mod special;
+pub mod sphere_maps;
 pub mod spherical;
 
 pub use glam::{Vec2, Vec3};

@@ -1,0 +1,152 @@
+//! Area-preserving maps between the unit square and the sphere or hemisphere, each with its
+//! inverse: Clarberg's equal-area sphere map (used for the 32×32 interior-visibility maps) and
+//! the concentric hemisphere map (used for the 64×64 boundary-visibility maps over a face's
+//! inward hemisphere).
+
+use std::f32::consts::{FRAC_PI_2, FRAC_PI_4};
+
+use glam::{Vec2, Vec3};
+
+use super::safe_sqrt;
+use super::sampling::{concentric_disk_to_square, square_to_concentric_disk};
+
+/// Clarberg 2008, "Fast Equal-Area Mapping of the (Hemi)Sphere using SIMD": the square
+/// [0,1]² folds like an octahedron onto the sphere; every cell of a regular grid on the square
+/// covers the same solid angle (4π / cells). The centre of the square is +z, its corners −z.
+pub fn equal_area_square_to_sphere(p: Vec2) -> Vec3 {
+    let u = 2.0 * p.x - 1.0;
+    let v = 2.0 * p.y - 1.0;
+    let (au, av) = (u.abs(), v.abs());
+    // Signed distance from the diagonal |u| + |v| = 1: positive inside (northern hemisphere).
+    let sd = 1.0 - (au + av);
+    let r = 1.0 - sd.abs();
+    // Angle within the quadrant.
+    let phi = if r == 0.0 { 1.0 } else { (av - au) / r + 1.0 } * FRAC_PI_4;
+    let z = (1.0 - r * r).copysign(sd);
+    let s = r * safe_sqrt(2.0 - r * r);
+    Vec3::new(phi.cos().copysign(u) * s, phi.sin().copysign(v) * s, z)
+}
+
+/// Inverse of [`equal_area_square_to_sphere`].
+pub fn equal_area_sphere_to_square(d: Vec3) -> Vec2 {
+    let (x, y, z) = (d.x.abs(), d.y.abs(), d.z.abs());
+    let r = safe_sqrt(1.0 - z);
+    let a = x.max(y);
+    let b = if a == 0.0 { 0.0 } else { x.min(y) / a };
+    let mut phi = b.atan() / FRAC_PI_2;
+    if x < y {
+        phi = 1.0 - phi;
+    }
+    let mut v = phi * r;
+    let mut u = r - v;
+    if d.z < 0.0 {
+        std::mem::swap(&mut u, &mut v);
+        u = 1.0 - u;
+        v = 1.0 - v;
+    }
+    let u = u.copysign(d.x);
+    let v = v.copysign(d.y);
+    Vec2::new(0.5 * (u + 1.0), 0.5 * (v + 1.0))
+}
+
+/// Density of a uniform point of the square mapped by [`equal_area_square_to_sphere`]: 1/(4π).
+pub fn equal_area_sphere_pdf() -> f32 {
+    1.0 / (4.0 * std::f32::consts::PI)
+}
+
+/// Concentric equal-area map from the square to the +z hemisphere (Shirley–Chiu disk, lifted
+/// with z = 1 − r²).
+pub fn concentric_square_to_hemisphere(p: Vec2) -> Vec3 {
+    let d = square_to_concentric_disk(p);
+    let r2 = d.length_squared();
+    let s = safe_sqrt(2.0 - r2);
+    Vec3::new(d.x * s, d.y * s, 1.0 - r2)
+}
+
+/// Inverse of [`concentric_square_to_hemisphere`] (directions below the horizon are folded up).
+pub fn concentric_hemisphere_to_square(w: Vec3) -> Vec2 {
+    let r2 = (1.0 - w.z.abs()).clamp(0.0, 1.0);
+    let s = safe_sqrt(2.0 - r2);
+    let d = if s > 0.0 {
+        Vec2::new(w.x, w.y) / s
+    } else {
+        Vec2::ZERO
+    };
+    concentric_disk_to_square(d)
+}
+
+/// Density of a uniform point of the square mapped by [`concentric_square_to_hemisphere`].
+pub fn concentric_hemisphere_pdf() -> f32 {
+    1.0 / (2.0 * std::f32::consts::PI)
+}
+
+/// The cell of a `res × res` grid that contains square point `p` (row-major index).
+#[inline]
+pub fn grid_cell(p: Vec2, res: u32) -> u32 {
+    let x = ((p.x * res as f32) as u32).min(res - 1);
+    let y = ((p.y * res as f32) as u32).min(res - 1);
+    y * res + x
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::validation::chi2::{chi2_test, Chi2Settings};
+
+    fn grid() -> impl Iterator<Item = Vec2> {
+        (0..50).flat_map(|i| {
+            (0..50).map(move |j| Vec2::new((i as f32 + 0.37) / 50.0, (j as f32 + 0.61) / 50.0))
+        })
+    }
+
+    #[test]
+    fn clarberg_round_trip() {
+        for p in grid() {
+            let d = equal_area_square_to_sphere(p);
+            assert!((d.length() - 1.0).abs() < 1e-5);
+            let q = equal_area_sphere_to_square(d);
+            assert!((q - p).length() < 1e-4, "{p} -> {d} -> {q}");
+        }
+        assert!((equal_area_square_to_sphere(Vec2::splat(0.5)) - Vec3::Z).length() < 1e-6);
+        assert!((equal_area_square_to_sphere(Vec2::ZERO) + Vec3::Z).length() < 1e-6);
+    }
+
+    /// Equal area: uniform points on the square land uniformly on the sphere.
+    #[test]
+    fn clarberg_is_equal_area() {
+        let r = chi2_test(
+            Chi2Settings::default(),
+            |u| Some(equal_area_square_to_sphere(u)),
+            |_| equal_area_sphere_pdf(),
+        );
+        assert!(r.passed(0.01), "{r:?}");
+    }
+
+    #[test]
+    fn concentric_hemisphere_round_trip_and_chi2() {
+        for p in grid() {
+            let w = concentric_square_to_hemisphere(p);
+            assert!((w.length() - 1.0).abs() < 1e-5 && w.z >= 0.0);
+            assert!((concentric_hemisphere_to_square(w) - p).length() < 1e-3);
+        }
+        let r = chi2_test(
+            Chi2Settings::default(),
+            |u| Some(concentric_square_to_hemisphere(u)),
+            |w| {
+                if w.z >= 0.0 {
+                    concentric_hemisphere_pdf()
+                } else {
+                    0.0
+                }
+            },
+        );
+        assert!(r.passed(0.01), "{r:?}");
+    }
+
+    #[test]
+    fn grid_cells() {
+        assert_eq!(grid_cell(Vec2::new(0.0, 0.0), 32), 0);
+        assert_eq!(grid_cell(Vec2::new(1.0, 1.0), 32), 32 * 32 - 1);
+        assert_eq!(grid_cell(Vec2::new(0.5, 0.0), 4), 2);
+    }
+}
