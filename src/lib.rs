@@ -5,17 +5,21 @@
 //!
 //! - [`math`]: pure math (sampling, spherical maps, microfacets) that knows nothing of scenes;
 //! - [`scene`] and [`import`]: the scene representation and the glTF/OBJ importers;
+//! - [`tables`]: the five precomputed tables M1–M5 of the factorized ABSDF;
 //! - [`bsdf`]: the surface material model of the paper (Eq. 11);
+//! - [`absdf`]: the factorized aggregated BSDF of a voxel (Eq. 7–23) with sampling;
 //! - [`trace`]: two-level BVH ray tracing (obvhs) with alpha cut-outs;
 //! - [`render`]: view files, lights, the reference path tracer, image I/O and comparison;
 //! - [`gen`]: generators for the paper's hard cases;
 //! - [`validation`]: shared test harnesses (chi-square).
 
+pub mod absdf;
 pub mod bsdf;
 pub mod gen;
 pub mod import;
 pub mod math;
 pub mod render;
 pub mod scene;
+pub mod tables;
 pub mod trace;
 pub mod validation;

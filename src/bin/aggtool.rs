@@ -106,6 +106,30 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Plot the factored ABSDF against its ground truth for a validation voxel (8×8 outgoing
+    /// lat-long slices, like paper Fig. 4): ground truth | factored | difference.
+    AbsdfPlot {
+        /// One of: flat, curved, foliage, anisotropic, orientation-color, mixed-roughness,
+        /// metal-dielectric, or all.
+        case: String,
+        /// Output folder.
+        #[arg(short, long, default_value = ".")]
+        output: PathBuf,
+        /// Surface samples of the voxel.
+        #[arg(long, default_value_t = 4096)]
+        samples: u32,
+        /// Width of one slice in pixels.
+        #[arg(long, default_value_t = 32)]
+        slice: u32,
+        /// Exposure of the PNG in stops.
+        #[arg(long, default_value_t = 0.0)]
+        exposure: f32,
+    },
+    /// The precomputed tables M1–M5 of the factorized ABSDF.
+    Tables {
+        #[command(subcommand)]
+        action: TablesAction,
+    },
     /// Write an asset as world-space OBJ files, one per material, with materials.json
     /// (base colours) beside them: the input of the Mitsuba cross-check.
     Flatten {
@@ -113,6 +137,146 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+}
+
+#[derive(Subcommand)]
+enum TablesAction {
+    /// Fit every table against Monte Carlo ground truth and write the table file.
+    Build {
+        /// Output file (the crate embeds tables/aggtool-tables.bin).
+        #[arg(short, long, default_value = "tables/aggtool-tables.bin")]
+        output: PathBuf,
+        /// Monte Carlo samples per strategy per ground-truth direction (M1, M3).
+        #[arg(long, default_value_t = 128)]
+        samples: u32,
+        /// M3 resolution per axis.
+        #[arg(long, default_value_t = 50)]
+        m3_res: u32,
+        /// M1 resolution per axis.
+        #[arg(long, default_value_t = 20)]
+        m1_res: u32,
+    },
+    /// Print each table's fit error against fresh Monte Carlo ground truth.
+    Check {
+        /// Table file to check (default: the embedded one).
+        #[arg(long)]
+        file: Option<PathBuf>,
+        /// Random parameter points per table.
+        #[arg(long, default_value_t = 64)]
+        points: usize,
+        /// Monte Carlo samples per strategy per direction.
+        #[arg(long, default_value_t = 512)]
+        samples: u32,
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn tables_cmd(action: TablesAction) -> Result<()> {
+    use aggtool::tables::{fit, Tables};
+    match action {
+        TablesAction::Build {
+            output,
+            samples,
+            m3_res,
+            m1_res,
+        } => {
+            let t0 = std::time::Instant::now();
+            let t = fit::build(
+                fit::BuildSettings {
+                    samples,
+                    m3_res,
+                    m1_res,
+                },
+                true,
+            );
+            let bytes = t.to_bytes();
+            aggtool::render::image::write_atomic(&output, |tmp| {
+                std::fs::write(tmp, &bytes).map_err(|e| e.to_string())
+            })
+            .map_err(anyhow::Error::msg)?;
+            println!(
+                "output: {} ({} bytes) in {:.1} s",
+                output.display(),
+                bytes.len(),
+                t0.elapsed().as_secs_f64()
+            );
+            Ok(())
+        }
+        TablesAction::Check {
+            file,
+            points,
+            samples,
+            json,
+        } => {
+            let owned;
+            let t = match file {
+                Some(f) => {
+                    owned = Tables::from_bytes(
+                        &std::fs::read(&f)
+                            .with_context(|| format!("cannot read {}", f.display()))?,
+                    )?;
+                    &owned
+                }
+                None => Tables::embedded(),
+            };
+            let r = fit::check(t, points, samples);
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                println!(
+                    "{:<6} {:>7} {:>9} {:>9}  metric",
+                    "table", "points", "RMSE", "worst"
+                );
+                for c in r {
+                    println!(
+                        "{:<6} {:>7} {:>9.4} {:>9.4}  {}",
+                        c.table, c.points, c.rmse, c.worst, c.metric
+                    );
+                }
+            }
+            Ok(())
+        }
+    }
+}
+
+fn absdf_plot(case: &str, output: &Path, samples: u32, slice: u32, exposure: f32) -> Result<()> {
+    use aggtool::absdf::cases::{compare_case, plot_slices, CASES};
+    let t = aggtool::tables::Tables::embedded();
+    let names: Vec<&str> = if case == "all" {
+        CASES.to_vec()
+    } else {
+        vec![case]
+    };
+    std::fs::create_dir_all(output)?;
+    for name in names {
+        let Some((gt, ours)) = plot_slices(name, t, samples, slice.max(4)) else {
+            bail!("unknown case '{name}'; choose one of: {}", CASES.join(", "));
+        };
+        let (diff, scale) = difference_image(&ours, &gt, None);
+        // Side by side: ground truth | factored | difference.
+        let (w, h) = (gt.width, gt.height);
+        let mut rgb = vec![0u8; (3 * w * h * 3) as usize];
+        for (k, img) in [
+            gt.to_srgb8(exposure),
+            ours.to_srgb8(exposure),
+            diff.to_srgb8(0.0),
+        ]
+        .iter()
+        .enumerate()
+        {
+            for y in 0..h {
+                let src = &img[(y * w * 3) as usize..((y + 1) * w * 3) as usize];
+                let dst = ((y * 3 * w + k as u32 * w) * 3) as usize;
+                rgb[dst..dst + src.len()].copy_from_slice(src);
+            }
+        }
+        let path = output.join(format!("absdf-{name}.png"));
+        aggtool::render::image::write_rgb8_png(&path, 3 * w, h, &rgb)?;
+        let (r, _) = compare_case(name, t, samples, 8).expect("known case");
+        println!("{name}: lobes {} rmse {:.5} (ground truth rms {:.5}, relative {:.3}); difference white = {scale:.4}; output: {}", r.lobes, r.rmse, r.gt_rms, r.rmse / r.gt_rms, path.display());
+    }
+    Ok(())
 }
 
 fn load_scene(path: &Path, strict: bool) -> Result<Scene> {
@@ -384,6 +548,14 @@ fn run(cli: Cli) -> Result<()> {
             }
             Ok(())
         }
+        Command::Tables { action } => tables_cmd(action),
+        Command::AbsdfPlot {
+            case,
+            output,
+            samples,
+            slice,
+            exposure,
+        } => absdf_plot(&case, &output, samples, slice, exposure),
         Command::Flatten { asset, output } => {
             let scene = load_scene(&asset, false)?;
             flatten(&scene, &output)
