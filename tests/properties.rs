@@ -97,3 +97,79 @@ proptest! {
         }
     }
 }
+
+mod absdf_props {
+    use aggtool::absdf::{Absdf, MaterialMoments, Moments, NdfLobe, VoxelAppearance};
+    use aggtool::tables::Tables;
+    use glam::{Mat3, Quat, Vec2, Vec3};
+    use proptest::prelude::*;
+
+    fn any_unit() -> impl Strategy<Value = f32> {
+        prop_oneof![0.0f32..=1.0, Just(0.0f32), Just(1.0f32), Just(f32::NAN)]
+    }
+
+    fn any_lobe() -> impl Strategy<Value = NdfLobe> {
+        (
+            any_unit(),
+            (-3.0f32..3.0, -3.0f32..3.0, -3.0f32..3.0),
+            any_unit(),
+            any_unit(),
+        )
+            .prop_map(|(w, (a, b, c), ax, ay)| NdfLobe {
+                weight: w,
+                frame: Mat3::from_quat(Quat::from_euler(glam::EulerRot::XYZ, a, b, c)),
+                alpha: Vec2::new(ax, ay),
+            })
+    }
+
+    fn any_appearance() -> impl Strategy<Value = VoxelAppearance> {
+        (
+            proptest::collection::vec(any_lobe(), 0..5),
+            any_unit(),
+            any_unit(),
+            any_unit(),
+            any_unit(),
+        )
+            .prop_map(|(lobes, mean, var, c, m)| VoxelAppearance {
+                lobes,
+                roughness_mean: mean,
+                roughness_variance: var * 0.3,
+                moments: Moments::Constant(MaterialMoments {
+                    c: Vec3::splat(c),
+                    mc: Vec3::splat(c * m),
+                    s: 0.04,
+                    ms: 0.04 * m,
+                    m,
+                    f90: 1.0,
+                    mf90: m,
+                }),
+            })
+    }
+
+    fn any_dir() -> impl Strategy<Value = Vec3> {
+        prop_oneof![
+            (-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0).prop_map(|(x, y, z)| Vec3::new(x, y, z)),
+            Just(Vec3::Z),
+            Just(-Vec3::Z),
+            Just(Vec3::ZERO),
+            Just(Vec3::new(1.0, 0.0, 1e-7)),
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(500))]
+
+        /// Flat and fibre lobes (roughness 0), roughness 1, NaN parameters, zero weights,
+        /// ω_i = ±ω_o, zero vectors: no NaN or infinity leaves eval, pdf or sample.
+        #[test]
+        fn absdf_is_finite(app in any_appearance(), wi in any_dir(), wo in any_dir(), u in (0.0f32..1.0, 0.0f32..1.0, 0.0f32..1.0)) {
+            let a = Absdf::new(&app, Tables::embedded());
+            let (f, p) = a.eval_pdf(wi, wo);
+            prop_assert!(f.is_finite() && f.min_element() >= 0.0 && p.is_finite() && p >= 0.0);
+            prop_assert!(a.eval(wo, wo).is_finite() && a.eval(-wo, wo).is_finite());
+            if let Some(s) = a.sample(wo, u.0, Vec2::new(u.1, u.2)) {
+                prop_assert!(s.wi.is_finite() && s.value.is_finite() && s.pdf.is_finite() && s.pdf > 0.0);
+            }
+        }
+    }
+}

@@ -179,6 +179,8 @@ struct SpecLobe {
     /// Roughness of the macro lobe and of the microfacet lobe (for G).
     macro_alpha: Vec2,
     micro_alpha: f32,
+    /// Index of the microfacet lobe (0 or 1): S depends on it alone.
+    micro: usize,
     /// LTC inverse scale of the microfacet lobe (M4).
     inv_s: f32,
 }
@@ -289,7 +291,7 @@ impl<'t> Absdf<'t> {
             };
         let mut spec = Vec::new();
         for l in &lobes {
-            for &(m, a) in &micro {
+            for (mi, &(m, a)) in micro.iter().enumerate() {
                 if m <= 0.0 {
                     continue;
                 }
@@ -303,6 +305,7 @@ impl<'t> Absdf<'t> {
                     frame: l.frame,
                     macro_alpha: l.alpha,
                     micro_alpha: a,
+                    micro: mi,
                     inv_s: tables.m4.lookup1(&[a]),
                 });
             }
@@ -400,12 +403,20 @@ impl<'t> Absdf<'t> {
             let fc = schlick_weight(wh.dot(wo));
             let fres = (1.0 - fc) * sm.reflectance() + Vec3::splat(fc * sm.grazing());
             let mut acc = 0.0f32;
+            // S depends only on the microfacet lobe: compute it once per lobe (at most two).
+            let mut s_cache = [f32::NAN; 2];
             for l in &self.spec {
                 let d = l.sggx.d(wh);
                 if d <= 0.0 {
                     continue;
                 }
-                let s = ltc::lune_mass(wi, wo, wh, l.inv_s);
+                let s = if s_cache[l.micro].is_nan() {
+                    let v = ltc::lune_mass(wi, wo, wh, l.inv_s);
+                    s_cache[l.micro] = v;
+                    v
+                } else {
+                    s_cache[l.micro]
+                };
                 if s <= 0.0 {
                     continue;
                 }

@@ -857,3 +857,29 @@ mod tests {
         }
     }
 }
+
+#[cfg(test)]
+mod determinism {
+    use super::*;
+
+    /// The same settings give the same bytes, whatever the thread count.
+    #[test]
+    fn build_is_deterministic() {
+        let s = BuildSettings {
+            samples: 16,
+            m3_res: 3,
+            m1_res: 2,
+        };
+        let one = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap()
+            .install(|| build(s, false).to_bytes());
+        let two = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap()
+            .install(|| build(s, false).to_bytes());
+        assert_eq!(one, two);
+    }
+}
