@@ -9,11 +9,13 @@
 //! - [`bsdf`]: the surface material model of the paper (Eq. 11);
 //! - [`absdf`]: the factorized aggregated BSDF of a voxel (Eq. 7–23) with sampling;
 //! - [`trace`]: two-level BVH ray tracing (obvhs) with alpha cut-outs;
+//! - [`bake`]: voxelization and per-voxel statistics (in progress);
 //! - [`render`]: view files, lights, the reference path tracer, image I/O and comparison;
 //! - [`gen`]: generators for the paper's hard cases;
 //! - [`validation`]: shared test harnesses (chi-square).
 
 pub mod absdf;
+pub mod bake;
 pub mod bsdf;
 pub mod gen;
 pub mod import;

@@ -1,0 +1,4 @@
+//! The bake: from a scene to the per-level voxel statistics that the `.agg` format stores
+//! (paper §7.1–§7.2). In progress: sparse voxelization with exact per-voxel areas.
+
+pub mod voxelize;
