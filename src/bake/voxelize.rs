@@ -124,6 +124,16 @@ impl Grid {
 /// Per-voxel surface area of a triangle: calls `emit(voxel, area)` for each voxel the triangle
 /// overlaps with positive area.
 pub fn clip_triangle(grid: &Grid, tri: [Vec3; 3], mut emit: impl FnMut(UVec3, f64)) {
+    clip_triangle_polygons(grid, tri, |v, _, a| emit(v, a));
+}
+
+/// Like [`clip_triangle`], also passing the clipped polygon in grid units (voxel size 1, grid
+/// origin at 0).
+pub fn clip_triangle_polygons(
+    grid: &Grid,
+    tri: [Vec3; 3],
+    mut emit: impl FnMut(UVec3, &[DVec3], f64),
+) {
     let s = grid.voxel_size() as f64;
     let o = grid.origin.as_dvec3();
     let p: Vec<DVec3> = tri.iter().map(|v| (v.as_dvec3() - o) / s).collect();
@@ -153,9 +163,11 @@ pub fn clip_triangle(grid: &Grid, tri: [Vec3; 3], mut emit: impl FnMut(UVec3, f6
                         break;
                     }
                 }
-                let a = polygon_area(&poly) * s * s;
-                if a > 0.0 {
-                    emit(UVec3::new(x, y, z), a);
+                // Pieces below 1e-9 of a voxel face are rounding slivers of a triangle that
+                // only touches the voxel (exactly zero in exact arithmetic).
+                let a = polygon_area(&poly);
+                if a > 1e-9 {
+                    emit(UVec3::new(x, y, z), &poly, a * s * s);
                 }
             }
         }
