@@ -5,6 +5,7 @@ pub mod beta;
 pub mod color;
 pub mod distribution;
 pub mod frame;
+pub mod haar;
 pub mod lowdiscrepancy;
 pub mod microfacet;
 pub mod rng;

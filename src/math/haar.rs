@@ -1,0 +1,317 @@
+//! The non-standard 2D Haar wavelet transform (orthonormal), coefficient truncation, and an
+//! implicit sparse quadtree that answers one pixel without decompressing (supplemental §3,
+//! after Lalonde 1997), used for the aggregated visibility maps.
+//!
+//! On an N×N map (N = 2^n), each step replaces a 2×2 block (p00 p01 / p10 p11) of the current
+//! average image by its average a = Σp/2 and three details h = (p00 − p01 + p10 − p11)/2,
+//! v = (p00 + p01 − p10 − p11)/2, d = (p00 − p01 − p10 + p11)/2: an orthonormal change of basis,
+//! so the squared coefficients add up to the map's energy and dropping the smallest ones is
+//! the best truncation in L2. A pixel is then c/N + Σ over its ancestors (h·σx + v·σy +
+//! d·σxσy)/s, with s the ancestor's block size and σ = ±1 the pixel's half within it.
+
+/// Forward transform. Returns the scaling coefficient and the details of every quadtree node,
+/// level by level from the root (level l has 4^l nodes in row-major order, 3 values each).
+pub fn forward(map: &[f32], n: usize) -> (f32, Vec<[f32; 3]>) {
+    assert!(
+        n.is_power_of_two() && map.len() == n * n,
+        "map must be N×N with N a power of two"
+    );
+    let mut cur: Vec<f64> = map.iter().map(|&v| v as f64).collect();
+    let mut size = n;
+    let mut levels: Vec<Vec<[f32; 3]>> = Vec::new();
+    while size > 1 {
+        let half = size / 2;
+        let mut next = vec![0f64; half * half];
+        let mut det = vec![[0f32; 3]; half * half];
+        for y in 0..half {
+            for x in 0..half {
+                let p00 = cur[(2 * y) * size + 2 * x];
+                let p01 = cur[(2 * y) * size + 2 * x + 1];
+                let p10 = cur[(2 * y + 1) * size + 2 * x];
+                let p11 = cur[(2 * y + 1) * size + 2 * x + 1];
+                next[y * half + x] = (p00 + p01 + p10 + p11) / 2.0;
+                det[y * half + x] = [
+                    ((p00 - p01 + p10 - p11) / 2.0) as f32,
+                    ((p00 + p01 - p10 - p11) / 2.0) as f32,
+                    ((p00 - p01 - p10 + p11) / 2.0) as f32,
+                ];
+            }
+        }
+        levels.push(det);
+        cur = next;
+        size = half;
+    }
+    levels.reverse();
+    (cur[0] as f32, levels.into_iter().flatten().collect())
+}
+
+/// Inverse transform of (scaling, details) into an N×N map.
+pub fn inverse(scaling: f32, details: &[[f32; 3]], n: usize) -> Vec<f32> {
+    let mut cur = vec![scaling as f64];
+    let mut size = 1;
+    let mut offset = 0;
+    while size < n {
+        let mut next = vec![0f64; 4 * size * size];
+        for y in 0..size {
+            for x in 0..size {
+                let a = cur[y * size + x];
+                let [h, v, d] = details[offset + y * size + x].map(|c| c as f64);
+                let w = 2 * size;
+                next[(2 * y) * w + 2 * x] = (a + h + v + d) / 2.0;
+                next[(2 * y) * w + 2 * x + 1] = (a - h + v - d) / 2.0;
+                next[(2 * y + 1) * w + 2 * x] = (a + h - v - d) / 2.0;
+                next[(2 * y + 1) * w + 2 * x + 1] = (a - h - v + d) / 2.0;
+            }
+        }
+        offset += size * size;
+        cur = next;
+        size *= 2;
+    }
+    cur.into_iter().map(|v| v as f32).collect()
+}
+
+/// Zeroes all but the largest-magnitude detail coefficients: at most `keep` (a fraction of the
+/// N² coefficients, the scaling one always kept), and fewer when fewer already hold `energy`
+/// (a fraction) of the details' energy — the map's variance. (Counting the scaling coefficient
+/// in the energy would let a bright map's mean alone pass 95% and drop every edge.) Returns the
+/// number of details kept.
+pub fn truncate(_scaling: f32, details: &mut [[f32; 3]], keep: f32, energy: f32) -> usize {
+    let total: f64 = details
+        .iter()
+        .flatten()
+        .map(|c| (*c as f64).powi(2))
+        .sum::<f64>();
+    let mut mags: Vec<(f32, usize, usize)> = details
+        .iter()
+        .enumerate()
+        .flat_map(|(i, d)| d.iter().enumerate().map(move |(k, c)| (c.abs(), i, k)))
+        .filter(|x| x.0 > 0.0)
+        .collect();
+    mags.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    let n2 = details.len() * 3 + 1;
+    let cap = ((keep.clamp(0.0, 1.0) * n2 as f32).ceil() as usize).saturating_sub(1);
+    let mut acc = 0f64;
+    let mut kept = 0;
+    for m in &mags {
+        if kept >= cap || (total > 0.0 && acc >= energy as f64 * total) {
+            break;
+        }
+        acc += (m.0 as f64).powi(2);
+        kept += 1;
+    }
+    for m in &mags[kept..] {
+        details[m.1][m.2] = 0.0;
+    }
+    kept
+}
+
+/// A node of the sparse quadtree (depth-first preorder).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Node {
+    pub details: [f32; 3],
+    /// Bit q set: child quadrant q (0 top-left, 1 top-right, 2 bottom-left, 3 bottom-right)
+    /// is present.
+    pub children: u8,
+    /// Nodes in this node's subtree, itself included (for skipping siblings).
+    pub subtree: u32,
+}
+
+/// The implicit sparse quadtree of a truncated map.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SparseHaar {
+    pub n: u32,
+    pub scaling: f32,
+    /// Preorder; empty when every detail is zero (a constant map).
+    pub nodes: Vec<Node>,
+}
+
+impl SparseHaar {
+    /// Builds the tree of non-zero details (a node exists when it or a descendant has one).
+    pub fn new(scaling: f32, details: &[[f32; 3]], n: usize) -> Self {
+        // Level offsets.
+        let mut offsets = vec![0usize];
+        let mut s = 1;
+        while s < n {
+            offsets.push(offsets.last().unwrap() + s * s);
+            s *= 2;
+        }
+        let depth = offsets.len() - 1;
+        fn build(
+            l: usize,
+            x: usize,
+            y: usize,
+            depth: usize,
+            offsets: &[usize],
+            details: &[[f32; 3]],
+            out: &mut Vec<Node>,
+        ) -> bool {
+            if l >= depth {
+                return false;
+            }
+            let size = 1 << l;
+            let d = details[offsets[l] + y * size + x];
+            let at = out.len();
+            out.push(Node {
+                details: d,
+                children: 0,
+                subtree: 1,
+            });
+            let mut mask = 0u8;
+            for q in 0..4 {
+                if build(
+                    l + 1,
+                    2 * x + (q & 1),
+                    2 * y + (q >> 1),
+                    depth,
+                    offsets,
+                    details,
+                    out,
+                ) {
+                    mask |= 1 << q;
+                }
+            }
+            if mask == 0 && d == [0.0; 3] {
+                out.truncate(at);
+                return false;
+            }
+            out[at].children = mask;
+            out[at].subtree = (out.len() - at) as u32;
+            true
+        }
+        let mut nodes = Vec::new();
+        build(0, 0, 0, depth, &offsets, details, &mut nodes);
+        SparseHaar {
+            n: n as u32,
+            scaling,
+            nodes,
+        }
+    }
+
+    /// Whether the map is constant (no details): visibility then needs a flag, not a tree.
+    pub fn is_constant(&self) -> bool {
+        self.nodes.is_empty()
+    }
+
+    /// The value of pixel (x, y), walking one root-to-leaf path.
+    pub fn eval(&self, x: u32, y: u32) -> f32 {
+        let n = self.n.max(1);
+        let mut v = self.scaling as f64 / n as f64;
+        let mut i = 0usize;
+        let mut size = n;
+        let (mut x0, mut y0) = (0u32, 0u32);
+        while i < self.nodes.len() && size > 1 {
+            let node = self.nodes[i];
+            let half = size / 2;
+            let right = x >= x0 + half;
+            let bottom = y >= y0 + half;
+            let sx = if right { -1.0 } else { 1.0 };
+            let sy = if bottom { -1.0 } else { 1.0 };
+            let [h, vv, d] = node.details.map(|c| c as f64);
+            v += (h * sx + vv * sy + d * sx * sy) / size as f64;
+            let q = (right as u8) | ((bottom as u8) << 1);
+            if node.children & (1 << q) == 0 {
+                break;
+            }
+            // Skip the subtrees of earlier present siblings.
+            let mut j = i + 1;
+            for p in 0..q {
+                if node.children & (1 << p) != 0 {
+                    j += self.nodes[j].subtree as usize;
+                }
+            }
+            i = j;
+            if right {
+                x0 += half;
+            }
+            if bottom {
+                y0 += half;
+            }
+            size = half;
+        }
+        v as f32
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::rng::Pcg32;
+
+    fn random_map(n: usize, seed: u64) -> Vec<f32> {
+        let mut r = Pcg32::new(seed, 1);
+        (0..n * n)
+            .map(|i| if (i / 7) % 3 == 0 { 1.0 } else { r.next_f32() })
+            .collect()
+    }
+
+    #[test]
+    fn round_trip_and_parseval() {
+        for n in [1usize, 2, 8, 32] {
+            let m = random_map(n, n as u64);
+            let (c, d) = forward(&m, n);
+            let back = inverse(c, &d, n);
+            for (a, b) in m.iter().zip(&back) {
+                assert!((a - b).abs() < 1e-5);
+            }
+            let e_map: f64 = m.iter().map(|v| (*v as f64).powi(2)).sum();
+            let e_coef: f64 =
+                (c as f64).powi(2) + d.iter().flatten().map(|v| (*v as f64).powi(2)).sum::<f64>();
+            assert!((e_map - e_coef).abs() < 1e-4 * e_map.max(1.0));
+        }
+    }
+
+    #[test]
+    fn sparse_tree_answers_single_pixels() {
+        let n = 32;
+        let m = random_map(n, 5);
+        let (c, mut d) = forward(&m, n);
+        let full = SparseHaar::new(c, &d, n);
+        for y in 0..n as u32 {
+            for x in 0..n as u32 {
+                assert!((full.eval(x, y) - m[(y * n as u32 + x) as usize]).abs() < 1e-4);
+            }
+        }
+        let kept = truncate(c, &mut d, 0.10, 0.95);
+        assert!(kept + 1 <= (0.10 * (n * n) as f32).ceil() as usize);
+        let t = SparseHaar::new(c, &d, n);
+        let rec = inverse(c, &d, n);
+        for y in 0..n as u32 {
+            for x in 0..n as u32 {
+                assert!((t.eval(x, y) - rec[(y * n as u32 + x) as usize]).abs() < 1e-4);
+            }
+        }
+        assert!(t.nodes.len() < full.nodes.len());
+    }
+
+    #[test]
+    fn truncation_keeps_energy_or_cap() {
+        let n = 16;
+        // A smooth map: few coefficients hold 95% of the energy, so fewer than 10% are kept.
+        let m: Vec<f32> = (0..n * n).map(|i| 0.5 + 0.01 * ((i % n) as f32)).collect();
+        let (c, mut d) = forward(&m, n);
+        let before: f64 = d.iter().flatten().map(|v| (*v as f64).powi(2)).sum();
+        let kept = truncate(c, &mut d, 0.10, 0.95);
+        let after: f64 = d.iter().flatten().map(|v| (*v as f64).powi(2)).sum();
+        assert!(after >= 0.95 * before && kept < 26, "kept {kept}");
+        // A hard edge (a silhouette) in a bright map: by Parseval the squared error is the
+        // dropped detail energy, at most 5% of the details' (the mean does not count).
+        let edge: Vec<f32> = (0..n * n)
+            .map(|i| if i % n < 5 { 0.0 } else { 1.0 })
+            .collect();
+        let (c, mut d) = forward(&edge, n);
+        let e_d: f64 = d.iter().flatten().map(|v| (*v as f64).powi(2)).sum();
+        let kept = truncate(c, &mut d, 1.0, 0.95);
+        assert!(kept > 0, "the edge keeps details");
+        let rec = inverse(c, &d, n);
+        let se: f64 = edge
+            .iter()
+            .zip(&rec)
+            .map(|(a, b)| ((a - b) as f64).powi(2))
+            .sum();
+        assert!(se <= 0.05 * e_d + 1e-6, "{se} > 5% of {e_d}");
+        // Constant maps are flags.
+        let (c, d) = forward(&vec![1.0; 64], 8);
+        let t = SparseHaar::new(c, &d, 8);
+        assert!(t.is_constant() && (t.eval(3, 5) - 1.0).abs() < 1e-6);
+    }
+}
