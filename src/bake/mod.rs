@@ -1,6 +1,7 @@
 //! The bake: from a scene to the per-level voxel statistics that the `.agg` format stores
 //! (paper §7.1–§7.2). In progress: sparse voxelization with exact per-voxel areas and surface
-//! sampling inside voxels.
+//! sampling inside voxels, interior visibility maps.
 
 pub mod sampling;
+pub mod visibility;
 pub mod voxelize;

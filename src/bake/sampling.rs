@@ -26,6 +26,8 @@ pub struct Piece {
 #[derive(Clone, Copy, Debug)]
 pub struct PointSample {
     pub position: Vec3,
+    /// Unit geometric normal of the triangle (for offsetting rays off the surface).
+    pub geometric_normal: Vec3,
     pub surface: SurfaceSample,
 }
 
@@ -157,6 +159,7 @@ pub fn sample_voxel(scene: &Scene, pieces: &[Piece], n: u32, seed: u32) -> Vec<P
             };
             out.push(PointSample {
                 position: p,
+                geometric_normal: ng,
                 surface: SurfaceSample {
                     normal: ns,
                     params: material.eval(&scene.textures, uv),
