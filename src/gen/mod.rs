@@ -293,9 +293,8 @@ fn buildings(s: &GenSettings) -> SceneData {
     let lot = 1.0 / grid as f32;
     let mut windows = Vec::new();
     let mut building_meshes: Vec<(usize, Vec3, f32)> = Vec::new();
-    // Façade subdivision to reach the triangle target (windows take ~1/2 of it).
-    let sub =
-        ((s.triangles as f32 / (2.0 * 12.0 * (grid * grid) as f32)).sqrt() as usize).clamp(1, 200);
+    // Façades start unsubdivided; their subdivision is set below, once the windows are known.
+    let sub = 1;
     for gz in 0..grid {
         for gx in 0..grid {
             let center = Vec3::new(
@@ -348,6 +347,15 @@ fn buildings(s: &GenSettings) -> SceneData {
                 }
             }
         }
+    }
+    // Subdivide the façades so that the placed triangles reach the target: the windows are a
+    // fixed count, the façades (12 sub² triangles per placed building) take the rest.
+    let placements = (grid * grid) as f32;
+    let rest = s.triangles.saturating_sub(windows.len() * 12 + 12 * 16) as f32;
+    let sub = ((rest / (12.0 * placements)).sqrt() as usize).clamp(1, 400);
+    for &(mi, half, height) in &building_meshes {
+        let mat = scene.meshes[mi][0].1;
+        scene.meshes[mi] = vec![(cuboid(Vec3::new(0.0, 0.5 * height, 0.0), half, sub), mat)];
     }
     scene.nodes.push(NodeData {
         mesh: window_mesh,
