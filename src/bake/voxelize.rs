@@ -42,11 +42,13 @@ pub fn demorton3(m: u64) -> UVec3 {
     UVec3::new(compact(m), compact(m >> 1), compact(m >> 2))
 }
 
-/// Clips a convex polygon (in place, f64) to `lo ≤ p[axis] ≤ hi`.
+/// Clips a convex polygon (in place, f64) to the half-open slab `lo ≤ p[axis] < hi`. Half-open,
+/// so that a polygon lying exactly in a voxel boundary plane belongs to one voxel, not two.
 fn clip_slab(poly: &mut Vec<DVec3>, scratch: &mut Vec<DVec3>, axis: usize, lo: f64, hi: f64) {
     for (bound, keep_above) in [(lo, true), (hi, false)] {
         scratch.clear();
         let n = poly.len();
+        let inside = |d: f64| if keep_above { d >= 0.0 } else { d > 0.0 };
         for i in 0..n {
             let a = poly[i];
             let b = poly[(i + 1) % n];
@@ -60,10 +62,10 @@ fn clip_slab(poly: &mut Vec<DVec3>, scratch: &mut Vec<DVec3>, axis: usize, lo: f
             } else {
                 bound - b[axis]
             };
-            if da >= 0.0 {
+            if inside(da) {
                 scratch.push(a);
             }
-            if (da >= 0.0) != (db >= 0.0) {
+            if inside(da) != inside(db) && da != db {
                 let t = da / (da - db);
                 scratch.push(a + (b - a) * t);
             }
@@ -265,5 +267,28 @@ mod tests {
         }
         let total: f64 = cells.values().sum();
         assert!((total - 16.0 * 2f64.sqrt()).abs() < 1e-9);
+    }
+
+    /// A triangle lying exactly in a voxel boundary plane is counted once.
+    #[test]
+    fn boundary_plane_counted_once() {
+        let grid = Grid {
+            origin: Vec3::ZERO,
+            size: 4.0,
+            res: 4,
+        };
+        let tri = [
+            Vec3::new(0.5, 0.5, 2.0),
+            Vec3::new(3.5, 0.5, 2.0),
+            Vec3::new(0.5, 3.5, 2.0),
+        ];
+        let mut total = 0.0;
+        let mut zs = std::collections::BTreeSet::new();
+        clip_triangle(&grid, tri, |v, a| {
+            total += a;
+            zs.insert(v.z);
+        });
+        assert!((total - 4.5).abs() < 1e-9, "{total}");
+        assert_eq!(zs.len(), 1);
     }
 }
