@@ -21,16 +21,7 @@ fn lambert(rgb: [f32; 3]) -> MaterialData {
 }
 
 fn one_mesh(mesh: aggtool::gen::glb::MeshData, mat: MaterialData) -> Scene {
-    SceneData {
-        meshes: vec![vec![(mesh, 0)]],
-        materials: vec![mat],
-        nodes: vec![NodeData {
-            mesh: 0,
-            matrix: Mat4::IDENTITY,
-            gpu_instances: vec![],
-        }],
-    }
-    .to_scene()
+    SceneData::single(mesh, mat).to_scene()
 }
 
 fn camera(eye: Vec3, target: Vec3, size: u32, fov: f32) -> Camera {

@@ -197,9 +197,8 @@ mod tests {
     use crate::bake::primitive::fit_ellipsoid;
     use crate::bake::sampling::{pieces_by_voxel, sample_voxel};
     use crate::bake::voxelize::demorton3;
-    use crate::gen::glb::{MaterialData, NodeData, SceneData};
+    use crate::gen::glb::{MaterialData, SceneData};
     use crate::gen::shapes;
-    use glam::Mat4;
     use std::collections::BTreeSet;
 
     fn level_of(scene: &crate::scene::Scene, grid: Grid) -> (PrimitiveLevel, BTreeSet<UVec3Key>) {
@@ -234,16 +233,8 @@ mod tests {
             Vec3::splat(0.05),
             1,
         ));
-        let scene = SceneData {
-            meshes: vec![vec![(wall, 0)]],
-            materials: vec![MaterialData::new("wall", [0.5; 3], 0.0, 1.0)],
-            nodes: vec![NodeData {
-                mesh: 0,
-                matrix: Mat4::IDENTITY,
-                gpu_instances: vec![],
-            }],
-        }
-        .to_scene();
+        let scene =
+            SceneData::single(wall, MaterialData::new("wall", [0.5; 3], 0.0, 1.0)).to_scene();
         let accel = Accel::build(&scene);
         let (lo, hi) = scene.bounds();
         let grid = Grid::around(lo, hi, 8);
@@ -302,16 +293,8 @@ mod tests {
             Vec3::Y * 0.001,
             1,
         ));
-        let scene = SceneData {
-            meshes: vec![vec![(strips, 0)]],
-            materials: vec![MaterialData::new("strips", [0.5; 3], 0.0, 1.0)],
-            nodes: vec![NodeData {
-                mesh: 0,
-                matrix: Mat4::IDENTITY,
-                gpu_instances: vec![],
-            }],
-        }
-        .to_scene();
+        let scene =
+            SceneData::single(strips, MaterialData::new("strips", [0.5; 3], 0.0, 1.0)).to_scene();
         let accel = Accel::build(&scene);
         let grid = Grid {
             origin: Vec3::new(-1.0, -1.0, -0.5),

@@ -65,10 +65,10 @@ pub fn aiv_map(
 mod tests {
     use super::*;
     use crate::absdf::estimate::SurfaceSample;
-    use crate::gen::glb::{MaterialData, NodeData, SceneData};
+    use crate::gen::glb::{MaterialData, SceneData};
     use crate::gen::shapes;
     use crate::scene::SurfaceParams;
-    use glam::{Mat4, Vec3};
+    use glam::Vec3;
 
     /// A convex sphere, alone: from its surface, a direction is visible exactly when it leaves
     /// the tangent plane outwards, so the AIV is 1/2 in every direction. 2048 samples × 64 rays
@@ -76,15 +76,10 @@ mod tests {
     /// the mean within 0.01.
     #[test]
     fn sphere_aiv_is_one_half() {
-        let scene = SceneData {
-            meshes: vec![vec![(shapes::sphere(Vec3::ZERO, 0.5, 96, |_| 0.0), 0)]],
-            materials: vec![MaterialData::new("white", [1.0; 3], 0.0, 1.0)],
-            nodes: vec![NodeData {
-                mesh: 0,
-                matrix: Mat4::IDENTITY,
-                gpu_instances: vec![],
-            }],
-        }
+        let scene = SceneData::single(
+            shapes::sphere(Vec3::ZERO, 0.5, 96, |_| 0.0),
+            MaterialData::new("white", [1.0; 3], 0.0, 1.0),
+        )
         .to_scene();
         let accel = Accel::build(&scene);
         // Samples on the sphere (radius 0.5), uniform by area.

@@ -93,6 +93,19 @@ pub struct SceneData {
 }
 
 impl SceneData {
+    /// One mesh with one material, placed once.
+    pub fn single(mesh: MeshData, material: MaterialData) -> Self {
+        SceneData {
+            meshes: vec![vec![(mesh, 0)]],
+            materials: vec![material],
+            nodes: vec![NodeData {
+                mesh: 0,
+                matrix: Mat4::IDENTITY,
+                gpu_instances: Vec::new(),
+            }],
+        }
+    }
+
     /// Triangles placed in the world.
     pub fn instanced_triangles(&self) -> usize {
         self.nodes

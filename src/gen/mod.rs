@@ -53,24 +53,12 @@ impl Default for GenSettings {
     }
 }
 
-fn single(mesh: MeshData, material: MaterialData) -> SceneData {
-    SceneData {
-        meshes: vec![vec![(mesh, 0)]],
-        materials: vec![material],
-        nodes: vec![NodeData {
-            mesh: 0,
-            matrix: Mat4::IDENTITY,
-            gpu_instances: Vec::new(),
-        }],
-    }
-}
-
 /// Fig. 6: a unit plane through the origin containing +Y, turned 45° about Y, red.
 fn plane45(s: &GenSettings) -> SceneData {
     let n = ((s.triangles as f32 / 2.0).sqrt() as usize).max(1);
     let mut m = quad(Vec3::new(-0.5, -0.5, 0.0), Vec3::X, Vec3::Y, n);
     m.transform(Mat4::from_rotation_y(PI / 4.0));
-    single(m, MaterialData::new("red", [0.8, 0.05, 0.05], 0.0, 0.5))
+    SceneData::single(m, MaterialData::new("red", [0.8, 0.05, 0.05], 0.0, 0.5))
 }
 
 /// A tower of thin beams on a k×k×h lattice.
@@ -99,7 +87,7 @@ fn lattice(s: &GenSettings) -> SceneData {
             }
         }
     }
-    single(m, MaterialData::new("steel", [0.6, 0.6, 0.62], 0.8, 0.4))
+    SceneData::single(m, MaterialData::new("steel", [0.6, 0.6, 0.62], 0.8, 0.4))
 }
 
 /// A leaf-shaped alpha mask (an ellipse with a pointed tip), green.
@@ -244,7 +232,7 @@ fn rings(s: &GenSettings) -> SceneData {
     }
     // A central column to cast shadows through the rings.
     m.append(&cylinder(Vec3::new(0.0, 0.1, 0.0), 0.02, 0.8, 24, 2));
-    single(m, MaterialData::new("gold", [1.0, 0.78, 0.34], 1.0, 0.3))
+    SceneData::single(m, MaterialData::new("gold", [1.0, 0.78, 0.34], 1.0, 0.3))
 }
 
 /// A block of buildings with distinct footprints, heights and colours on a ground slab. Every
