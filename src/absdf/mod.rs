@@ -201,8 +201,12 @@ pub struct Absdf<'t> {
     lobes: Vec<NdfLobe>,
     unit: Vec<Sggx>,
     spec: Vec<SpecLobe>,
-    /// Diffuse sampling lobes at the fixed κ (§7.3).
+    /// Specular sampling lobes (weight, convolved SGGX) and their total weight.
+    spec_sampling: Vec<(f32, Sggx)>,
+    spec_total: f32,
+    /// Diffuse sampling lobes at the fixed κ (§7.3) and their total weight.
     diffuse_sampling: Vec<(f32, Sggx)>,
+    diffuse_total: f32,
     moments: Moments,
     /// Moments averaged over directions: used when ω_h is undefined (ω_i = −ω_o), so that the
     /// lookup stays symmetric in ω_i and ω_o.
@@ -315,7 +319,7 @@ impl<'t> Absdf<'t> {
                 });
             }
         }
-        let diffuse_sampling = lobes
+        let diffuse_sampling: Vec<(f32, Sggx)> = lobes
             .iter()
             .map(|l| {
                 let mut o = [0f32; 3];
@@ -340,12 +344,18 @@ impl<'t> Absdf<'t> {
                 MaterialMoments::mean(specular),
             ),
         };
+        let spec_sampling: Vec<(f32, Sggx)> = spec.iter().map(|l| (l.weight, l.sggx)).collect();
+        let spec_total = spec_sampling.iter().map(|x| x.0).sum();
+        let diffuse_total = diffuse_sampling.iter().map(|x| x.0).sum();
         Absdf {
             tables,
             lobes,
             unit,
             spec,
+            spec_sampling,
+            spec_total,
             diffuse_sampling,
+            diffuse_total,
             moments: v.moments.clone(),
             mean_moments,
         }
@@ -466,24 +476,16 @@ impl<'t> Absdf<'t> {
         finite_or_zero(p / (4.0 * oh))
     }
 
-    fn spec_sampling(&self) -> (Vec<(f32, Sggx)>, f32) {
-        let v: Vec<(f32, Sggx)> = self.spec.iter().map(|l| (l.weight, l.sggx)).collect();
-        let t = v.iter().map(|x| x.0).sum();
-        (v, t)
-    }
-
     /// Solid-angle density of [`Self::sample`].
     pub fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {
         let (wi, wo) = (wi.normalize_or_zero(), wo.normalize_or_zero());
         let ps = self.specular_probability();
         let mut p = 0.0;
         if ps > 0.0 {
-            let (v, t) = self.spec_sampling();
-            p += ps * Self::mixture_pdf(&v, t, wi, wo);
+            p += ps * Self::mixture_pdf(&self.spec_sampling, self.spec_total, wi, wo);
         }
         if ps < 1.0 {
-            let t: f32 = self.diffuse_sampling.iter().map(|x| x.0).sum();
-            p += (1.0 - ps) * Self::mixture_pdf(&self.diffuse_sampling, t, wi, wo);
+            p += (1.0 - ps) * Self::mixture_pdf(&self.diffuse_sampling, self.diffuse_total, wi, wo);
         }
         finite_or_zero(p)
     }
@@ -503,13 +505,11 @@ impl<'t> Absdf<'t> {
         }
         let ps = self.specular_probability();
         let (list, total, mut v) = if u_lobe < ps {
-            let (l, t) = self.spec_sampling();
-            (l, t, u_lobe / ps.max(1e-12))
+            (&self.spec_sampling, self.spec_total, u_lobe / ps.max(1e-12))
         } else {
-            let t: f32 = self.diffuse_sampling.iter().map(|x| x.0).sum();
             (
-                self.diffuse_sampling.clone(),
-                t,
+                &self.diffuse_sampling,
+                self.diffuse_total,
                 (u_lobe - ps) / (1.0 - ps).max(1e-12),
             )
         };
@@ -518,7 +518,7 @@ impl<'t> Absdf<'t> {
         }
         v = v.clamp(0.0, 0.999_999) * total;
         let mut chosen = list.last()?.1;
-        for (w, s) in &list {
+        for (w, s) in list {
             if v < *w {
                 chosen = *s;
                 break;

@@ -80,7 +80,7 @@ pub fn load(path: &Path) -> Result<Scene, ImportError> {
         if m.normal_texture().is_some() {
             normal_maps += 1;
         }
-        let mat = convert_material(&mut ctx, &m, &gltf.document, &mut textures, &mut scene)?;
+        let mat = convert_material(&mut ctx, &m, &mut textures, &mut scene)?;
         scene.materials.push(mat);
     }
     if normal_maps > 0 {
@@ -748,7 +748,6 @@ fn texture_ref(
 fn convert_material(
     ctx: &mut Ctx,
     m: &gltf::Material,
-    _doc: &gltf::Document,
     cache: &mut TextureCache,
     scene: &mut Scene,
 ) -> Result<Material, ImportError> {

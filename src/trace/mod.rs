@@ -316,8 +316,11 @@ impl<'s> Accel<'s> {
         let Some(mat) = self.scene.materials.get(mesh.material as usize) else {
             return false;
         };
-        if !mat.has_cutout() || mesh.uvs.is_empty() {
-            return mat.has_cutout() && !mat.is_opaque_at(&self.scene.textures, Vec2::ZERO);
+        if !mat.has_cutout() {
+            return false;
+        }
+        if mesh.uvs.is_empty() {
+            return !mat.is_opaque_at(&self.scene.textures, Vec2::ZERO);
         }
         let b = barycentrics(tri, ray.origin, ray.direction);
         let [i0, i1, i2] = mesh.triangles[triangle as usize];
@@ -484,7 +487,7 @@ impl<'s> Accel<'s> {
 /// the magnitude of the position (f32 rounding grows with it).
 #[inline]
 pub fn offset_origin(p: Vec3, ng: Vec3, dir: Vec3) -> Vec3 {
-    let eps = 1e-4 * (1.0 + p.abs().max_element()) * 1e-1;
+    let eps = 1e-5 * (1.0 + p.abs().max_element());
     let n = if ng.dot(dir) >= 0.0 { ng } else { -ng };
     p + n * eps
 }
