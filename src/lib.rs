@@ -9,7 +9,8 @@
 //! - [`bsdf`]: the surface material model of the paper (Eq. 11);
 //! - [`absdf`]: the factorized aggregated BSDF of a voxel (Eq. 7–23) with sampling;
 //! - [`trace`]: two-level BVH ray tracing (obvhs) with alpha cut-outs;
-//! - [`bake`]: voxelization and per-voxel statistics (in progress);
+//! - [`bake`]: the sparse voxel hierarchy, per-voxel statistics and visibility, streamed to a file;
+//! - [`format`]: the `.agg` container and its FlatBuffers schema: writer, verifying zero-copy reader;
 //! - [`render`]: view files, lights, the reference path tracer, image I/O and comparison;
 //! - [`gen`]: generators for the paper's hard cases;
 //! - [`validation`]: shared test harnesses (chi-square).
@@ -17,6 +18,7 @@
 pub mod absdf;
 pub mod bake;
 pub mod bsdf;
+pub mod format;
 pub mod gen;
 pub mod import;
 pub mod math;

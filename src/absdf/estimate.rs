@@ -31,6 +31,9 @@ pub struct EstimateSettings {
     pub moment_res: u32,
     /// Kernel directions splatted per surface sample.
     pub splats: u32,
+    /// Store constant moments when the material is uniform over the samples (the result is
+    /// the same; off only to measure that).
+    pub detect_constant: bool,
 }
 
 impl Default for EstimateSettings {
@@ -39,6 +42,7 @@ impl Default for EstimateSettings {
             max_lobes: 4,
             moment_res: 3,
             splats: 32,
+            detect_constant: true,
         }
     }
 }
@@ -181,6 +185,13 @@ pub fn estimate(samples: &[SurfaceSample], settings: &EstimateSettings) -> Optio
         .sum::<f32>()
         / wsum)
         .max(0.0);
+    // Below this the roughness is uniform (one microfacet lobe): store exactly zero, not the
+    // rounding noise of the sums.
+    let var = if var < crate::math::beta::MIN_VARIANCE {
+        0.0
+    } else {
+        var
+    };
     // Normal distribution: k = 1..max, highest likelihood, ties (0.1%) to the fewer lobes.
     let mut best = mixture(&s, 1);
     for k in 2..=settings.max_lobes.min(s.len()) {
@@ -204,7 +215,7 @@ pub fn estimate(samples: &[SurfaceSample], settings: &EstimateSettings) -> Optio
             && (p.specular - q.specular).abs() < 1e-6
             && (p.f90 - q.f90).abs() < 1e-4
     });
-    let moments = if uniform || settings.moment_res == 0 {
+    let moments = if (uniform && settings.detect_constant) || settings.moment_res == 0 {
         Moments::Constant(constant)
     } else {
         directional_moments(&s, settings, constant)

@@ -16,18 +16,69 @@ use crate::math::lowdiscrepancy::sobol_2d;
 use crate::math::sphere_maps::{concentric_square_to_hemisphere, grid_cell};
 use crate::trace::{Accel, Ray};
 
+/// A hasher for Morton keys (already well spread by one mixing step), much cheaper than
+/// SipHash in the DDA's inner loop.
+#[derive(Default, Clone, Copy)]
+pub struct KeyHasher(u64);
+
+impl std::hash::Hasher for KeyHasher {
+    fn finish(&self) -> u64 {
+        crate::math::rng::mix64(self.0)
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.0 = (self.0 << 8) ^ *b as u64;
+        }
+    }
+    fn write_u64(&mut self, v: u64) {
+        self.0 = v;
+    }
+}
+
+/// A voxel's ellipsoid, ready for ray tests: centre and inverse axes.
+#[derive(Clone, Copy, Debug)]
+struct Prepared {
+    center: Vec3,
+    inv: glam::Mat3,
+}
+
 /// The primitives of one level.
 pub struct PrimitiveLevel {
     pub grid: Grid,
-    pub primitives: HashMap<u64, Ellipsoid>,
+    primitives: HashMap<u64, Prepared, std::hash::BuildHasherDefault<KeyHasher>>,
+}
+
+impl PrimitiveLevel {
+    /// The level of these (Morton key, ellipsoid) pairs; degenerate ellipsoids are left out.
+    pub fn new(grid: Grid, prims: impl IntoIterator<Item = (u64, Ellipsoid)>) -> Self {
+        let primitives = prims
+            .into_iter()
+            .filter_map(|(k, e)| {
+                let inv = e.axes.inverse();
+                inv.is_finite().then_some((
+                    k,
+                    Prepared {
+                        center: e.center,
+                        inv,
+                    },
+                ))
+            })
+            .collect();
+        PrimitiveLevel { grid, primitives }
+    }
+
+    pub fn len(&self) -> usize {
+        self.primitives.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.primitives.is_empty()
+    }
 }
 
 /// Parameter interval where `o + t d` is inside the ellipsoid.
-fn ellipsoid_interval(e: &Ellipsoid, o: Vec3, d: Vec3) -> Option<(f32, f32)> {
-    let inv = e.axes.inverse();
-    if !inv.is_finite() {
-        return None;
-    }
+fn ellipsoid_interval(e: &Prepared, o: Vec3, d: Vec3) -> Option<(f32, f32)> {
+    let inv = e.inv;
     let p = inv * (o - e.center);
     let q = inv * d;
     let a = q.dot(q);
@@ -213,13 +264,7 @@ mod tests {
                 occ.insert(UVec3Key::from(demorton3(*k)));
             }
         }
-        (
-            PrimitiveLevel {
-                grid,
-                primitives: prims,
-            },
-            occ,
-        )
+        (PrimitiveLevel::new(grid, prims), occ)
     }
 
     /// A face looking onto an opaque wall: every ray that meets the wall's primitives is
@@ -341,10 +386,7 @@ mod tests {
                 axes: glam::Mat3::from_diagonal(Vec3::splat(0.4)),
             },
         );
-        let level = PrimitiveLevel {
-            grid,
-            primitives: prims,
-        };
+        let level = PrimitiveLevel::new(grid, prims);
         assert!(level.hits(&Ray::new(Vec3::splat(-1.0), Vec3::ONE.normalize())));
         assert!(!level.hits(&Ray::new(Vec3::new(-1.0, 0.5, 0.5), Vec3::X)));
         // Through the voxel but outside its ellipsoid (corner region).

@@ -3,7 +3,7 @@
 //! visibility tree. Voxels are processed in parallel with rayon, each with seeds derived from
 //! its Morton key, so the result does not depend on the thread count.
 
-use std::collections::{BTreeSet, HashMap};
+use std::collections::BTreeSet;
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -89,76 +89,110 @@ fn compress(map: &[f32], res: u32, keep: f32, energy: f32) -> SparseHaar {
     SparseHaar::new(c, &d, res as usize)
 }
 
-/// Bakes one level of `scene` on `grid`.
+/// Bakes one voxel from the pieces of surface inside it: samples, ABSDF statistics, the
+/// ellipsoid and the AIV tree. `None` when every sample was cut out (nothing to keep). Also
+/// returns the rays traced and the CPU seconds spent on (statistics, AIV).
+pub fn bake_voxel(
+    scene: &Scene,
+    accel: &Accel,
+    grid: &Grid,
+    key: u64,
+    pieces: &[super::sampling::Piece],
+    s: &LevelSettings,
+) -> (Option<VoxelData>, u64, [f64; 2]) {
+    let t0 = std::time::Instant::now();
+    let area: f64 = pieces.iter().map(|p| p.area).sum();
+    let seed = (key as u32) ^ ((key >> 32) as u32).rotate_left(16);
+    let samples = sample_voxel(scene, pieces, s.samples_per_voxel, seed);
+    let surf: Vec<_> = samples.iter().map(|p| p.surface).collect();
+    let coverage: f32 = surf.iter().map(|x| x.weight).sum();
+    let appearance = estimate(&surf, &s.estimate);
+    let pts: Vec<Vec3> = samples.iter().map(|p| p.position).collect();
+    let ellipsoid = fit_ellipsoid(&pts, 1e-3 * grid.voxel_size());
+    let (Some(appearance), Some(ellipsoid)) = (appearance, ellipsoid) else {
+        return (None, 0, [t0.elapsed().as_secs_f64(), 0.0]);
+    };
+    let t1 = std::time::Instant::now();
+    let (map, rays) = aiv_map(accel, &samples, s.aiv_res, s.aiv_rays, seed);
+    let aiv = compress(&map, s.aiv_res, s.keep, s.energy);
+    let cpu = [(t1 - t0).as_secs_f64(), t1.elapsed().as_secs_f64()];
+    (
+        Some(VoxelData {
+            key,
+            area,
+            coverage: coverage.min(1.0),
+            appearance,
+            ellipsoid,
+            aiv,
+        }),
+        rays,
+        cpu,
+    )
+}
+
+/// Bakes one boundary face's ABV tree; returns it with the rays traced.
+pub fn bake_face(
+    level: &PrimitiveLevel,
+    accel: &Accel,
+    face: Face,
+    s: &LevelSettings,
+) -> (FaceData, u64) {
+    let key = super::voxelize::morton3(glam::UVec3::new(face.voxel.0, face.voxel.1, face.voxel.2));
+    let seed = (key as u32).wrapping_mul(6) ^ face.dir as u32 ^ ((key >> 32) as u32).rotate_left(7);
+    let m = abv_map(level, accel, face, s.abv_res, s.abv_rays, seed);
+    (
+        FaceData {
+            face,
+            abv: compress(&m.values, s.abv_res, s.keep, s.energy),
+        },
+        m.traced,
+    )
+}
+
+/// The primitives of a baked set of voxels, for the boundary-visibility DDA.
+pub fn primitive_level(
+    grid: Grid,
+    voxels: impl Iterator<Item = (u64, Ellipsoid)>,
+) -> PrimitiveLevel {
+    PrimitiveLevel::new(grid, voxels)
+}
+
+/// The boundary faces of a set of occupied voxel keys, sorted by (Morton key, direction).
+pub fn sorted_boundary_faces(keys: impl Iterator<Item = u64>, res: u32) -> Vec<Face> {
+    let occupied: BTreeSet<UVec3Key> = keys.map(|k| UVec3Key::from(demorton3(k))).collect();
+    let mut faces = boundary_faces(&occupied, res);
+    faces.sort_by_key(|f| {
+        (
+            super::voxelize::morton3(glam::UVec3::new(f.voxel.0, f.voxel.1, f.voxel.2)),
+            f.dir,
+        )
+    });
+    faces
+}
+
+/// Bakes one level of `scene` on `grid`, in memory (the streaming bake of a whole asset is
+/// [`super::bake_to_file`]).
 pub fn bake_level(scene: &Scene, accel: &Accel, grid: Grid, s: &LevelSettings) -> LevelData {
     let pieces = pieces_by_voxel(scene, &grid);
     let list: Vec<(u64, Vec<super::sampling::Piece>)> = pieces.into_iter().collect();
-    let min_extent = 1e-3 * grid.voxel_size();
-    let results: Vec<(Option<VoxelData>, u64)> = list
+    let results: Vec<(Option<VoxelData>, u64, [f64; 2])> = list
         .par_iter()
-        .map(|(key, pieces)| {
-            let area: f64 = pieces.iter().map(|p| p.area).sum();
-            let seed = (*key as u32) ^ ((*key >> 32) as u32).rotate_left(16);
-            let samples = sample_voxel(scene, pieces, s.samples_per_voxel, seed);
-            let surf: Vec<_> = samples.iter().map(|p| p.surface).collect();
-            let coverage: f32 = surf.iter().map(|x| x.weight).sum();
-            let Some(appearance) = estimate(&surf, &s.estimate) else {
-                return (None, 0);
-            };
-            let pts: Vec<Vec3> = samples.iter().map(|p| p.position).collect();
-            let Some(ellipsoid) = fit_ellipsoid(&pts, min_extent) else {
-                return (None, 0);
-            };
-            let (map, rays) = aiv_map(accel, &samples, s.aiv_res, s.aiv_rays, seed);
-            let aiv = compress(&map, s.aiv_res, s.keep, s.energy);
-            (
-                Some(VoxelData {
-                    key: *key,
-                    area,
-                    coverage,
-                    appearance,
-                    ellipsoid,
-                    aiv,
-                }),
-                rays,
-            )
-        })
+        .map(|(key, pieces)| bake_voxel(scene, accel, &grid, *key, pieces, s))
         .collect();
     let mut rays = 0;
     let mut voxels = Vec::with_capacity(results.len());
-    for (v, r) in results {
+    for (v, r, _) in results {
         rays += r;
         voxels.extend(v);
     }
-    // Boundary faces and their visibility.
-    let occupied: BTreeSet<UVec3Key> = voxels
-        .iter()
-        .map(|v| UVec3Key::from(demorton3(v.key)))
-        .collect();
-    let faces = boundary_faces(&occupied, grid.res);
-    let level = PrimitiveLevel {
-        grid,
-        primitives: voxels
-            .iter()
-            .map(|v| (v.key, v.ellipsoid))
-            .collect::<HashMap<_, _>>(),
-    };
+    let faces = sorted_boundary_faces(voxels.iter().map(|v| v.key), grid.res);
+    let level = primitive_level(grid, voxels.iter().map(|v| (v.key, v.ellipsoid)));
     let face_results: Vec<(FaceData, u64)> = faces
         .par_iter()
-        .enumerate()
-        .map(|(i, f)| {
-            let m = abv_map(&level, accel, *f, s.abv_res, s.abv_rays, i as u32);
-            (
-                FaceData {
-                    face: *f,
-                    abv: compress(&m.values, s.abv_res, s.keep, s.energy),
-                },
-                m.traced,
-            )
-        })
+        .map(|f| bake_face(&level, accel, *f, s))
         .collect();
-    let faces = face_results.iter().map(|(f, _)| f.clone()).collect();
     rays += face_results.iter().map(|(_, r)| r).sum::<u64>();
+    let faces = face_results.into_iter().map(|(f, _)| f).collect();
     LevelData {
         grid,
         voxels,

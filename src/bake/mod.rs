@@ -1,11 +1,148 @@
-//! The bake: from a scene to the per-level voxel statistics that the `.agg` format stores
-//! (paper §7.1–§7.2). In progress: sparse voxelization with exact per-voxel areas and surface
-//! sampling inside voxels, interior visibility maps, truncated-ellipsoid fits, boundary faces and their visibility maps, and one level baked in memory.
+//! The bake: from a scene to the `.agg` file (paper §7.1–§7.2). Levels double in resolution
+//! from `min_res` up to `max_res`; each is voxelized with exact per-voxel areas
+//! ([`voxelize`]), sampled ([`sampling`]), reduced to per-voxel statistics, ellipsoids and
+//! interior-visibility trees ([`level`], [`primitive`], [`visibility`]), and closed by the
+//! visibility trees of its boundary faces ([`boundary`], [`boundary_visibility`]).
+//! [`bake_to_file`] streams it all into the file, one block of voxels or faces at a time.
 
 pub mod boundary;
 pub mod boundary_visibility;
 pub mod level;
+pub mod pipeline;
 pub mod primitive;
 pub mod sampling;
 pub mod visibility;
 pub mod voxelize;
+
+pub use pipeline::{bake_to_file, BakeReport};
+
+use crate::absdf::estimate::EstimateSettings;
+use level::LevelSettings;
+
+/// Settings of a whole bake (the `aggtool convert` options). Recorded in the file.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct BakeSettings {
+    /// Finest and coarsest level resolution (powers of two).
+    pub max_res: u32,
+    pub min_res: u32,
+    /// Surface samples per voxel at the finest level. A level of resolution r gets
+    /// `samples · (max_res / r)²` (the same density of samples per unit area, paper §7.1),
+    /// capped at `max_samples`.
+    pub samples: u32,
+    pub max_samples: u32,
+    /// Interior visibility: map resolution and rays per surface sample (paper: 16 to 64).
+    pub aiv_res: u32,
+    pub aiv_rays: u32,
+    /// Boundary visibility: map resolution and rays per direction cell.
+    pub abv_res: u32,
+    pub abv_rays: u32,
+    /// Most SGGX lobes per voxel.
+    pub ndf_lobes: u32,
+    /// Directional-moment grid resolution (Eq. 23).
+    pub moment_res: u32,
+    /// Wavelet truncation: fraction of coefficients kept, detail energy kept (paper Table 2).
+    pub keep: f32,
+    pub energy: f32,
+    /// Store every effect in full even where the asset does not need it (for measuring what
+    /// effect detection saves; renders are the same).
+    pub keep_all_effects: bool,
+}
+
+impl Default for BakeSettings {
+    fn default() -> Self {
+        BakeSettings {
+            max_res: 256,
+            min_res: 4,
+            samples: 16,
+            max_samples: 1024,
+            aiv_res: 32,
+            aiv_rays: 16,
+            abv_res: 64,
+            abv_rays: 1,
+            ndf_lobes: 4,
+            moment_res: 3,
+            keep: 0.10,
+            energy: 0.95,
+            keep_all_effects: false,
+        }
+    }
+}
+
+impl BakeSettings {
+    /// Checks the settings, with a message naming the option at fault.
+    pub fn validate(&self) -> Result<(), String> {
+        let pow2 = |name: &str, v: u32, lo: u32, hi: u32| {
+            if v.is_power_of_two() && (lo..=hi).contains(&v) {
+                Ok(())
+            } else {
+                Err(format!(
+                    "{name} must be a power of two from {lo} to {hi}, got {v}"
+                ))
+            }
+        };
+        pow2("--max-res", self.max_res, 1, 4096)?;
+        pow2("--min-res", self.min_res, 1, self.max_res)?;
+        pow2("--aiv-res", self.aiv_res, 2, 256)?;
+        pow2("--abv-res", self.abv_res, 2, 256)?;
+        if self.samples == 0 || self.max_samples == 0 || self.aiv_rays == 0 || self.abv_rays == 0 {
+            return Err(
+                "--samples, --max-samples, --aiv-rays and --abv-rays must be positive".into(),
+            );
+        }
+        if !(1..=4).contains(&self.ndf_lobes) {
+            return Err(format!(
+                "--ndf-lobes must be 1 to 4, got {}",
+                self.ndf_lobes
+            ));
+        }
+        if !(1..=16).contains(&self.moment_res) {
+            return Err(format!(
+                "--moment-res must be 1 to 16, got {}",
+                self.moment_res
+            ));
+        }
+        if !(self.keep > 0.0 && self.keep <= 1.0) || !(self.energy >= 0.0 && self.energy <= 1.0) {
+            return Err("--keep must be in (0, 1] and --energy in [0, 1]".into());
+        }
+        Ok(())
+    }
+
+    /// The resolutions of the levels, finest first.
+    pub fn resolutions(&self) -> Vec<u32> {
+        let mut r = self.max_res;
+        let mut out = Vec::new();
+        while r >= self.min_res.max(1) {
+            out.push(r);
+            if r == 1 {
+                break;
+            }
+            r /= 2;
+        }
+        out
+    }
+
+    /// Surface samples per voxel at resolution `res`.
+    pub fn samples_at(&self, res: u32) -> u32 {
+        let k = (self.max_res as f64 / res as f64).powi(2);
+        ((self.samples as f64 * k).round() as u64).clamp(1, self.max_samples as u64) as u32
+    }
+
+    /// The settings of one level.
+    pub fn level(&self, res: u32) -> LevelSettings {
+        LevelSettings {
+            samples_per_voxel: self.samples_at(res),
+            aiv_rays: self.aiv_rays,
+            aiv_res: self.aiv_res,
+            abv_res: self.abv_res,
+            abv_rays: self.abv_rays,
+            keep: self.keep,
+            energy: self.energy,
+            estimate: EstimateSettings {
+                max_lobes: self.ndf_lobes as usize,
+                moment_res: self.moment_res,
+                detect_constant: !self.keep_all_effects,
+                ..Default::default()
+            },
+        }
+    }
+}

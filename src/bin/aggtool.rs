@@ -130,6 +130,68 @@ enum Command {
         #[command(subcommand)]
         action: TablesAction,
     },
+    /// Bake an asset into an aggregate: writes ASSET's stem + .agg next to it by default.
+    Convert {
+        /// The asset (.gltf, .glb or .obj).
+        asset: PathBuf,
+        /// Output file (default: the asset's path with the extension .agg).
+        #[arg(short, long)]
+        output: Option<PathBuf>,
+        /// Finest level resolution (a power of two); levels halve down to --min-res.
+        #[arg(long, default_value_t = 256)]
+        max_res: u32,
+        /// Coarsest level resolution.
+        #[arg(long, default_value_t = 4)]
+        min_res: u32,
+        /// Surface samples per voxel at the finest level; a level of resolution r gets
+        /// samples·(max_res/r)², at most --max-samples.
+        #[arg(long, default_value_t = 16)]
+        samples: u32,
+        #[arg(long, default_value_t = 1024)]
+        max_samples: u32,
+        /// Interior-visibility map resolution (Clarberg equal-area, per voxel).
+        #[arg(long, default_value_t = 32)]
+        aiv_res: u32,
+        /// Interior-visibility rays per surface sample.
+        #[arg(long, default_value_t = 16)]
+        aiv_rays: u32,
+        /// Boundary-visibility map resolution (concentric, per boundary face).
+        #[arg(long, default_value_t = 64)]
+        abv_res: u32,
+        /// Boundary-visibility rays per direction cell.
+        #[arg(long, default_value_t = 1)]
+        abv_rays: u32,
+        /// Most SGGX lobes per voxel (1 to 4).
+        #[arg(long, default_value_t = 4)]
+        ndf_lobes: u32,
+        /// Directional-moment grid resolution (Eq. 23).
+        #[arg(long, default_value_t = 3)]
+        moment_res: u32,
+        /// Fraction of wavelet coefficients kept.
+        #[arg(long, default_value_t = 0.10)]
+        keep: f32,
+        /// Detail energy kept by the wavelet truncation (more coefficients kept until reached).
+        #[arg(long, default_value_t = 0.95)]
+        energy: f32,
+        /// Store every effect in full even where the asset does not need it.
+        #[arg(long)]
+        keep_all_effects: bool,
+        /// Write the stats as JSON to this file.
+        #[arg(long)]
+        report: Option<PathBuf>,
+        /// Print per-level details and every effect decision.
+        #[arg(short, long)]
+        verbose: bool,
+        /// Treat import warnings as errors.
+        #[arg(long)]
+        strict: bool,
+    },
+    /// Print what an .agg file holds: header, settings, levels, effects kept and dropped.
+    Inspect {
+        file: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
     /// Write an asset as world-space OBJ files, one per material, with materials.json
     /// (base colours) beside them: the input of the Mitsuba cross-check.
     Flatten {
@@ -556,11 +618,267 @@ fn run(cli: Cli) -> Result<()> {
             slice,
             exposure,
         } => absdf_plot(&case, &output, samples, slice, exposure),
+        Command::Convert {
+            asset,
+            output,
+            max_res,
+            min_res,
+            samples,
+            max_samples,
+            aiv_res,
+            aiv_rays,
+            abv_res,
+            abv_rays,
+            ndf_lobes,
+            moment_res,
+            keep,
+            energy,
+            keep_all_effects,
+            report,
+            verbose,
+            strict,
+        } => {
+            let settings = aggtool::bake::BakeSettings {
+                max_res,
+                min_res,
+                samples,
+                max_samples,
+                aiv_res,
+                aiv_rays,
+                abv_res,
+                abv_rays,
+                ndf_lobes,
+                moment_res,
+                keep,
+                energy,
+                keep_all_effects,
+            };
+            convert(
+                &asset,
+                output,
+                &settings,
+                report.as_deref(),
+                verbose,
+                strict,
+            )
+        }
+        Command::Inspect { file, json } => inspect(&file, json),
         Command::Flatten { asset, output } => {
             let scene = load_scene(&asset, false)?;
             flatten(&scene, &output)
         }
     }
+}
+
+fn mib(b: u64) -> String {
+    format!("{:.2} MiB", b as f64 / (1024.0 * 1024.0))
+}
+
+fn convert(
+    asset: &Path,
+    output: Option<PathBuf>,
+    settings: &aggtool::bake::BakeSettings,
+    report: Option<&Path>,
+    verbose: bool,
+    strict: bool,
+) -> Result<()> {
+    settings.validate().map_err(anyhow::Error::msg)?;
+    let out = output.unwrap_or_else(|| asset.with_extension("agg"));
+    let t0 = std::time::Instant::now();
+    let scene = load_scene(asset, strict)?;
+    let t_import = t0.elapsed().as_secs_f64();
+    println!(
+        "input: {}: {} (imported in {t_import:.2} s)",
+        asset.display(),
+        scene.summary()
+    );
+    let source = asset
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let r = aggtool::bake::bake_to_file(&scene, &source, settings, &out, true)
+        .with_context(|| format!("baking {}", asset.display()))?;
+    println!("output: {} ({})", out.display(), mib(r.bytes));
+    for l in &r.levels {
+        println!(
+            "stats: level {:>4}³: {:>8} voxels ({:.3}% occupied), {:>8} faces, {:>5} samples/voxel, {}; voxelize {:.2} s, voxels {:.2} s (cpu: statistics {:.1} s, AIV {:.1} s), faces {:.2} s; rays {} AIV + {} ABV",
+            l.res,
+            l.voxels,
+            100.0 * l.occupancy,
+            l.faces,
+            l.samples_per_voxel,
+            mib(l.bytes),
+            l.seconds.voxelize,
+            l.seconds.voxels,
+            l.cpu_statistics,
+            l.cpu_aiv,
+            l.seconds.faces,
+            l.aiv_rays,
+            l.abv_rays
+        );
+    }
+    let c = &r.components;
+    println!(
+        "stats: bytes: keys {}, voxel records {}, lobes {}, moments {} (+ dielectric {}), AIV trees {}, faces {}, ABV trees {}",
+        mib(c.keys),
+        mib(c.voxels),
+        mib(c.lobes),
+        mib(c.moments),
+        mib(c.dielectric_moments),
+        mib(c.aiv_nodes),
+        mib(c.faces),
+        mib(c.abv_nodes)
+    );
+    println!(
+        "stats: seconds: import {t_import:.2}, voxelize {:.2}, voxels {:.2}, faces {:.2}, write {:.2}, bake total {:.2}; {} rays ({:.2} Mrays/s); peak memory {}",
+        r.seconds.voxelize,
+        r.seconds.voxels,
+        r.seconds.faces,
+        r.seconds.write,
+        r.total_seconds,
+        r.rays,
+        r.rays_per_second / 1e6,
+        r.peak_memory.map_or("unknown".into(), mib)
+    );
+    let kept: Vec<&str> = r
+        .effects
+        .iter()
+        .filter(|e| e.kept)
+        .map(|e| e.name)
+        .collect();
+    let dropped: Vec<&str> = r
+        .effects
+        .iter()
+        .filter(|e| !e.kept)
+        .map(|e| e.name)
+        .collect();
+    println!(
+        "stats: effects kept: {}",
+        if kept.is_empty() {
+            "none".into()
+        } else {
+            kept.join("; ")
+        }
+    );
+    println!(
+        "stats: effects dropped: {}",
+        if dropped.is_empty() {
+            "none".into()
+        } else {
+            dropped.join("; ")
+        }
+    );
+    if verbose {
+        print!("{}", aggtool::format::effects::format_effects(&r.effects));
+    }
+    if let Some(p) = report {
+        let json = serde_json::to_string_pretty(&r)?;
+        aggtool::render::image::write_atomic(p, |tmp| {
+            std::fs::write(tmp, json.as_bytes()).map_err(|e| e.to_string())
+        })
+        .map_err(anyhow::Error::msg)?;
+        println!("output: {}", p.display());
+    }
+    Ok(())
+}
+
+fn inspect(file: &Path, json: bool) -> Result<()> {
+    use aggtool::format::effects::{effect_lines, format_effects};
+    let agg = aggtool::format::Aggregate::open(file)
+        .with_context(|| format!("cannot read {}", file.display()))?;
+    let h = agg.header();
+    let ix = agg.index();
+    let s = ix.settings().expect("verified");
+    let levels: Vec<(u32, aggtool::format::encode::Counts)> = (0..agg.level_count())
+        .map(|l| (agg.grid(l).res, agg.counts(l)))
+        .collect();
+    let effects = effect_lines(&levels, s.keep_all_effects());
+    let level_info: Vec<serde_json::Value> = (0..agg.level_count())
+        .map(|l| {
+            let lv = ix.levels().unwrap().get(l);
+            let bytes: u64 = lv
+                .voxel_blocks()
+                .into_iter()
+                .flatten()
+                .chain(lv.face_blocks().into_iter().flatten())
+                .map(|b| b.size())
+                .sum();
+            serde_json::json!({
+                "res": lv.res(),
+                "voxels": levels[l].1.voxels,
+                "faces": levels[l].1.faces,
+                "voxel_blocks": lv.voxel_blocks().map_or(0, |b| b.len()),
+                "face_blocks": lv.face_blocks().map_or(0, |b| b.len()),
+                "bytes": bytes,
+                "counts": levels[l].1,
+            })
+        })
+        .collect();
+    let lo = ix.bounds_min().map(|v| [v.x(), v.y(), v.z()]);
+    let hi = ix.bounds_max().map(|v| [v.x(), v.y(), v.z()]);
+    if json {
+        let v = serde_json::json!({
+            "file": file.display().to_string(),
+            "format": format!("{}.{}", h.major, h.minor),
+            "bytes": h.file_size,
+            "generator": ix.generator(),
+            "source": ix.source(),
+            "bounds": [lo, hi],
+            "tables_version": ix.tables_version(),
+            "tables_crc32": ix.tables_crc32(),
+            "settings": {
+                "max_res": s.max_res(), "min_res": s.min_res(), "samples": s.samples(),
+                "max_samples": s.max_samples(), "aiv_res": s.aiv_res(), "aiv_rays": s.aiv_rays(),
+                "abv_res": s.abv_res(), "abv_rays": s.abv_rays(), "ndf_lobes": s.ndf_lobes(),
+                "moment_res": s.moment_res(), "keep": s.keep(), "energy": s.energy(),
+                "keep_all_effects": s.keep_all_effects(),
+            },
+            "levels": level_info,
+            "effects": effects,
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+        return Ok(());
+    }
+    println!(
+        "{}: aggtool format {}.{}, {} bytes, written by {}",
+        file.display(),
+        h.major,
+        h.minor,
+        h.file_size,
+        ix.generator().unwrap_or("?")
+    );
+    println!(
+        "source: {}; bounds {:?} to {:?}; tables v{} (crc32 {:08x}{})",
+        ix.source().unwrap_or("?"),
+        lo.unwrap_or_default(),
+        hi.unwrap_or_default(),
+        ix.tables_version(),
+        ix.tables_crc32(),
+        if ix.tables_crc32() == crc32fast::hash(aggtool::tables::EMBEDDED) {
+            ", same as this build"
+        } else {
+            ", NOT the tables of this build"
+        }
+    );
+    println!(
+        "settings: max-res {} min-res {} samples {} (max {}) aiv {}² × {} rays/sample, abv {}² × {} rays/cell, ndf-lobes {}, moment-res {}, keep {} energy {}{}",
+        s.max_res(), s.min_res(), s.samples(), s.max_samples(), s.aiv_res(), s.aiv_rays(),
+        s.abv_res(), s.abv_rays(), s.ndf_lobes(), s.moment_res(), s.keep(), s.energy(),
+        if s.keep_all_effects() { ", keep-all-effects" } else { "" }
+    );
+    println!(
+        "{:>6} {:>10} {:>10} {:>7} {:>7} {:>12}",
+        "level", "voxels", "faces", "vblocks", "fblocks", "bytes"
+    );
+    for l in &level_info {
+        println!(
+            "{:>5}³ {:>10} {:>10} {:>7} {:>7} {:>12}",
+            l["res"], l["voxels"], l["faces"], l["voxel_blocks"], l["face_blocks"], l["bytes"]
+        );
+    }
+    println!("effects:");
+    print!("{}", format_effects(&effects));
+    Ok(())
 }
 
 fn main() -> ExitCode {

@@ -194,42 +194,124 @@ impl SparseHaar {
 
     /// The value of pixel (x, y), walking one root-to-leaf path.
     pub fn eval(&self, x: u32, y: u32) -> f32 {
-        let n = self.n.max(1);
-        let mut v = self.scaling as f64 / n as f64;
-        let mut i = 0usize;
-        let mut size = n;
-        let (mut x0, mut y0) = (0u32, 0u32);
-        while i < self.nodes.len() && size > 1 {
-            let node = self.nodes[i];
-            let half = size / 2;
-            let right = x >= x0 + half;
-            let bottom = y >= y0 + half;
-            let sx = if right { -1.0 } else { 1.0 };
-            let sy = if bottom { -1.0 } else { 1.0 };
-            let [h, vv, d] = node.details.map(|c| c as f64);
-            v += (h * sx + vv * sy + d * sx * sy) / size as f64;
-            let q = (right as u8) | ((bottom as u8) << 1);
-            if node.children & (1 << q) == 0 {
-                break;
-            }
-            // Skip the subtrees of earlier present siblings.
-            let mut j = i + 1;
-            for p in 0..q {
-                if node.children & (1 << p) != 0 {
-                    j += self.nodes[j].subtree as usize;
-                }
-            }
-            i = j;
-            if right {
-                x0 += half;
-            }
-            if bottom {
-                y0 += half;
-            }
-            size = half;
-        }
-        v as f32
+        eval_tree(
+            self.n,
+            self.scaling,
+            self.nodes.len(),
+            |i| self.nodes[i],
+            x,
+            y,
+        )
     }
+}
+
+/// The value of pixel (x, y) of the `n × n` map whose tree has `len` nodes given by `node`
+/// (preorder), walking one root-to-leaf path: the storage-independent form of
+/// [`SparseHaar::eval`], used on trees read zero-copy from a file. The tree must have passed
+/// [`validate_tree`] (or be built by [`SparseHaar::new`]).
+#[inline]
+pub fn eval_tree(
+    n: u32,
+    scaling: f32,
+    len: usize,
+    node: impl Fn(usize) -> Node,
+    x: u32,
+    y: u32,
+) -> f32 {
+    let n = n.max(1);
+    let mut v = scaling as f64 / n as f64;
+    let mut i = 0usize;
+    let mut size = n;
+    let (mut x0, mut y0) = (0u32, 0u32);
+    while i < len && size > 1 {
+        let nd = node(i);
+        let half = size / 2;
+        let right = x >= x0 + half;
+        let bottom = y >= y0 + half;
+        let sx = if right { -1.0 } else { 1.0 };
+        let sy = if bottom { -1.0 } else { 1.0 };
+        let [h, vv, d] = nd.details.map(|c| c as f64);
+        v += (h * sx + vv * sy + d * sx * sy) / size as f64;
+        let q = (right as u8) | ((bottom as u8) << 1);
+        if nd.children & (1 << q) == 0 {
+            break;
+        }
+        // Skip the subtrees of earlier present siblings.
+        let mut j = i + 1;
+        for p in 0..q {
+            if nd.children & (1 << p) != 0 && j < len {
+                j += node(j).subtree as usize;
+            }
+        }
+        i = j;
+        if right {
+            x0 += half;
+        }
+        if bottom {
+            y0 += half;
+        }
+        size = half;
+    }
+    v as f32
+}
+
+/// Checks that `len` nodes form a well-shaped preorder tree for an `n × n` map: subtree sizes
+/// add up, children stop at the finest level, every coefficient is finite. A tree that passes
+/// can be walked by [`eval_tree`] without reading out of range.
+pub fn validate_tree(n: u32, len: usize, node: impl Fn(usize) -> Node) -> Result<(), String> {
+    if len == 0 {
+        return Ok(());
+    }
+    if !n.is_power_of_two() || n < 2 {
+        return Err(format!("tree for a {n}x{n} map"));
+    }
+    let depth = n.trailing_zeros() as usize;
+    // Iterative preorder walk: (node index, level).
+    let mut stack = vec![(0usize, 0usize)];
+    let mut visited = 0usize;
+    while let Some((i, l)) = stack.pop() {
+        if i >= len {
+            return Err(format!("node {i} out of {len}"));
+        }
+        visited += 1;
+        if visited > len {
+            return Err("nodes visited twice".into());
+        }
+        let nd = node(i);
+        if !nd.details.iter().all(|c| c.is_finite()) {
+            return Err(format!("node {i}: non-finite coefficient"));
+        }
+        if nd.children > 15 || (l + 1 >= depth && nd.children != 0) {
+            return Err(format!("node {i}: bad child mask {}", nd.children));
+        }
+        let mut j = i + 1;
+        let mut kids = Vec::with_capacity(4);
+        for q in 0..4 {
+            if nd.children & (1 << q) != 0 {
+                if j >= len {
+                    return Err(format!("node {i}: child beyond the tree"));
+                }
+                kids.push(j);
+                j = j
+                    .checked_add(node(j).subtree as usize)
+                    .ok_or("subtree size overflow")?;
+            }
+        }
+        if j - i != nd.subtree as usize {
+            return Err(format!(
+                "node {i}: subtree size {} but children span {}",
+                nd.subtree,
+                j - i
+            ));
+        }
+        for k in kids.into_iter().rev() {
+            stack.push((k, l + 1));
+        }
+    }
+    if node(0).subtree as usize != len {
+        return Err(format!("root spans {} of {len} nodes", node(0).subtree));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -26,27 +26,16 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 mi.set_variant("scalar_rgb")
 
-ROOT = Path(__file__).resolve().parents[2]
-def _find_aggtool():
-    """$AGGTOOL, else the newer of target/release and target/debug builds."""
-    if "AGGTOOL" in os.environ:
-        return Path(os.environ["AGGTOOL"])
-    builds = [p for p in (ROOT / "target" / "release" / "aggtool", ROOT / "target" / "debug" / "aggtool") if p.exists()]
-    if not builds:
-        pytest.skip("no aggtool build: run `cargo build` first", allow_module_level=True)
-    return max(builds, key=lambda p: p.stat().st_mtime)
+from aggtool_cli import find_aggtool, run
 
-
-AGGTOOL = _find_aggtool()
+AGGTOOL = find_aggtool()
 
 SIZE = 48
 SPP = 256
 
 
 def aggtool(*args, cwd):
-    r = subprocess.run([str(AGGTOOL), *map(str, args)], cwd=cwd, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    return r.stdout
+    return run(*args, cwd=cwd)
 
 
 def write_envmap(path):

@@ -1,0 +1,284 @@
+//! The streaming bake of a whole asset into an `.agg` file: level by level, finest first, and
+//! within a level block by block (at most [`BLOCK_VOXELS`] voxels or [`BLOCK_FACES`] faces in
+//! memory at once, baked in parallel with rayon). Per-voxel seeds come from Morton keys, so
+//! the bytes do not depend on the thread count.
+
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use super::level::{bake_face, bake_voxel, primitive_level, sorted_boundary_faces, VoxelData};
+use super::primitive::Ellipsoid;
+use super::sampling::pieces_by_voxel;
+use super::voxelize::Grid;
+use super::BakeSettings;
+use crate::format::effects::{effect_lines, EffectLine};
+use crate::format::encode::{self, ComponentBytes, Counts, IndexEntry, LevelEntry};
+use crate::format::Writer;
+use crate::scene::Scene;
+use crate::trace::Accel;
+
+/// Voxels per block: a few MiB of records, lobes, moments and trees.
+pub const BLOCK_VOXELS: usize = 4096;
+/// Faces per block.
+pub const BLOCK_FACES: usize = 8192;
+
+/// Wall-clock seconds per stage.
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct StageSeconds {
+    pub voxelize: f64,
+    pub voxels: f64,
+    pub faces: f64,
+    pub write: f64,
+}
+
+/// What one level cost and holds.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct LevelReport {
+    pub res: u32,
+    pub voxels: u64,
+    pub faces: u64,
+    /// Non-empty voxels over res³.
+    pub occupancy: f64,
+    pub samples_per_voxel: u32,
+    pub seconds: StageSeconds,
+    /// CPU seconds (summed over threads) of sampling + statistics and of the AIV rays.
+    pub cpu_statistics: f64,
+    pub cpu_aiv: f64,
+    pub aiv_rays: u64,
+    pub abv_rays: u64,
+    pub bytes: u64,
+    pub counts: Counts,
+}
+
+/// What a bake did, for the `stats:` lines and `--report`.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct BakeReport {
+    pub output: String,
+    pub bytes: u64,
+    pub settings: BakeSettings,
+    pub levels: Vec<LevelReport>,
+    pub seconds: StageSeconds,
+    pub total_seconds: f64,
+    pub rays: u64,
+    pub rays_per_second: f64,
+    pub components: ComponentBytes,
+    /// Peak resident memory of the process (Linux), bytes.
+    pub peak_memory: Option<u64>,
+    pub effects: Vec<EffectLine>,
+}
+
+/// Why a bake failed.
+#[derive(Debug, thiserror::Error)]
+pub enum BakeError {
+    #[error("invalid settings: {0}")]
+    Settings(String),
+    #[error("the scene has no surface to bake (no triangles with area)")]
+    Empty,
+    #[error("cannot write {path}: {source}")]
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
+}
+
+/// Peak resident set size of this process (VmHWM), where the platform tells it.
+pub fn peak_memory() -> Option<u64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+/// Bakes `scene` into `out` (written atomically). `source` is the asset's file name, recorded
+/// in the index; `progress` shows progress bars on a terminal.
+pub fn bake_to_file(
+    scene: &Scene,
+    source: &str,
+    settings: &BakeSettings,
+    out: &Path,
+    progress: bool,
+) -> Result<BakeReport, BakeError> {
+    settings.validate().map_err(BakeError::Settings)?;
+    if !(scene.world_area() > 0.0) {
+        return Err(BakeError::Empty);
+    }
+    let io = |e: std::io::Error| BakeError::Io {
+        path: out.display().to_string(),
+        source: e,
+    };
+    let t_start = Instant::now();
+    let accel = Accel::build(scene);
+    let (lo, hi) = scene.bounds();
+    let mut writer = Writer::create(out).map_err(io)?;
+    let mut entries = Vec::new();
+    let mut reports = Vec::new();
+    let mut components = ComponentBytes::default();
+    let mut total = StageSeconds::default();
+    let mut rays = 0u64;
+    for (li, res) in settings.resolutions().into_iter().enumerate() {
+        let grid = Grid::around(lo, hi, res);
+        let ls = settings.level(res);
+        let mut sec = StageSeconds::default();
+        let mut counts = Counts::default();
+        let mut bytes = 0u64;
+        // Voxelize: exact pieces of surface per voxel, in Morton order.
+        let t = Instant::now();
+        let pieces: Vec<(u64, Vec<super::sampling::Piece>)> =
+            pieces_by_voxel(scene, &grid).into_iter().collect();
+        sec.voxelize = t.elapsed().as_secs_f64();
+        // Voxels, block by block.
+        let bar = crate::render::reference::progress_bar(
+            progress,
+            pieces.len() as u64,
+            &format!("{res}³ voxels"),
+        );
+        let cpu_stats = AtomicU64::new(0);
+        let cpu_aiv = AtomicU64::new(0);
+        let mut aiv_rays = 0u64;
+        let mut keys_prims: Vec<(u64, Ellipsoid)> = Vec::with_capacity(pieces.len());
+        let mut voxel_blocks = Vec::new();
+        for chunk in pieces.chunks(BLOCK_VOXELS) {
+            let t = Instant::now();
+            let baked: Vec<(Option<VoxelData>, u64)> = chunk
+                .par_iter()
+                .map(|(key, p)| {
+                    let (v, r, cpu) = bake_voxel(scene, &accel, &grid, *key, p, &ls);
+                    cpu_stats.fetch_add((cpu[0] * 1e9) as u64, Ordering::Relaxed);
+                    cpu_aiv.fetch_add((cpu[1] * 1e9) as u64, Ordering::Relaxed);
+                    bar.inc(1);
+                    (v, r)
+                })
+                .collect();
+            let voxels: Vec<VoxelData> = baked
+                .into_iter()
+                .filter_map(|(v, r)| {
+                    aiv_rays += r;
+                    v
+                })
+                .collect();
+            sec.voxels += t.elapsed().as_secs_f64();
+            if voxels.is_empty() {
+                continue;
+            }
+            let t = Instant::now();
+            keys_prims.extend(voxels.iter().map(|v| (v.key, v.ellipsoid)));
+            let blob = encode::voxel_block(
+                li as u32,
+                &voxels,
+                settings.keep_all_effects,
+                &mut counts,
+                &mut components,
+            );
+            bytes += blob.len() as u64;
+            let r = writer
+                .write_blob(
+                    &blob,
+                    voxels[0].key,
+                    voxels[voxels.len() - 1].key,
+                    voxels.len() as u32,
+                )
+                .map_err(io)?;
+            voxel_blocks.push(r);
+            sec.write += t.elapsed().as_secs_f64();
+        }
+        bar.finish_and_clear();
+        drop(pieces);
+        // Boundary faces, block by block.
+        let t = Instant::now();
+        let faces = sorted_boundary_faces(keys_prims.iter().map(|k| k.0), res);
+        let prims = primitive_level(grid, keys_prims.into_iter());
+        let bar = crate::render::reference::progress_bar(
+            progress,
+            faces.len() as u64,
+            &format!("{res}³ faces"),
+        );
+        let mut abv_rays = 0u64;
+        let mut face_blocks = Vec::new();
+        for chunk in faces.chunks(BLOCK_FACES) {
+            let t = Instant::now();
+            let baked: Vec<_> = chunk
+                .par_iter()
+                .map(|f| {
+                    let r = bake_face(&prims, &accel, *f, &ls);
+                    bar.inc(1);
+                    r
+                })
+                .collect();
+            abv_rays += baked.iter().map(|b| b.1).sum::<u64>();
+            let data: Vec<_> = baked.into_iter().map(|b| b.0).collect();
+            sec.faces += t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let blob = encode::face_block(li as u32, &data, &mut counts, &mut components);
+            bytes += blob.len() as u64;
+            let r = writer
+                .write_blob(
+                    &blob,
+                    encode::face_key(&data[0]),
+                    encode::face_key(&data[data.len() - 1]),
+                    data.len() as u32,
+                )
+                .map_err(io)?;
+            face_blocks.push(r);
+            sec.write += t.elapsed().as_secs_f64();
+        }
+        bar.finish_and_clear();
+        let _ = t;
+        rays += aiv_rays + abv_rays;
+        total.voxelize += sec.voxelize;
+        total.voxels += sec.voxels;
+        total.faces += sec.faces;
+        total.write += sec.write;
+        entries.push(LevelEntry {
+            res,
+            origin: grid.origin,
+            size: grid.size,
+            voxel_blocks,
+            face_blocks,
+            counts,
+        });
+        reports.push(LevelReport {
+            res,
+            voxels: counts.voxels,
+            faces: counts.faces,
+            occupancy: counts.voxels as f64 / (res as f64).powi(3),
+            samples_per_voxel: ls.samples_per_voxel,
+            seconds: sec,
+            cpu_statistics: cpu_stats.load(Ordering::Relaxed) as f64 * 1e-9,
+            cpu_aiv: cpu_aiv.load(Ordering::Relaxed) as f64 * 1e-9,
+            aiv_rays,
+            abv_rays,
+            bytes,
+            counts,
+        });
+    }
+    let index = encode::index(&IndexEntry {
+        generator: concat!("aggtool ", env!("CARGO_PKG_VERSION")),
+        source,
+        bounds: (lo, hi),
+        settings,
+        tables_version: crate::tables::TABLES_VERSION,
+        tables_crc32: crc32fast::hash(crate::tables::EMBEDDED),
+        levels: &entries,
+    });
+    let t = Instant::now();
+    let size = writer.finish(&index).map_err(io)?;
+    total.write += t.elapsed().as_secs_f64();
+    let total_seconds = t_start.elapsed().as_secs_f64();
+    let per_level: Vec<(u32, Counts)> = entries.iter().map(|e| (e.res, e.counts)).collect();
+    Ok(BakeReport {
+        output: out.display().to_string(),
+        bytes: size,
+        settings: settings.clone(),
+        levels: reports,
+        seconds: total,
+        total_seconds,
+        rays,
+        rays_per_second: rays as f64 / (total.voxels + total.faces).max(1e-9),
+        components,
+        peak_memory: peak_memory(),
+        effects: effect_lines(&per_level, settings.keep_all_effects),
+    })
+}

@@ -1,0 +1,446 @@
+//! From baked levels to FlatBuffer blobs: voxel blocks, face blocks and the index. Here the
+//! bake's effect detection becomes storage: a voxel without metal stores the dielectric
+//! moments, a constant visibility map stores its value and no tree, and every choice is counted
+//! per level so that `aggtool inspect` can say what was kept or dropped, and why.
+
+use flatbuffers::FlatBufferBuilder;
+use glam::Vec3;
+
+use super::fb;
+use super::{BLOCK_ID, INDEX_ID};
+use crate::absdf::{MaterialMoments, Moments};
+use crate::bake::level::{FaceData, VoxelData};
+use crate::bake::voxelize::morton3;
+use crate::bake::BakeSettings;
+use crate::math::beta::MIN_VARIANCE;
+use crate::math::haar::Node;
+
+/// What a level stores, counted while encoding.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Counts {
+    pub voxels: u64,
+    pub faces: u64,
+    pub directional_moments: u64,
+    pub metallic: u64,
+    pub roughness_variance: u64,
+    pub multi_lobe: u64,
+    pub aiv_trees: u64,
+    pub aiv_all_visible: u64,
+    pub aiv_all_occluded: u64,
+    pub abv_trees: u64,
+    pub cut_out: u64,
+    pub aiv_nodes: u64,
+    pub abv_nodes: u64,
+}
+
+impl Counts {
+    pub fn add(&mut self, o: &Counts) {
+        self.voxels += o.voxels;
+        self.faces += o.faces;
+        self.directional_moments += o.directional_moments;
+        self.metallic += o.metallic;
+        self.roughness_variance += o.roughness_variance;
+        self.multi_lobe += o.multi_lobe;
+        self.aiv_trees += o.aiv_trees;
+        self.aiv_all_visible += o.aiv_all_visible;
+        self.aiv_all_occluded += o.aiv_all_occluded;
+        self.abv_trees += o.abv_trees;
+        self.cut_out += o.cut_out;
+        self.aiv_nodes += o.aiv_nodes;
+        self.abv_nodes += o.abv_nodes;
+    }
+
+    /// The effects at least one voxel or face stores.
+    pub fn effects(&self) -> fb::Effect {
+        let mut e = fb::Effect::empty();
+        let pairs = [
+            (self.directional_moments, fb::Effect::DirectionalMoments),
+            (self.metallic, fb::Effect::MetallicMoments),
+            (self.roughness_variance, fb::Effect::RoughnessVariance),
+            (self.multi_lobe, fb::Effect::MultiLobeNdf),
+            (self.aiv_trees, fb::Effect::AivTrees),
+            (self.abv_trees, fb::Effect::AbvTrees),
+            (self.cut_out, fb::Effect::CutOuts),
+        ];
+        for (n, f) in pairs {
+            if n > 0 {
+                e |= f;
+            }
+        }
+        e
+    }
+
+    pub(crate) fn from_fb(c: &fb::LevelCounts) -> Counts {
+        Counts {
+            voxels: c.voxels(),
+            faces: c.faces(),
+            directional_moments: c.directional_moments(),
+            metallic: c.metallic(),
+            roughness_variance: c.roughness_variance(),
+            multi_lobe: c.multi_lobe(),
+            aiv_trees: c.aiv_trees(),
+            aiv_all_visible: c.aiv_all_visible(),
+            aiv_all_occluded: c.aiv_all_occluded(),
+            abv_trees: c.abv_trees(),
+            cut_out: c.cut_out(),
+            aiv_nodes: c.aiv_nodes(),
+            abv_nodes: c.abv_nodes(),
+        }
+    }
+}
+
+/// Bytes stored per component (FlatBuffer payloads, without per-vector headers and padding).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct ComponentBytes {
+    pub keys: u64,
+    pub voxels: u64,
+    pub lobes: u64,
+    pub moments: u64,
+    pub dielectric_moments: u64,
+    pub aiv_nodes: u64,
+    pub faces: u64,
+    pub abv_nodes: u64,
+}
+
+impl ComponentBytes {
+    pub fn add(&mut self, o: &ComponentBytes) {
+        self.keys += o.keys;
+        self.voxels += o.voxels;
+        self.lobes += o.lobes;
+        self.moments += o.moments;
+        self.dielectric_moments += o.dielectric_moments;
+        self.aiv_nodes += o.aiv_nodes;
+        self.faces += o.faces;
+        self.abv_nodes += o.abv_nodes;
+    }
+}
+
+fn bytes_of<T>(v: &[T]) -> u64 {
+    std::mem::size_of_val(v) as u64
+}
+
+pub(crate) fn v3(v: Vec3) -> fb::Vec3f {
+    fb::Vec3f::new(v.x, v.y, v.z)
+}
+
+fn haar_node(n: &Node) -> fb::HaarNode {
+    fb::HaarNode::new(
+        n.details[0],
+        n.details[1],
+        n.details[2],
+        n.subtree,
+        n.children,
+    )
+}
+
+fn has_metal(m: &MaterialMoments) -> bool {
+    m.m != 0.0 || m.mf90 != 0.0 || m.ms != 0.0 || m.mc != Vec3::ZERO
+}
+
+fn full(m: &MaterialMoments) -> fb::Moments {
+    fb::Moments::new(&v3(m.c), &v3(m.mc), m.s, m.ms, m.m, m.f90, m.mf90)
+}
+
+fn dielectric(m: &MaterialMoments) -> fb::DielectricMoments {
+    fb::DielectricMoments::new(&v3(m.c), m.s, m.f90)
+}
+
+/// Encodes one block of voxels (sorted by key) of level `level`, adding to `counts`.
+/// With `keep_all`, every voxel stores the metallic moments even without metal.
+pub fn voxel_block(
+    level: u32,
+    voxels: &[VoxelData],
+    keep_all: bool,
+    counts: &mut Counts,
+    sizes: &mut ComponentBytes,
+) -> Vec<u8> {
+    let mut keys = Vec::with_capacity(voxels.len());
+    let mut recs = Vec::with_capacity(voxels.len());
+    let mut lobes = Vec::new();
+    let mut moments = Vec::new();
+    let mut diel = Vec::new();
+    let mut nodes = Vec::new();
+    for v in voxels {
+        let a = &v.appearance;
+        let mut flags = fb::VoxelFlags::empty();
+        counts.voxels += 1;
+        // Lobes.
+        let lobe_start = lobes.len() as u32;
+        for l in &a.lobes {
+            lobes.push(fb::Lobe::new(
+                l.weight,
+                &v3(l.frame.x_axis),
+                &v3(l.frame.y_axis),
+                &v3(l.frame.z_axis),
+                l.alpha.x,
+                l.alpha.y,
+            ));
+        }
+        if a.lobes.len() > 1 {
+            counts.multi_lobe += 1;
+        }
+        // Moments: constant or directional, full or dielectric.
+        let sets: Vec<&MaterialMoments> = match &a.moments {
+            Moments::Constant(m) => vec![m],
+            Moments::Directional {
+                diffuse, specular, ..
+            } => diffuse.iter().chain(specular.iter()).collect(),
+        };
+        let moment_res = match &a.moments {
+            Moments::Constant(_) => 0,
+            Moments::Directional { res, .. } => {
+                flags |= fb::VoxelFlags::DirectionalMoments;
+                counts.directional_moments += 1;
+                *res
+            }
+        };
+        let metal = keep_all || sets.iter().any(|m| has_metal(m));
+        let moment_start;
+        if metal {
+            flags |= fb::VoxelFlags::Metallic;
+            counts.metallic += 1;
+            moment_start = moments.len() as u32;
+            moments.extend(sets.iter().map(|m| full(m)));
+        } else {
+            moment_start = diel.len() as u32;
+            diel.extend(sets.iter().map(|m| dielectric(m)));
+        }
+        // Roughness: the estimate stores a variance below the threshold (one microfacet lobe)
+        // as exactly zero.
+        let variance = a.roughness_variance;
+        if variance >= MIN_VARIANCE {
+            counts.roughness_variance += 1;
+        }
+        if v.coverage < 1.0 - 1e-6 {
+            counts.cut_out += 1;
+        }
+        // Interior visibility.
+        let aiv_start = nodes.len() as u32;
+        if v.aiv.is_constant() {
+            let value = v.aiv.scaling / v.aiv.n.max(1) as f32;
+            if value >= 1.0 - 1e-6 {
+                counts.aiv_all_visible += 1;
+            } else if value <= 1e-6 {
+                counts.aiv_all_occluded += 1;
+            }
+        } else {
+            flags |= fb::VoxelFlags::AivTree;
+            counts.aiv_trees += 1;
+            counts.aiv_nodes += v.aiv.nodes.len() as u64;
+            nodes.extend(v.aiv.nodes.iter().map(haar_node));
+        }
+        let e = &v.ellipsoid;
+        keys.push(v.key);
+        recs.push(fb::Voxel::new(
+            v.area as f32,
+            v.coverage,
+            a.roughness_mean,
+            variance,
+            &v3(e.center),
+            &v3(e.axes.x_axis),
+            &v3(e.axes.y_axis),
+            &v3(e.axes.z_axis),
+            flags,
+            lobe_start,
+            a.lobes.len() as u32,
+            moment_start,
+            sets.len() as u32,
+            moment_res,
+            aiv_start,
+            nodes.len() as u32 - aiv_start,
+            v.aiv.scaling,
+        ));
+    }
+    sizes.keys += bytes_of(&keys);
+    sizes.voxels += bytes_of(&recs);
+    sizes.lobes += bytes_of(&lobes);
+    sizes.moments += bytes_of(&moments);
+    sizes.dielectric_moments += bytes_of(&diel);
+    sizes.aiv_nodes += bytes_of(&nodes);
+    let mut b = FlatBufferBuilder::with_capacity(
+        64 + recs.len() * 120 + lobes.len() * 48 + moments.len() * 44 + nodes.len() * 20,
+    );
+    let keys = b.create_vector(&keys);
+    let recs = b.create_vector(&recs);
+    let lobes = b.create_vector(&lobes);
+    let moments = b.create_vector(&moments);
+    let diel = b.create_vector(&diel);
+    let nodes = b.create_vector(&nodes);
+    let root = fb::Block::create(
+        &mut b,
+        &fb::BlockArgs {
+            level,
+            keys: Some(keys),
+            voxels: Some(recs),
+            lobes: Some(lobes),
+            moments: Some(moments),
+            dielectric_moments: Some(diel),
+            aiv_nodes: Some(nodes),
+            faces: None,
+            abv_nodes: None,
+        },
+    );
+    b.finish(root, Some(BLOCK_ID));
+    b.finished_data().to_vec()
+}
+
+/// The Morton key of a face's voxel, which orders faces in a level.
+pub fn face_key(f: &FaceData) -> u64 {
+    morton3(glam::UVec3::new(
+        f.face.voxel.0,
+        f.face.voxel.1,
+        f.face.voxel.2,
+    ))
+}
+
+/// Encodes one block of boundary faces (sorted by [`face_key`], then direction).
+pub fn face_block(
+    level: u32,
+    faces: &[FaceData],
+    counts: &mut Counts,
+    sizes: &mut ComponentBytes,
+) -> Vec<u8> {
+    let mut recs = Vec::with_capacity(faces.len());
+    let mut nodes = Vec::new();
+    for f in faces {
+        counts.faces += 1;
+        let start = nodes.len() as u32;
+        if !f.abv.is_constant() {
+            counts.abv_trees += 1;
+            counts.abv_nodes += f.abv.nodes.len() as u64;
+            nodes.extend(f.abv.nodes.iter().map(haar_node));
+        }
+        let v = f.face.voxel;
+        recs.push(fb::Face::new(
+            v.0,
+            v.1,
+            v.2,
+            f.face.dir as u32,
+            start,
+            nodes.len() as u32 - start,
+            f.abv.scaling,
+        ));
+    }
+    sizes.faces += bytes_of(&recs);
+    sizes.abv_nodes += bytes_of(&nodes);
+    let mut b = FlatBufferBuilder::with_capacity(64 + recs.len() * 28 + nodes.len() * 20);
+    let recs = b.create_vector(&recs);
+    let nodes = b.create_vector(&nodes);
+    let root = fb::Block::create(
+        &mut b,
+        &fb::BlockArgs {
+            level,
+            faces: Some(recs),
+            abv_nodes: Some(nodes),
+            ..Default::default()
+        },
+    );
+    b.finish(root, Some(BLOCK_ID));
+    b.finished_data().to_vec()
+}
+
+/// A level's entry in the index.
+#[derive(Clone, Debug)]
+pub struct LevelEntry {
+    pub res: u32,
+    pub origin: Vec3,
+    pub size: f32,
+    pub voxel_blocks: Vec<fb::BlobRef>,
+    pub face_blocks: Vec<fb::BlobRef>,
+    pub counts: Counts,
+}
+
+/// Everything the index records.
+pub struct IndexEntry<'a> {
+    pub generator: &'a str,
+    pub source: &'a str,
+    pub bounds: (Vec3, Vec3),
+    pub settings: &'a BakeSettings,
+    pub tables_version: u32,
+    pub tables_crc32: u32,
+    pub levels: &'a [LevelEntry],
+}
+
+/// Encodes the index.
+pub fn index(e: &IndexEntry) -> Vec<u8> {
+    let mut b = FlatBufferBuilder::with_capacity(4096);
+    let s = e.settings;
+    let settings = fb::BakeSettings::create(
+        &mut b,
+        &fb::BakeSettingsArgs {
+            max_res: s.max_res,
+            samples: s.samples,
+            max_samples: s.max_samples,
+            aiv_res: s.aiv_res,
+            aiv_rays: s.aiv_rays,
+            abv_res: s.abv_res,
+            abv_rays: s.abv_rays,
+            ndf_lobes: s.ndf_lobes,
+            moment_res: s.moment_res,
+            keep: s.keep,
+            energy: s.energy,
+            keep_all_effects: s.keep_all_effects,
+            min_res: s.min_res,
+        },
+    );
+    let mut total = Counts::default();
+    let mut levels = Vec::with_capacity(e.levels.len());
+    for l in e.levels {
+        total.add(&l.counts);
+        let c = &l.counts;
+        let counts = fb::LevelCounts::create(
+            &mut b,
+            &fb::LevelCountsArgs {
+                voxels: c.voxels,
+                faces: c.faces,
+                directional_moments: c.directional_moments,
+                metallic: c.metallic,
+                roughness_variance: c.roughness_variance,
+                multi_lobe: c.multi_lobe,
+                aiv_trees: c.aiv_trees,
+                aiv_all_visible: c.aiv_all_visible,
+                aiv_all_occluded: c.aiv_all_occluded,
+                abv_trees: c.abv_trees,
+                cut_out: c.cut_out,
+                aiv_nodes: c.aiv_nodes,
+                abv_nodes: c.abv_nodes,
+            },
+        );
+        let vb = b.create_vector(&l.voxel_blocks);
+        let fbk = b.create_vector(&l.face_blocks);
+        let origin = v3(l.origin);
+        levels.push(fb::Level::create(
+            &mut b,
+            &fb::LevelArgs {
+                res: l.res,
+                origin: Some(&origin),
+                size: l.size,
+                voxel_blocks: Some(vb),
+                face_blocks: Some(fbk),
+                counts: Some(counts),
+            },
+        ));
+    }
+    let levels = b.create_vector(&levels);
+    let pca = b.create_vector::<fb::BlobRef>(&[]);
+    let generator = b.create_string(e.generator);
+    let source = b.create_string(e.source);
+    let (lo, hi) = (v3(e.bounds.0), v3(e.bounds.1));
+    let root = fb::Index::create(
+        &mut b,
+        &fb::IndexArgs {
+            generator: Some(generator),
+            source: Some(source),
+            bounds_min: Some(&lo),
+            bounds_max: Some(&hi),
+            settings: Some(settings),
+            effects_kept: total.effects(),
+            tables_version: e.tables_version,
+            tables_crc32: e.tables_crc32,
+            levels: Some(levels),
+            pca_blocks: Some(pca),
+        },
+    );
+    b.finish(root, Some(INDEX_ID));
+    b.finished_data().to_vec()
+}

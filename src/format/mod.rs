@@ -1,0 +1,245 @@
+//! The `.agg` file: a fixed header, 64-byte-aligned FlatBuffer blobs, and an index blob
+//! (schema in `schema/aggregate.fbs`, history in `schema/CHANGES.md`).
+//!
+//! ```text
+//! offset 0   magic  89 41 47 47 0D 0A 1A 0A   ("\x89AGG\r\n\x1a\n": binary, catches text-mode
+//!                                              and 7-bit mangling, like PNG's)
+//!        8   u16 major, u16 minor              (fixed positions in every version)
+//!       12   u32 header size (64)
+//!       16   u64 index offset, u64 index size
+//!       32   u64 file size
+//!       40   u32 CRC-32 of the index, u32 flags (0)
+//!       48   12 reserved bytes (0)
+//!       60   u32 CRC-32 of bytes 0..60
+//!       64   blobs: voxel and face blocks ("AGGB"), level by level, then the index ("AGGI")
+//! ```
+//!
+//! Blocks hold a bounded number of voxels or faces (a few MiB), so every FlatBuffer stays far
+//! below the format's 2 GiB limit while a file grows to any size, and the writer streams them:
+//! a bake holds one block at a time. [`Writer`] writes through a temporary file and renames
+//! it into place; [`Aggregate`] maps a file (memmap2), verifies it, and reads it zero-copy.
+
+#[allow(clippy::all, unused_imports, dead_code, non_snake_case, mismatched_lifetime_syntaxes)]
+#[rustfmt::skip]
+mod aggregate_generated;
+pub mod effects;
+pub mod encode;
+pub mod read;
+
+pub use aggregate_generated::aggtool::format as fb;
+pub use read::{Aggregate, VoxelRef};
+
+use std::fs::File;
+use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+/// The file's first eight bytes.
+pub const MAGIC: [u8; 8] = [0x89, b'A', b'G', b'G', b'\r', b'\n', 0x1a, b'\n'];
+/// The format version this build writes. Readers accept any minor of their major.
+pub const MAJOR: u16 = 1;
+pub const MINOR: u16 = 0;
+pub const HEADER_SIZE: usize = 64;
+/// Alignment of every blob.
+pub const ALIGN: u64 = 64;
+/// FlatBuffer identifiers of the index and of blocks.
+pub const INDEX_ID: &str = "AGGI";
+pub const BLOCK_ID: &str = "AGGB";
+
+/// Why a file could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum FormatError {
+    #[error("not an .agg file (wrong identifier)")]
+    NotAggregate,
+    #[error("format version {found}.x is not supported (this build reads {MAJOR}.x); use a newer aggtool")]
+    UnsupportedMajor { found: u16 },
+    #[error("truncated: the file should have {expected} bytes but has {actual}")]
+    Truncated { expected: u64, actual: u64 },
+    #[error("{extra} bytes of trailing data after the end of the aggregate ({expected} bytes)")]
+    Trailing { expected: u64, extra: u64 },
+    #[error("corrupt: {0}")]
+    Corrupt(String),
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// The decoded fixed header.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Header {
+    pub major: u16,
+    pub minor: u16,
+    pub index_offset: u64,
+    pub index_size: u64,
+    pub file_size: u64,
+    pub index_crc32: u32,
+}
+
+impl Header {
+    pub fn to_bytes(&self) -> [u8; HEADER_SIZE] {
+        let mut b = [0u8; HEADER_SIZE];
+        b[0..8].copy_from_slice(&MAGIC);
+        b[8..10].copy_from_slice(&self.major.to_le_bytes());
+        b[10..12].copy_from_slice(&self.minor.to_le_bytes());
+        b[12..16].copy_from_slice(&(HEADER_SIZE as u32).to_le_bytes());
+        b[16..24].copy_from_slice(&self.index_offset.to_le_bytes());
+        b[24..32].copy_from_slice(&self.index_size.to_le_bytes());
+        b[32..40].copy_from_slice(&self.file_size.to_le_bytes());
+        b[40..44].copy_from_slice(&self.index_crc32.to_le_bytes());
+        let crc = crc32fast::hash(&b[0..60]);
+        b[60..64].copy_from_slice(&crc.to_le_bytes());
+        b
+    }
+
+    /// Parses and checks the header of `data` (the whole file: its length is checked against
+    /// the size the header records).
+    pub fn parse(data: &[u8]) -> Result<Header, FormatError> {
+        let n = data.len().min(MAGIC.len());
+        if data[..n] != MAGIC[..n] {
+            return Err(FormatError::NotAggregate);
+        }
+        let u16_at = |o: usize| u16::from_le_bytes([data[o], data[o + 1]]);
+        let u32_at = |o: usize| u32::from_le_bytes(data[o..o + 4].try_into().unwrap());
+        let u64_at = |o: usize| u64::from_le_bytes(data[o..o + 8].try_into().unwrap());
+        if data.len() >= 12 && u16_at(8) != MAJOR {
+            return Err(FormatError::UnsupportedMajor { found: u16_at(8) });
+        }
+        if data.len() < HEADER_SIZE {
+            // The size the header would give is unknown: report what a header needs.
+            return Err(FormatError::Truncated {
+                expected: HEADER_SIZE as u64,
+                actual: data.len() as u64,
+            });
+        }
+        if u32_at(60) != crc32fast::hash(&data[0..60]) {
+            return Err(FormatError::Corrupt("header checksum mismatch".into()));
+        }
+        if u32_at(12) as usize != HEADER_SIZE {
+            return Err(FormatError::Corrupt(format!("header size {}", u32_at(12))));
+        }
+        let h = Header {
+            major: u16_at(8),
+            minor: u16_at(10),
+            index_offset: u64_at(16),
+            index_size: u64_at(24),
+            file_size: u64_at(32),
+            index_crc32: u32_at(40),
+        };
+        let len = data.len() as u64;
+        if len < h.file_size {
+            return Err(FormatError::Truncated {
+                expected: h.file_size,
+                actual: len,
+            });
+        }
+        if len > h.file_size {
+            return Err(FormatError::Trailing {
+                expected: h.file_size,
+                extra: len - h.file_size,
+            });
+        }
+        let end = h.index_offset.checked_add(h.index_size);
+        if h.index_offset < HEADER_SIZE as u64 || end != Some(h.file_size) {
+            return Err(FormatError::Corrupt(format!(
+                "index at {}+{} in a file of {} bytes",
+                h.index_offset, h.index_size, h.file_size
+            )));
+        }
+        Ok(h)
+    }
+}
+
+/// Streams blobs into a temporary file beside the destination; [`Writer::finish`] writes the
+/// index and the header and renames the file into place. Dropped unfinished, it removes the
+/// temporary file and leaves any existing file untouched.
+pub struct Writer {
+    file: Option<BufWriter<File>>,
+    tmp: PathBuf,
+    dest: PathBuf,
+    pos: u64,
+}
+
+impl Writer {
+    pub fn create(dest: &Path) -> std::io::Result<Writer> {
+        let dir = dest
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        std::fs::create_dir_all(dir)?;
+        let name = dest
+            .file_name()
+            .and_then(|n| n.to_str())
+            .unwrap_or("out.agg");
+        let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
+        let mut file = BufWriter::with_capacity(1 << 20, File::create(&tmp)?);
+        file.write_all(&[0u8; HEADER_SIZE])?;
+        Ok(Writer {
+            file: Some(file),
+            tmp,
+            dest: dest.to_path_buf(),
+            pos: HEADER_SIZE as u64,
+        })
+    }
+
+    /// Appends a blob at the next aligned offset.
+    pub fn write_blob(
+        &mut self,
+        bytes: &[u8],
+        first_key: u64,
+        last_key: u64,
+        count: u32,
+    ) -> std::io::Result<fb::BlobRef> {
+        let file = self.file.as_mut().expect("writer already finished");
+        let pad = (ALIGN - self.pos % ALIGN) % ALIGN;
+        file.write_all(&[0u8; ALIGN as usize][..pad as usize])?;
+        self.pos += pad;
+        let offset = self.pos;
+        file.write_all(bytes)?;
+        self.pos += bytes.len() as u64;
+        Ok(fb::BlobRef::new(
+            offset,
+            bytes.len() as u64,
+            first_key,
+            last_key,
+            count,
+            crc32fast::hash(bytes),
+        ))
+    }
+
+    /// Writes the index and the header, syncs, and renames into place. Returns the file size.
+    pub fn finish(mut self, index: &[u8]) -> std::io::Result<u64> {
+        let result = self.finish_inner(index);
+        if result.is_err() {
+            self.file = None;
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+        result
+    }
+
+    fn finish_inner(&mut self, index: &[u8]) -> std::io::Result<u64> {
+        let r = self.write_blob(index, 0, 0, 0)?;
+        let mut file = self.file.take().expect("writer already finished");
+        let header = Header {
+            major: MAJOR,
+            minor: MINOR,
+            index_offset: r.offset(),
+            index_size: r.size(),
+            file_size: self.pos,
+            index_crc32: r.crc32(),
+        };
+        file.seek(SeekFrom::Start(0))?;
+        file.write_all(&header.to_bytes())?;
+        let file = file.into_inner().map_err(|e| e.into_error())?;
+        file.sync_all()?;
+        drop(file);
+        std::fs::rename(&self.tmp, &self.dest)?;
+        Ok(self.pos)
+    }
+}
+
+impl Drop for Writer {
+    fn drop(&mut self) {
+        // Unfinished (or failed): the temporary file goes, the destination is untouched.
+        if self.file.take().is_some() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}

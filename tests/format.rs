@@ -1,0 +1,344 @@
+//! The bake and the `.agg` format: golden statistics, round trip, rejection of bad files,
+//! determinism, and effect detection (what is dropped changes nothing measurable).
+
+mod common;
+
+use std::path::Path;
+
+use aggtool::absdf::Absdf;
+use aggtool::bake::level::bake_level;
+use aggtool::bake::voxelize::Grid;
+use aggtool::bake::{bake_to_file, BakeSettings};
+use aggtool::format::{Aggregate, FormatError, Header, HEADER_SIZE, MAJOR, MINOR};
+use aggtool::gen::{generate, GenSettings};
+use aggtool::scene::Scene;
+use aggtool::trace::Accel;
+use glam::Vec3;
+
+/// Small settings for test bakes (seconds, not minutes).
+fn small() -> BakeSettings {
+    BakeSettings {
+        max_res: 8,
+        min_res: 2,
+        samples: 8,
+        max_samples: 64,
+        aiv_res: 8,
+        aiv_rays: 4,
+        abv_res: 8,
+        abv_rays: 1,
+        ..Default::default()
+    }
+}
+
+fn scene(name: &str, triangles: usize, lambertian: bool) -> Scene {
+    generate(
+        name,
+        &GenSettings {
+            triangles,
+            lambertian,
+            seed: 1,
+        },
+    )
+    .unwrap()
+    .to_scene()
+}
+
+fn bake(
+    scene: &Scene,
+    s: &BakeSettings,
+    dir: &Path,
+    name: &str,
+) -> (Vec<u8>, aggtool::bake::BakeReport) {
+    let path = dir.join(name);
+    let r = bake_to_file(scene, "test.glb", s, &path, false).unwrap();
+    (std::fs::read(&path).unwrap(), r)
+}
+
+/// Rewrites the header of `bytes` with another version (checksum fixed up).
+fn with_version(bytes: &[u8], major: u16, minor: u16) -> Vec<u8> {
+    let mut h = Header::parse(bytes).unwrap();
+    h.major = major;
+    h.minor = minor;
+    let mut out = bytes.to_vec();
+    out[..HEADER_SIZE].copy_from_slice(&h.to_bytes());
+    out
+}
+
+#[test]
+fn round_trip_and_rejection() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scene("foliage", 400, false);
+    let s = small();
+    let (bytes, report) = bake(&sc, &s, dir.path(), "a.agg");
+    assert_eq!(report.bytes as usize, bytes.len());
+    let agg = Aggregate::open(&dir.path().join("a.agg")).unwrap();
+    assert_eq!(agg.level_count(), 3);
+    // The finest level read back equals the level baked in memory (areas pass through f32).
+    let accel = Accel::build(&sc);
+    let (lo, hi) = sc.bounds();
+    let mut mem = bake_level(&sc, &accel, Grid::around(lo, hi, 8), &s.level(8));
+    let read = agg.read_level(0);
+    mem.voxels
+        .iter_mut()
+        .for_each(|v| v.area = v.area as f32 as f64);
+    mem.rays = 0;
+    assert_eq!(read.grid, mem.grid);
+    assert_eq!(read.faces, mem.faces);
+    assert_eq!(read.voxels.len(), mem.voxels.len());
+    for (a, b) in read.voxels.iter().zip(&mem.voxels) {
+        assert_eq!(a, b);
+    }
+    // Zero-copy lookups agree with the decoded trees.
+    for v in &mem.voxels {
+        let r = agg.find_voxel(0, v.key).expect("voxel found by key");
+        for d in [Vec3::X, Vec3::NEG_Y, Vec3::new(0.3, 0.5, -0.8).normalize()] {
+            let cell = aggtool::math::sphere_maps::grid_cell(
+                aggtool::math::sphere_maps::equal_area_sphere_to_square(d),
+                s.aiv_res,
+            );
+            let want = v.aiv.eval(cell % s.aiv_res, cell / s.aiv_res);
+            assert!((r.aiv(d) - want).abs() < 1e-6);
+        }
+    }
+    assert!(agg.find_voxel(0, u64::MAX >> 2).is_none());
+
+    // Every truncated prefix fails cleanly.
+    for n in 0..bytes.len() {
+        match Aggregate::from_bytes(bytes[..n].to_vec()) {
+            Err(FormatError::Truncated { .. }) => {}
+            Err(e) => panic!("prefix {n}: unexpected error {e}"),
+            Ok(_) => panic!("prefix {n} accepted"),
+        }
+    }
+    // Trailing bytes.
+    let mut t = bytes.clone();
+    t.extend_from_slice(b"xx");
+    assert!(matches!(
+        Aggregate::from_bytes(t),
+        Err(FormatError::Trailing { extra: 2, .. })
+    ));
+    // Wrong identifier.
+    let mut w = bytes.clone();
+    w[1] = b'X';
+    assert!(matches!(
+        Aggregate::from_bytes(w),
+        Err(FormatError::NotAggregate)
+    ));
+    assert!(matches!(
+        Aggregate::from_bytes(b"glTF....".to_vec()),
+        Err(FormatError::NotAggregate)
+    ));
+    // An unknown major version is refused; a newer minor version is read.
+    let e = Aggregate::from_bytes(with_version(&bytes, MAJOR + 1, 0))
+        .err()
+        .unwrap();
+    assert!(matches!(e, FormatError::UnsupportedMajor { found } if found == MAJOR + 1));
+    assert!(e.to_string().contains("not supported"));
+    let newer = Aggregate::from_bytes(with_version(&bytes, MAJOR, MINOR + 3)).unwrap();
+    assert_eq!(newer.header().minor, MINOR + 3);
+    assert_eq!(newer.read_level(0), agg.read_level(0));
+    // A flipped bit anywhere after the header is caught (checksums), and so is one in the
+    // header; stepping through the file in strides keeps this quick.
+    let step = (bytes.len() / 997).max(1);
+    for i in (0..bytes.len()).step_by(step) {
+        let mut c = bytes.clone();
+        c[i] ^= 0x10;
+        assert!(Aggregate::from_bytes(c).is_err(), "flip at {i} accepted");
+    }
+}
+
+#[test]
+fn bytes_are_deterministic_across_runs_and_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scene("displaced-sphere", 600, false);
+    let s = small();
+    let run = |threads: usize, name: &str| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| bake(&sc, &s, dir.path(), name).0)
+    };
+    let a = run(1, "a.agg");
+    let b = run(2, "b.agg");
+    let c = run(2, "c.agg");
+    assert!(a == b, "1 and 2 threads differ");
+    assert!(b == c, "two runs differ");
+}
+
+/// Evaluates every voxel's ABSDF and AIV of level `l` in a few direction pairs.
+fn evaluations(agg: &Aggregate, l: usize) -> Vec<f32> {
+    let t = aggtool::tables::Tables::embedded();
+    let dirs = [
+        Vec3::Z,
+        Vec3::new(0.6, 0.0, 0.8),
+        Vec3::new(-0.3, 0.9, 0.3).normalize(),
+        Vec3::new(0.1, -0.2, -0.97).normalize(),
+    ];
+    let mut out = Vec::new();
+    for v in agg.voxels(l) {
+        let app = v.appearance();
+        let a = Absdf::new(&app, t);
+        for wi in dirs {
+            out.push(v.aiv(wi));
+            for wo in dirs {
+                out.extend(a.eval(wi, wo).to_array());
+            }
+        }
+    }
+    out
+}
+
+/// Effect detection stores less and renders the same: a Lambertian scene of uniform
+/// materials drops directional and metallic moments; the ABSDF and visibility of every voxel
+/// are unchanged against a bake that keeps every effect.
+#[test]
+fn dropped_effects_change_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scene("plane45", 300, true);
+    let s = small();
+    let (lean, r1) = bake(&sc, &s, dir.path(), "lean.agg");
+    let (full, _) = bake(
+        &sc,
+        &BakeSettings {
+            keep_all_effects: true,
+            ..s.clone()
+        },
+        dir.path(),
+        "full.agg",
+    );
+    assert!(lean.len() < full.len(), "{} vs {}", lean.len(), full.len());
+    let dropped: Vec<&str> = r1
+        .effects
+        .iter()
+        .filter(|e| !e.kept)
+        .map(|e| e.name)
+        .collect();
+    assert!(
+        dropped.iter().any(|n| n.contains("metallic")),
+        "{dropped:?}"
+    );
+    assert!(
+        dropped.iter().any(|n| n.contains("directional")),
+        "{dropped:?}"
+    );
+    let (a, b) = (
+        Aggregate::from_bytes(lean).unwrap(),
+        Aggregate::from_bytes(full).unwrap(),
+    );
+    for l in 0..a.level_count() {
+        let (x, y) = (evaluations(&a, l), evaluations(&b, l));
+        assert_eq!(x.len(), y.len());
+        assert!(!x.is_empty());
+        let scale = y.iter().fold(0f32, |m, v| m.max(v.abs()));
+        for (p, q) in x.iter().zip(&y) {
+            assert!(p.is_finite() && q.is_finite());
+            assert!((p - q).abs() <= 1e-4 * scale, "level {l}: {p} vs {q}");
+        }
+    }
+    // A scene with metal keeps the metallic moments.
+    let metal = scene("rings", 600, false);
+    let (_, r2) = bake(&metal, &s, dir.path(), "metal.agg");
+    let m = r2
+        .effects
+        .iter()
+        .find(|e| e.name.contains("metallic"))
+        .unwrap();
+    assert!(m.kept, "{m:?}");
+}
+
+/// Committed statistics of a small bake: a change of these numbers is a change of the bake,
+/// to be made on purpose (regenerate with AGGTOOL_BLESS=1 and say why in the commit).
+#[test]
+fn golden_bake() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scene("lattice", 500, false);
+    let (bytes, _) = bake(&sc, &small(), dir.path(), "g.agg");
+    let agg = Aggregate::from_bytes(bytes).unwrap();
+    let mut got = Vec::new();
+    for l in 0..agg.level_count() {
+        let lv = agg.read_level(l);
+        let n = lv.voxels.len() as f64;
+        let area: f64 = lv.voxels.iter().map(|v| v.area).sum();
+        let cov = lv.voxels.iter().map(|v| v.coverage as f64).sum::<f64>() / n;
+        let rough = lv
+            .voxels
+            .iter()
+            .map(|v| v.appearance.roughness_mean as f64)
+            .sum::<f64>()
+            / n;
+        let lobes = lv
+            .voxels
+            .iter()
+            .map(|v| v.appearance.lobes.len())
+            .sum::<usize>();
+        let aiv = lv
+            .voxels
+            .iter()
+            .map(|v| (v.aiv.scaling / v.aiv.n as f32) as f64)
+            .sum::<f64>()
+            / n;
+        let abv = lv
+            .faces
+            .iter()
+            .map(|f| (f.abv.scaling / f.abv.n as f32) as f64)
+            .sum::<f64>()
+            / lv.faces.len().max(1) as f64;
+        got.push(serde_json::json!({
+            "res": lv.grid.res,
+            "voxels": lv.voxels.len(),
+            "faces": lv.faces.len(),
+            "area": area,
+            "coverage": cov,
+            "roughness": rough,
+            "lobes": lobes,
+            "aiv_mean": aiv,
+            "abv_mean": abv,
+        }));
+    }
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/lattice-8.json");
+    if std::env::var_os("AGGTOOL_BLESS").is_some() {
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(&path, serde_json::to_string_pretty(&got).unwrap()).unwrap();
+    }
+    let want: Vec<serde_json::Value> =
+        serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    assert_eq!(want.len(), got.len());
+    for (w, g) in want.iter().zip(&got) {
+        for key in ["res", "voxels", "faces", "lobes"] {
+            assert_eq!(w[key], g[key], "{key} at level {}", w["res"]);
+        }
+        for key in ["area", "coverage", "roughness", "aiv_mean", "abv_mean"] {
+            let (a, b) = (w[key].as_f64().unwrap(), g[key].as_f64().unwrap());
+            assert!(
+                (a - b).abs() <= 1e-4 * a.abs().max(1e-3),
+                "{key} at level {}: {a} vs {b}",
+                w["res"]
+            );
+        }
+    }
+}
+
+/// A failed or abandoned write leaves the previous file untouched and no temporary behind.
+#[test]
+fn writer_is_atomic() {
+    let dir = tempfile::tempdir().unwrap();
+    let dest = dir.path().join("x.agg");
+    std::fs::write(&dest, b"previous").unwrap();
+    {
+        let mut w = aggtool::format::Writer::create(&dest).unwrap();
+        w.write_blob(&[1, 2, 3], 0, 0, 0).unwrap();
+        // Dropped without finish.
+    }
+    assert_eq!(std::fs::read(&dest).unwrap(), b"previous");
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    // Bad settings fail before anything is written.
+    let sc = scene("plane45", 50, true);
+    let bad = BakeSettings {
+        max_res: 12,
+        ..small()
+    };
+    let e = bake_to_file(&sc, "s", &bad, &dest, false).err().unwrap();
+    assert!(e.to_string().contains("--max-res"), "{e}");
+    assert_eq!(std::fs::read(&dest).unwrap(), b"previous");
+}
