@@ -10,7 +10,7 @@ use rayon::prelude::*;
 
 use super::boundary::{boundary_faces, Face, UVec3Key};
 use super::boundary_visibility::{abv_map, PrimitiveLevel};
-use super::primitive::{fit_ellipsoid, Ellipsoid};
+use super::primitive::{fit_ellipsoid_bounding, Ellipsoid};
 use super::sampling::{pieces_by_voxel, sample_voxel};
 use super::visibility::aiv_map;
 use super::voxelize::{demorton3, Grid};
@@ -108,7 +108,11 @@ pub fn bake_voxel(
     let coverage: f32 = surf.iter().map(|x| x.weight).sum();
     let appearance = estimate(&surf, &s.estimate);
     let pts: Vec<Vec3> = samples.iter().map(|p| p.position).collect();
-    let ellipsoid = fit_ellipsoid(&pts, 1e-3 * grid.voxel_size());
+    let corners: Vec<Vec3> = pieces
+        .iter()
+        .flat_map(|p| p.polygon.iter().copied())
+        .collect();
+    let ellipsoid = fit_ellipsoid_bounding(&pts, &corners, 1e-3 * grid.voxel_size());
     let (Some(appearance), Some(ellipsoid)) = (appearance, ellipsoid) else {
         return (None, 0, [t0.elapsed().as_secs_f64(), 0.0]);
     };

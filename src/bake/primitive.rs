@@ -28,11 +28,56 @@ impl Ellipsoid {
     }
 }
 
+/// Parameter interval where `o + t d` lies inside the ellipsoid {c + M u : |u| ≤ 1}, given
+/// `inv` = M⁻¹. Numerically stable for thin ellipsoids far from the ray origin: the ray is
+/// first moved to its closest approach to the centre, and the discriminant is taken as the
+/// squared distance of the closest point in the ellipsoid's unit-ball space (the textbook
+/// b² − ac cancels catastrophically in f32 when the ellipsoid is a thousand times thinner
+/// than its distance to the origin).
+#[inline]
+pub fn ellipsoid_ray_interval(center: Vec3, inv: Mat3, o: Vec3, d: Vec3) -> Option<(f32, f32)> {
+    let dd = d.dot(d);
+    if !(dd > 0.0) {
+        return None;
+    }
+    let tc = (center - o).dot(d) / dd;
+    let p = inv * (o + tc * d - center);
+    let q = inv * d;
+    let a = q.dot(q);
+    if !(a > 0.0) || !a.is_finite() {
+        return None;
+    }
+    let k = p.dot(q) / a;
+    let m = p - q * k;
+    let h = 1.0 - m.dot(m);
+    if !(h >= 0.0) {
+        return None;
+    }
+    let s = (h / a).sqrt();
+    let t = tc - k;
+    Some((t - s, t + s))
+}
+
 /// Fits the ellipsoid of a voxel's sample positions. `min_extent` (a small fraction of the
 /// voxel size) keeps flat and fibre-like sets from giving a degenerate ellipsoid. `None`
 /// without points.
 pub fn fit_ellipsoid(points: &[Vec3], min_extent: f32) -> Option<Ellipsoid> {
-    let pts: Vec<Vec3> = points.iter().copied().filter(|p| p.is_finite()).collect();
+    fit_ellipsoid_bounding(points, &[], min_extent)
+}
+
+/// Fits an ellipsoid oriented by the PCA of `points` (the surface samples) that bounds both
+/// `points` and `bound` (the vertices of the voxel's clipped surface polygons: an ellipsoid is
+/// convex, so bounding them bounds all the surface, not just the samples, which a few samples
+/// would leave uncovered at the corners).
+pub fn fit_ellipsoid_bounding(
+    points: &[Vec3],
+    bound: &[Vec3],
+    min_extent: f32,
+) -> Option<Ellipsoid> {
+    let mut pts: Vec<Vec3> = points.iter().copied().filter(|p| p.is_finite()).collect();
+    if pts.is_empty() {
+        pts = bound.iter().copied().filter(|p| p.is_finite()).collect();
+    }
     if pts.is_empty() {
         return None;
     }
@@ -47,6 +92,7 @@ pub fn fit_ellipsoid(points: &[Vec3], min_extent: f32) -> Option<Ellipsoid> {
     // Coordinates in the principal frame and their extents.
     let local: Vec<Vec3> = pts
         .iter()
+        .chain(bound.iter().filter(|p| p.is_finite()))
         .map(|p| basis.transpose() * (*p - mean))
         .collect();
     let lo = local
@@ -62,7 +108,10 @@ pub fn fit_ellipsoid(points: &[Vec3], min_extent: f32) -> Option<Ellipsoid> {
         .iter()
         .map(|p| ((*p - centre) / half).length())
         .fold(0.0f32, f32::max)
-        .max(1e-6);
+        .max(1e-6)
+        // A hair of margin: the bounded points (a square's corners, say) lie on the surface
+        // exactly, where rays through them would graze it and miss by rounding.
+        * 1.0005;
     let axes = basis * Mat3::from_diagonal(half * r);
     Some(Ellipsoid {
         center: mean + basis * centre,
@@ -74,6 +123,34 @@ pub fn fit_ellipsoid(points: &[Vec3], min_extent: f32) -> Option<Ellipsoid> {
 mod tests {
     use super::*;
     use crate::math::rng::Pcg32;
+
+    /// A flat ellipsoid (1e-4 thick) three units from the ray origin: the interval is found,
+    /// and it is where the ray crosses the disk (the textbook quadratic loses it in f32).
+    #[test]
+    fn thin_ellipsoid_far_away() {
+        let c = Vec3::new(0.31, 0.0, 0.31);
+        let m = Mat3::from_diagonal(Vec3::new(0.09, 1.3e-4, 0.09));
+        let (t0, t1) =
+            ellipsoid_ray_interval(c, m.inverse(), Vec3::new(0.33, 3.0, 0.29), Vec3::NEG_Y)
+                .expect("hits");
+        assert!(
+            (t0 - (3.0 - 1.3e-4)).abs() < 2e-5 && (t1 - (3.0 + 1.3e-4)).abs() < 2e-5,
+            "{t0} {t1}"
+        );
+        assert!(
+            ellipsoid_ray_interval(c, m.inverse(), Vec3::new(0.5, 3.0, 0.31), Vec3::NEG_Y)
+                .is_none()
+        );
+        // Unit sphere from outside, oblique: exact chord.
+        let (a, b) = ellipsoid_ray_interval(
+            Vec3::ZERO,
+            Mat3::IDENTITY,
+            Vec3::new(0.6, 0.0, -5.0),
+            Vec3::Z,
+        )
+        .unwrap();
+        assert!((a - 4.2).abs() < 1e-5 && (b - 5.8).abs() < 1e-5);
+    }
 
     #[test]
     fn bounds_every_point() {

@@ -211,7 +211,8 @@ pub fn voxel_block(
         if variance >= MIN_VARIANCE {
             counts.roughness_variance += 1;
         }
-        if v.coverage < 1.0 - 1e-6 {
+        // Sums of sample weights round below one: count only what a cut-out would remove.
+        if v.coverage < 0.999 {
             counts.cut_out += 1;
         }
         // Interior visibility.

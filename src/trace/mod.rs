@@ -48,7 +48,7 @@ impl Ray {
     }
 
     #[inline]
-    fn to_bvh(self) -> BvhRay {
+    pub(crate) fn to_bvh(self) -> BvhRay {
         BvhRay::new(self.origin.into(), self.dir.into(), self.tmin, self.tmax)
     }
 }
