@@ -371,14 +371,12 @@ impl<'t> Absdf<'t> {
             .sum()
     }
 
-    /// The diffuse numerator of Eq. 12/14 without the moments.
-    fn diffuse_shape(&self, wi: Vec3, wo: Vec3) -> (f32, Vec3) {
-        // c · SG(n; μ, κ): its integral c∫SG times the normalised-kernel convolution (M1).
-        let sg = Sg::clamped_cosine_product(wi, wo);
+    /// ∫ SG(n) D(n) dn for an SG (its integral times the M1 convolution of each lobe),
+    /// evaluated at the SG's axis.
+    fn sg_convolution(&self, sg: &Sg) -> f32 {
         let k = sg.sharpness;
-        let amp = sg.integral();
         let mut acc = 0.0f32;
-        for (l, _) in self.lobes.iter().zip(&self.unit) {
+        for l in self.lobes.iter() {
             let mut o = [0f32; 3];
             self.tables
                 .m1
@@ -389,7 +387,30 @@ impl<'t> Absdf<'t> {
             );
             acc += l.weight * o[2].max(0.0) * conv.d(sg.axis);
         }
-        (amp * acc, sg.axis)
+        sg.integral() * acc
+    }
+
+    /// The diffuse numerator of Eq. 12/14 without the moments: c · SG(n; μ, κ), the product
+    /// of the two clamped-cosine SGs, convolved with the normal distribution (M1).
+    fn diffuse_shape(&self, wi: Vec3, wo: Vec3) -> f32 {
+        self.sg_convolution(&Sg::clamped_cosine_product(wi, wo))
+    }
+
+    /// The correction of one clamped-cosine SG: the exact projected area over the one the SG
+    /// stand-in gives, r(ω) = σ_N(ω) / ∫ SG_ω(n) D(n) dn.
+    ///
+    /// A departure from the paper: Wang's clamped-cosine SG peaks at a = 1.17, so Eq. 14 as
+    /// written sends back 24% more light than a flat Lambertian plane reflects at normal view,
+    /// and 116% more at 78° (measured by integrating f̂ over ω_i). Multiplying the diffuse
+    /// numerator by r(ω_i) r(ω_o) keeps it symmetric (reciprocity, Eq. 5) and makes each
+    /// cosine's projected area right.
+    fn cosine_correction(&self, w: Vec3) -> f32 {
+        let sigma = self.sg_convolution(&Sg::clamped_cosine(w));
+        if sigma > 1e-12 {
+            (self.projected_area(w) / sigma).clamp(0.0, 4.0)
+        } else {
+            0.0
+        }
     }
 
     /// f̂(ω_i, ω_o) without visibility (Eq. 7 through Eq. 23). Finite for every input.
@@ -409,8 +430,9 @@ impl<'t> Absdf<'t> {
         } else {
             self.mean_moments
         };
-        // Diffuse (Eq. 13, 14).
-        let (shape, _) = self.diffuse_shape(wi, wo);
+        // Diffuse (Eq. 13, 14), each cosine corrected (see `cosine_correction`).
+        let shape =
+            self.diffuse_shape(wi, wo) * self.cosine_correction(wi) * self.cosine_correction(wo);
         let mut f = dm.diffuse() * (FRAC_1_PI * shape);
         // Specular (Eq. 15–22).
         if hl > 1e-6 {
