@@ -11,6 +11,7 @@
 //! - [`trace`]: two-level BVH ray tracing (obvhs) with alpha cut-outs;
 //! - [`bake`]: the sparse voxel hierarchy, per-voxel statistics and visibility, streamed to a file;
 //! - [`format`]: the `.agg` container and its FlatBuffers schema: writer, verifying zero-copy reader;
+//! - [`runtime`]: the LoD renderer of `.agg` aggregates (cone tracing, Algorithm 1, Eq. 30);
 //! - [`render`]: view files, lights, the reference path tracer, image I/O and comparison;
 //! - [`gen`]: generators for the paper's hard cases;
 //! - [`validation`]: shared test harnesses (chi-square).
@@ -23,6 +24,7 @@ pub mod gen;
 pub mod import;
 pub mod math;
 pub mod render;
+pub mod runtime;
 pub mod scene;
 pub mod tables;
 pub mod trace;

@@ -186,6 +186,35 @@ enum Command {
         #[arg(long)]
         strict: bool,
     },
+    /// Render an .agg aggregate with the LoD runtime (cone tracing, Eq. 30) to EXR and PNG.
+    Render {
+        /// The aggregate (.agg).
+        agg: PathBuf,
+        /// View file (JSON), the same as for `aggtool reference`.
+        #[arg(long)]
+        view: PathBuf,
+        /// Output EXR; a tonemapped PNG is written beside it.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Force this level (0 = finest) instead of choosing by the pixel footprint.
+        #[arg(long)]
+        level: Option<usize>,
+        /// Cones per pixel (overrides the view file).
+        #[arg(long)]
+        spp: Option<u32>,
+        /// Light samples (and ABSDF samples) per primitive hit, combined by MIS.
+        #[arg(long, default_value_t = 1)]
+        nee: u32,
+        /// Random seed (overrides the view file).
+        #[arg(long)]
+        seed: Option<u64>,
+        /// Use the voxel cube as the primitive (the Fig. 6 ablation).
+        #[arg(long)]
+        cube: bool,
+        /// Exposure of the PNG in stops.
+        #[arg(long, default_value_t = 0.0)]
+        exposure: f32,
+    },
     /// Print what an .agg file holds: header, settings, levels, effects kept and dropped.
     Inspect {
         file: PathBuf,
@@ -317,24 +346,17 @@ fn absdf_plot(case: &str, output: &Path, samples: u32, slice: u32, exposure: f32
         };
         let (diff, scale) = difference_image(&ours, &gt, None);
         // Side by side: ground truth | factored | difference.
-        let (w, h) = (gt.width, gt.height);
-        let mut rgb = vec![0u8; (3 * w * h * 3) as usize];
-        for (k, img) in [
-            gt.to_srgb8(exposure),
-            ours.to_srgb8(exposure),
-            diff.to_srgb8(0.0),
-        ]
-        .iter()
-        .enumerate()
-        {
-            for y in 0..h {
-                let src = &img[(y * w * 3) as usize..((y + 1) * w * 3) as usize];
-                let dst = ((y * 3 * w + k as u32 * w) * 3) as usize;
-                rgb[dst..dst + src.len()].copy_from_slice(src);
-            }
-        }
         let path = output.join(format!("absdf-{name}.png"));
-        aggtool::render::image::write_rgb8_png(&path, 3 * w, h, &rgb)?;
+        side_by_side(
+            &path,
+            &[
+                &gt.to_srgb8(exposure),
+                &ours.to_srgb8(exposure),
+                &diff.to_srgb8(0.0),
+            ],
+            gt.width,
+            gt.height,
+        )?;
         let (r, _) = compare_case(name, t, samples, 8).expect("known case");
         println!("{name}: lobes {} rmse {:.5} (ground truth rms {:.5}, relative {:.3}); difference white = {scale:.4}; output: {}", r.lobes, r.rmse, r.gt_rms, r.rmse / r.gt_rms, path.display());
     }
@@ -454,18 +476,100 @@ fn flatten(scene: &Scene, dir: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Renders an aggregate with the LoD runtime; returns (prepare seconds, render seconds).
+fn run_lod(
+    agg_path: &Path,
+    view: &View,
+    output: &Path,
+    exposure: f32,
+    settings: &aggtool::runtime::TraceSettings,
+    progress: bool,
+) -> Result<(f64, f64)> {
+    let lights = Lights::from_view(view)?;
+    let t0 = std::time::Instant::now();
+    let agg = aggtool::format::Aggregate::open(agg_path)
+        .with_context(|| format!("cannot read {}", agg_path.display()))?;
+    let scene = aggtool::runtime::LodScene::new(&agg);
+    let prepare = t0.elapsed().as_secs_f64();
+    if let Some(l) = settings.level {
+        if l >= scene.level_count() {
+            bail!(
+                "--level {l}: the aggregate has levels 0 to {}",
+                scene.level_count() - 1
+            );
+        }
+    }
+    println!(
+        "input: {}: {} levels, {} bytes (opened and prepared in {prepare:.2} s)",
+        agg_path.display(),
+        scene.level_count(),
+        agg.header().file_size
+    );
+    let camera = Camera::new(&view.camera);
+    let (img, seconds) = aggtool::runtime::render(
+        &scene, &camera, &lights, view.spp, view.seed, settings, progress,
+    );
+    img.write_exr(output)?;
+    img.write_png(&png_beside(output), exposure)?;
+    println!(
+        "stats: render {seconds:.2} s, {} cones/pixel, {} light samples per hit",
+        view.spp, settings.nee
+    );
+    println!(
+        "output: {} and {}",
+        output.display(),
+        png_beside(output).display()
+    );
+    Ok((prepare, seconds))
+}
+
+/// Writes images side by side (same size) into one sRGB PNG.
+fn side_by_side(path: &Path, images: &[&[u8]], w: u32, h: u32) -> Result<()> {
+    let n = images.len() as u32;
+    let mut rgb = vec![0u8; (n * w * h * 3) as usize];
+    for (k, img) in images.iter().enumerate() {
+        for y in 0..h {
+            let src = &img[(y * w * 3) as usize..((y + 1) * w * 3) as usize];
+            let dst = ((y * n * w + k as u32 * w) * 3) as usize;
+            rgb[dst..dst + src.len()].copy_from_slice(src);
+        }
+    }
+    aggtool::render::image::write_rgb8_png(path, n * w, h, &rgb)?;
+    Ok(())
+}
+
+/// The main job on a built-in scene: generate, bake, render the LoD and the reference,
+/// compare.
 fn demo(output: &Path) -> Result<()> {
+    let t_all = std::time::Instant::now();
     std::fs::create_dir_all(output)?;
     let settings = GenSettings {
-        triangles: 50_000,
+        triangles: 40_000,
         ..GenSettings::default()
     };
     let (asset, tris) =
-        gen::write("buildings", &settings, output, false).map_err(anyhow::Error::msg)?;
+        gen::write("foliage", &settings, output, false).map_err(anyhow::Error::msg)?;
     println!("input: generated {} ({} triangles)", asset.display(), tris);
     let scene = load_scene(&asset, false)?;
+    // Bake: 64³ finest, and 32² boundary maps to stay within the demo's time.
+    let bake = aggtool::bake::BakeSettings {
+        max_res: 64,
+        min_res: 8,
+        abv_res: 32,
+        ..Default::default()
+    };
+    let agg_path = output.join("foliage.agg");
+    let t = std::time::Instant::now();
+    let report = aggtool::bake::bake_to_file(&scene, "foliage.glb", &bake, &agg_path, true)?;
+    let bake_s = t.elapsed().as_secs_f64();
+    println!(
+        "stats: bake {bake_s:.1} s, {} levels, {:.1} MiB",
+        report.levels.len(),
+        report.bytes as f64 / 1048576.0
+    );
+    // One view, rendered both ways (128², so one finest voxel is about one pixel).
     let (c, r) = scene.bounding_sphere();
-    let mut view = View::framing(c, r, 256, 256, 64);
+    let mut view = View::framing(c, r, 128, 128, 64);
     view.sun = Some(aggtool::render::view::SunDesc {
         direction: [0.4, 1.0, 0.3],
         irradiance: aggtool::render::view::Rgb::Scalar(3.0),
@@ -473,14 +577,42 @@ fn demo(output: &Path) -> Result<()> {
     view.environment = Some(aggtool::render::view::EnvironmentDesc::Constant {
         constant: aggtool::render::view::Rgb::Rgb([0.3, 0.4, 0.6]),
     });
-    let out = output.join("reference.exr");
-    run_reference(&scene, &view, &out, 0.0, true)?;
     std::fs::write(
         output.join("view.json"),
         serde_json::to_string_pretty(&view)?,
     )?;
-    println!("The level-of-detail bake and renderer come next; this demo renders the reference.");
-    println!("Look at {}", png_beside(&out).display());
+    let ref_path = output.join("reference.exr");
+    let ref_stats = run_reference(&scene, &view, &ref_path, 0.0, true)?;
+    let lod_path = output.join("lod.exr");
+    let mut lod_view = view.clone();
+    lod_view.spp = 16;
+    let (_, lod_s) = run_lod(
+        &agg_path,
+        &lod_view,
+        &lod_path,
+        0.0,
+        &aggtool::runtime::TraceSettings::default(),
+        true,
+    )?;
+    let (a, b) = (Image::read_exr(&lod_path)?, Image::read_exr(&ref_path)?);
+    let cmp = compare(&a, &b).map_err(anyhow::Error::msg)?;
+    let (diff, scale) = difference_image(&a, &b, None);
+    let sbs = output.join("side-by-side.png");
+    side_by_side(
+        &sbs,
+        &[&b.to_srgb8(0.0), &a.to_srgb8(0.0), &diff.to_srgb8(0.0)],
+        a.width,
+        a.height,
+    )?;
+    println!(
+        "stats: reference {:.2} s at {} spp; LoD {:.2} s at {} spp; RMSE {:.4} (relMSE {:.4}); difference white = {scale:.3}",
+        ref_stats.seconds, view.spp, lod_s, lod_view.spp, cmp.rmse, cmp.relmse
+    );
+    println!(
+        "output: {} (reference | LoD | difference), in {:.0} s",
+        sbs.display(),
+        t_all.elapsed().as_secs_f64()
+    );
     Ok(())
 }
 
@@ -663,6 +795,37 @@ fn run(cli: Cli) -> Result<()> {
             )
         }
         Command::Inspect { file, json } => inspect(&file, json),
+        Command::Render {
+            agg,
+            view,
+            output,
+            level,
+            spp,
+            nee,
+            seed,
+            cube,
+            exposure,
+        } => {
+            let mut view = View::load(&view)?;
+            if let Some(s) = spp {
+                view.spp = s;
+            }
+            if let Some(s) = seed {
+                view.seed = s;
+            }
+            view.validate().map_err(anyhow::Error::msg)?;
+            let settings = aggtool::runtime::TraceSettings {
+                nee,
+                level,
+                primitive: if cube {
+                    aggtool::runtime::PrimitiveKind::Cube
+                } else {
+                    aggtool::runtime::PrimitiveKind::TruncatedEllipsoid
+                },
+            };
+            run_lod(&agg, &view, &output, exposure, &settings, true)?;
+            Ok(())
+        }
         Command::Flatten { asset, output } => {
             let scene = load_scene(&asset, false)?;
             flatten(&scene, &output)

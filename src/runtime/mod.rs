@@ -1,0 +1,547 @@
+//! The LoD runtime: cone tracing through an `.agg` aggregate (paper §6.3, §7.3, Algorithm 1,
+//! Eq. 30).
+//!
+//! [`LodScene::new`] prepares an opened [`Aggregate`] once (per voxel its ABSDF, primitive and
+//! a zero-copy handle on its AIV tree; per level a hash from Morton key to voxel and from
+//! (key, direction) to boundary face). After that, [`LodScene::trace`] is thread-safe and
+//! allocates nothing: a host renderer calls it with a cone (origin, direction, aperture) and
+//! the lights, and gets the radiance and the background's transmittance.
+//!
+//! Per cone, a 3D DDA walks the level whose voxel matches the cone's footprint (Algorithm 1,
+//! line 7), switching to a coarser level only where the ray crosses a boundary of the coarser
+//! grid. Every voxel whose truncated ellipsoid the centre ray meets adds (Eq. 30)
+//!
+//! ```text
+//! L_o(ω_o) · V̂(ω_o) · |A|_ω / |B|_ω,     L_o(ω_o) = ∫ f̂(ω_i, ω_o) L(ω_i) V̂(ω_i) dω_i
+//! ```
+//!
+//! with L_o estimated by `nee` light samples and `nee` ABSDF samples combined by MIS (splitting,
+//! Algorithm 1 line 14), the AIV V̂ standing in for shadow rays, |A|_ω = coverage · area · E|n·ω|
+//! from the voxel's normal distribution and |B|_ω the primitive's projected area. The
+//! background is added through the ABV of the face where the ray entered the aggregate if the
+//! ray met any primitive (P⁺), in full otherwise. The sum is order-independent.
+
+pub mod primitive;
+
+use std::collections::HashMap;
+use std::hash::BuildHasherDefault;
+
+use glam::{IVec3, Vec3};
+
+use crate::absdf::Absdf;
+use crate::bake::boundary_visibility::face_normal;
+use crate::bake::voxelize::{morton3, Grid};
+use crate::format::{fb, Aggregate, VoxelRef};
+use crate::math::frame::Frame;
+use crate::math::haar::{eval_tree, Node};
+use crate::math::rng::Pcg32;
+use crate::math::sampling::power_heuristic;
+use crate::math::sggx::Sggx;
+use crate::math::sphere_maps::{concentric_hemisphere_to_square, grid_cell};
+use crate::render::lights::Lights;
+use crate::tables::fit::m5_exact;
+use crate::trace::Ray;
+use primitive::{box_interval, box_projected_area, Primitive};
+
+/// A hasher for Morton keys: one mixing step instead of SipHash in the traversal's inner loop.
+#[derive(Default, Clone, Copy)]
+pub struct KeyHasher(u64);
+
+impl std::hash::Hasher for KeyHasher {
+    fn finish(&self) -> u64 {
+        crate::math::rng::mix64(self.0)
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.0 = (self.0 << 8) ^ *b as u64;
+        }
+    }
+    fn write_u64(&mut self, v: u64) {
+        self.0 = v;
+    }
+}
+
+type FastMap<V> = HashMap<u64, V, BuildHasherDefault<KeyHasher>>;
+
+/// Which primitive stands for a voxel's geometry.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum PrimitiveKind {
+    /// The paper's truncated ellipsoid.
+    #[default]
+    TruncatedEllipsoid,
+    /// The whole voxel (the Fig. 6 ablation).
+    Cube,
+}
+
+/// Render-time options.
+#[derive(Clone, Copy, Debug)]
+pub struct TraceSettings {
+    /// Light samples and ABSDF samples per primitive hit (MIS; Algorithm 1's m).
+    pub nee: u32,
+    /// Force this level (0 = finest) instead of choosing by footprint.
+    pub level: Option<usize>,
+    pub primitive: PrimitiveKind,
+}
+
+impl Default for TraceSettings {
+    fn default() -> Self {
+        TraceSettings {
+            nee: 1,
+            level: None,
+            primitive: PrimitiveKind::TruncatedEllipsoid,
+        }
+    }
+}
+
+/// What a cone brings back.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ConeResult {
+    /// Radiance towards the cone's origin, background included.
+    pub radiance: Vec3,
+    /// The background's weight in `radiance` (1 when the cone met nothing).
+    pub transmittance: f32,
+    /// Primitives the centre ray met.
+    pub primitives: u32,
+}
+
+/// A voxel ready for shading.
+struct Voxel<'a> {
+    absdf: Absdf<'static>,
+    prim: Option<Primitive>,
+    /// area · coverage.
+    area: f32,
+    /// (weight / mass, lobe) for E|n·ω| = Σ w_k σ_k(ω) / m5_k.
+    lobes: [(f32, Sggx); 4],
+    lobe_count: usize,
+    vref: VoxelRef<'a>,
+}
+
+/// A boundary face: its ABV tree, zero-copy.
+#[derive(Clone, Copy)]
+struct FaceRef<'a> {
+    rec: &'a fb::Face,
+    nodes: flatbuffers::Vector<'a, fb::HaarNode>,
+}
+
+struct Level<'a> {
+    grid: Grid,
+    voxels: Vec<Voxel<'a>>,
+    by_key: FastMap<u32>,
+    /// Key: Morton key · 8 + face direction.
+    faces: FastMap<FaceRef<'a>>,
+}
+
+/// A prepared aggregate.
+pub struct LodScene<'a> {
+    levels: Vec<Level<'a>>,
+    abv_res: u32,
+    /// Finest voxel size.
+    base: f32,
+}
+
+impl<'a> LodScene<'a> {
+    /// Prepares every level of `agg` (in parallel).
+    pub fn new(agg: &'a Aggregate) -> LodScene<'a> {
+        use rayon::prelude::*;
+        let tables = crate::tables::Tables::embedded();
+        let abv_res = agg.index().settings().map_or(64, |s| s.abv_res());
+        let levels: Vec<Level<'a>> = (0..agg.level_count())
+            .map(|l| {
+                let grid = agg.grid(l);
+                let refs: Vec<VoxelRef<'a>> = agg.voxels(l).collect();
+                let voxels: Vec<Voxel<'a>> = refs
+                    .par_iter()
+                    .map(|v| {
+                        let app = v.appearance();
+                        let e = v.ellipsoid();
+                        let (lo, hi) = grid.voxel_bounds(v.coords());
+                        let mut lobes = [(
+                            0.0,
+                            Sggx::from_frame_roughness(glam::Mat3::IDENTITY, glam::Vec2::ONE),
+                        ); 4];
+                        let lobe_count = app.lobes.len().min(4);
+                        for (k, l) in app.lobes.iter().take(4).enumerate() {
+                            let mass = m5_exact((l.alpha.x * l.alpha.y).sqrt()).max(1e-6);
+                            lobes[k] = (
+                                l.weight / mass,
+                                Sggx::from_frame_roughness(l.frame, l.alpha),
+                            );
+                        }
+                        Voxel {
+                            absdf: Absdf::new(&app, tables),
+                            prim: Primitive::new(e.center, e.axes, lo, hi),
+                            area: v.rec.area() * v.rec.coverage(),
+                            lobes,
+                            lobe_count,
+                            vref: *v,
+                        }
+                    })
+                    .collect();
+                let by_key = refs
+                    .iter()
+                    .enumerate()
+                    .map(|(i, v)| (v.key, i as u32))
+                    .collect();
+                let mut faces = FastMap::default();
+                let lv = agg.index().levels().unwrap().get(l);
+                for r in lv.face_blocks().into_iter().flatten() {
+                    let block = agg.block(r);
+                    let nodes = block.abv_nodes().unwrap();
+                    for f in block.faces().unwrap() {
+                        let key = morton3(glam::UVec3::new(f.x(), f.y(), f.z()));
+                        faces.insert(key * 8 + f.dir() as u64, FaceRef { rec: f, nodes });
+                    }
+                }
+                Level {
+                    grid,
+                    voxels,
+                    by_key,
+                    faces,
+                }
+            })
+            .collect();
+        let base = levels.first().map_or(1.0, |l| l.grid.voxel_size());
+        LodScene {
+            levels,
+            abv_res,
+            base,
+        }
+    }
+
+    pub fn level_count(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// The level (0 = finest) whose voxel matches a cone of full aperture `aperture` at
+    /// distance `t` (Algorithm 1, line 7: ⌊log2(tan(θ/2)·t / s)⌋, clamped).
+    #[inline]
+    pub fn level_for(&self, aperture: f32, t: f32) -> usize {
+        let x = (0.5 * aperture).tan() * t / self.base;
+        if !(x >= 2.0) {
+            return 0;
+        }
+        (x.log2().floor() as usize).min(self.levels.len().saturating_sub(1))
+    }
+
+    /// E|n·ω| of a voxel's surfaces, from its normal distribution.
+    #[inline]
+    fn mean_cosine(v: &Voxel, w: Vec3) -> f32 {
+        let mut s = 0.0;
+        for (k, s_k) in v.lobes[..v.lobe_count].iter() {
+            s += k * s_k.sigma(w);
+        }
+        s.clamp(0.0, 1.0)
+    }
+
+    /// Reflected radiance of a voxel towards `wo` (Algorithm 1, lines 13–17).
+    fn shade(&self, v: &Voxel, wo: Vec3, lights: &Lights, nee: u32, rng: &mut Pcg32) -> Vec3 {
+        let mut l = Vec3::ZERO;
+        if let Some(sun) = &lights.sun {
+            let f = v.absdf.eval(sun.direction, wo);
+            if f.max_element() > 0.0 {
+                l += f * sun.irradiance * v.vref.aiv(sun.direction);
+            }
+        }
+        let env = &lights.environment;
+        let m = nee.max(1);
+        let mut acc = Vec3::ZERO;
+        for _ in 0..m {
+            if let Some(ls) = env.sample(rng.next_2d()) {
+                if ls.pdf > 0.0 && ls.radiance.max_element() > 0.0 {
+                    let (f, pdf_b) = v.absdf.eval_pdf(ls.wi, wo);
+                    if f.max_element() > 0.0 {
+                        acc += f
+                            * ls.radiance
+                            * (v.vref.aiv(ls.wi) * power_heuristic(ls.pdf, pdf_b) / ls.pdf);
+                    }
+                }
+            }
+            let u_lobe = rng.next_f32();
+            if let Some(bs) = v.absdf.sample(wo, u_lobe, rng.next_2d()) {
+                let le = env.eval(bs.wi);
+                if le.max_element() > 0.0 {
+                    let pdf_l = env.pdf(bs.wi);
+                    acc += bs.value
+                        * le
+                        * (v.vref.aiv(bs.wi) * power_heuristic(bs.pdf, pdf_l) / bs.pdf);
+                }
+            }
+        }
+        l + acc / m as f32
+    }
+
+    /// The ABV of face (voxel key, dir) towards `d` (pointing into the aggregate).
+    fn abv(&self, level: &Level, key: u64, dir: u8, d: Vec3) -> Option<f32> {
+        let f = level.faces.get(&(key * 8 + dir as u64))?;
+        let n = self.abv_res;
+        let scaling = f.rec.abv_scaling();
+        if f.rec.abv_count() == 0 {
+            return Some(scaling / n as f32);
+        }
+        let local = Frame::from_z(-face_normal(dir)).to_local(d);
+        if !(local.z > 0.0) {
+            return Some(scaling / n as f32);
+        }
+        let cell = grid_cell(concentric_hemisphere_to_square(local), n);
+        let start = f.rec.abv_start() as usize;
+        let nodes = f.nodes;
+        let v = eval_tree(
+            n,
+            scaling,
+            f.rec.abv_count() as usize,
+            |i| {
+                let h = nodes.get(start + i);
+                Node {
+                    details: [h.h(), h.v(), h.d()],
+                    children: h.children(),
+                    subtree: h.subtree(),
+                }
+            },
+            cell % n,
+            cell / n,
+        );
+        Some(v.clamp(0.0, 1.0))
+    }
+
+    /// Traces one cone: centre ray `ray`, full aperture `aperture` (radians).
+    pub fn trace(
+        &self,
+        ray: &Ray,
+        aperture: f32,
+        lights: &Lights,
+        settings: &TraceSettings,
+        rng: &mut Pcg32,
+    ) -> ConeResult {
+        let d = ray.dir;
+        let background = lights.environment.eval(d);
+        let miss = ConeResult {
+            radiance: background,
+            transmittance: 1.0,
+            primitives: 0,
+        };
+        let Some(first) = self.levels.first() else {
+            return miss;
+        };
+        let g0 = first.grid;
+        let inv = d.recip();
+        let (c0, c1) = box_interval(g0.origin, g0.origin + Vec3::splat(g0.size), ray.origin, inv);
+        let (tmin, tmax) = (c0.max(ray.tmin), c1.min(ray.tmax));
+        if !(tmin <= tmax) {
+            return miss;
+        }
+        let pick = |t: f32| -> usize {
+            settings
+                .level
+                .unwrap_or_else(|| self.level_for(aperture, t))
+                .min(self.levels.len() - 1)
+        };
+        let mut li = pick(tmin);
+        let step = IVec3::new(
+            if d.x > 0.0 {
+                1
+            } else if d.x < 0.0 {
+                -1
+            } else {
+                0
+            },
+            if d.y > 0.0 {
+                1
+            } else if d.y < 0.0 {
+                -1
+            } else {
+                0
+            },
+            if d.z > 0.0 {
+                1
+            } else if d.z < 0.0 {
+                -1
+            } else {
+                0
+            },
+        );
+        // DDA state at level li.
+        let init = |li: usize, t: f32, v: Option<IVec3>| -> (IVec3, Vec3, Vec3) {
+            let g = &self.levels[li].grid;
+            let s = g.voxel_size();
+            let res = g.res as i32;
+            let v = v.unwrap_or_else(|| {
+                ((ray.at(t) - g.origin) / s)
+                    .floor()
+                    .as_ivec3()
+                    .clamp(IVec3::ZERO, IVec3::splat(res - 1))
+            });
+            let next = |i: i32, a: usize| -> f32 {
+                if step[a] == 0 {
+                    return f32::INFINITY;
+                }
+                let b = g.origin[a] + (i + (step[a] > 0) as i32) as f32 * s;
+                (b - ray.origin[a]) * inv[a]
+            };
+            let t_next = Vec3::new(next(v.x, 0), next(v.y, 1), next(v.z, 2));
+            let delta = Vec3::select(
+                step.cmpeq(IVec3::ZERO),
+                Vec3::INFINITY,
+                (Vec3::splat(s) * inv).abs(),
+            );
+            (v, t_next, delta)
+        };
+        let (mut v, mut t_next, mut delta) = init(li, tmin, None);
+        let mut t = tmin;
+        // The axis through which the current voxel was entered (for boundary faces): at the
+        // start, the axis of the cube face the ray entered by.
+        let mut entry_axis = {
+            let g = &g0;
+            let (a, b) = (
+                (g.origin - ray.origin) * inv,
+                (g.origin + Vec3::splat(g.size) - ray.origin) * inv,
+            );
+            let near = a.min(b);
+            if near.x >= near.y && near.x >= near.z {
+                0
+            } else if near.y >= near.z {
+                1
+            } else {
+                2
+            }
+        };
+        let mut result = Vec3::ZERO;
+        let mut hits = 0u32;
+        let mut vb: Option<f32> = None;
+        let wo = -d;
+        let max_steps = 3 * g0.res as usize + 8;
+        for _ in 0..max_steps {
+            let level = &self.levels[li];
+            let t_exit = t_next.min_element().min(tmax);
+            let key = morton3(v.as_uvec3());
+            if let Some(&idx) = level.by_key.get(&key) {
+                let vox = &level.voxels[idx as usize];
+                // The first occupied voxel: the ray entered the aggregate through its face.
+                if vb.is_none() {
+                    let dir = (2 * entry_axis + (step[entry_axis] < 0) as usize) as u8;
+                    vb = self.abv(level, key, dir, d).or(Some(1.0));
+                }
+                let (hit, area_b) = match settings.primitive {
+                    PrimitiveKind::TruncatedEllipsoid => match &vox.prim {
+                        Some(p) => (p.intersect(ray.origin, d, inv, t, t_exit).is_some(), 0.0),
+                        None => (false, 0.0),
+                    },
+                    PrimitiveKind::Cube => (
+                        true,
+                        box_projected_area(Vec3::splat(level.grid.voxel_size()), d),
+                    ),
+                };
+                if hit {
+                    hits += 1;
+                    let area_b = match (settings.primitive, &vox.prim) {
+                        (PrimitiveKind::TruncatedEllipsoid, Some(p)) => p.projected_area(d),
+                        _ => area_b,
+                    };
+                    if area_b > 0.0 {
+                        let a_w = vox.area * Self::mean_cosine(vox, d);
+                        let lo = self.shade(vox, wo, lights, settings.nee, rng);
+                        let vo = vox.vref.aiv(wo).clamp(0.0, 1.0);
+                        let c = a_w / area_b;
+                        let add = lo * vo * c;
+                        if add.is_finite() {
+                            result += add;
+                        }
+                    }
+                }
+            }
+            if t_exit >= tmax {
+                break;
+            }
+            let axis = if t_next.x <= t_next.y && t_next.x <= t_next.z {
+                0
+            } else if t_next.y <= t_next.z {
+                1
+            } else {
+                2
+            };
+            t = t_next[axis];
+            v[axis] += step[axis];
+            entry_axis = axis;
+            let res = level.grid.res as i32;
+            if v[axis] < 0 || v[axis] >= res {
+                break;
+            }
+            t_next[axis] += delta[axis];
+            // A coarser level only where the crossed plane is also a plane of that level.
+            let want = pick(t);
+            if want > li {
+                let b = if step[axis] > 0 { v[axis] } else { v[axis] + 1 };
+                let mut k = 0;
+                while li + k < want && b % (1 << (k + 1)) == 0 {
+                    k += 1;
+                }
+                if k > 0 {
+                    li += k;
+                    let coarse = IVec3::new(v.x >> k, v.y >> k, v.z >> k);
+                    (v, t_next, delta) = init(li, t, Some(coarse));
+                }
+            }
+        }
+        let vb = if hits > 0 { vb.unwrap_or(1.0) } else { 1.0 };
+        let radiance = result + background * vb;
+        ConeResult {
+            radiance: if radiance.is_finite() {
+                radiance
+            } else {
+                Vec3::ZERO
+            },
+            transmittance: vb,
+            primitives: hits,
+        }
+    }
+
+    /// The bounds of the finest level's cube, for framing views.
+    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
+        let g = self.levels.first()?.grid;
+        Some((g.origin, g.origin + Vec3::splat(g.size)))
+    }
+}
+
+/// Renders an image with the LoD runtime: `spp` cones per pixel, each of the pixel's aperture,
+/// jittered over the pixel; deterministic for a seed.
+pub fn render(
+    scene: &LodScene,
+    camera: &crate::render::Camera,
+    lights: &Lights,
+    spp: u32,
+    seed: u64,
+    settings: &TraceSettings,
+    progress: bool,
+) -> (crate::render::Image, f64) {
+    use rayon::prelude::*;
+    let start = std::time::Instant::now();
+    let (w, h) = (camera.width, camera.height);
+    let aperture = camera.pixel_angle();
+    let bar = crate::render::reference::progress_bar(progress, h as u64, "LoD");
+    let rows: Vec<Vec<Vec3>> = (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let row = (0..w)
+                .map(|x| {
+                    let mut rng = Pcg32::new(seed, (y as u64) * w as u64 + x as u64);
+                    let mut sum = Vec3::ZERO;
+                    for _ in 0..spp.max(1) {
+                        let p = glam::Vec2::new(x as f32, y as f32) + rng.next_2d();
+                        let ray = camera.ray(p);
+                        sum += scene
+                            .trace(&ray, aperture, lights, settings, &mut rng)
+                            .radiance;
+                    }
+                    sum / spp.max(1) as f32
+                })
+                .collect();
+            bar.inc(1);
+            row
+        })
+        .collect();
+    bar.finish_and_clear();
+    let mut img = crate::render::Image::new(w, h);
+    for (y, row) in rows.into_iter().enumerate() {
+        img.pixels[y * w as usize..(y + 1) * w as usize].copy_from_slice(&row);
+    }
+    (img, start.elapsed().as_secs_f64())
+}
