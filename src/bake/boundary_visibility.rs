@@ -142,11 +142,27 @@ pub fn face_normal(dir: u8) -> Vec3 {
     n
 }
 
+impl AbvMap {
+    /// Mean P⁺ rays per cell that has any.
+    pub fn rays_per_cell(&self) -> f32 {
+        let (n, sum) = self
+            .hits
+            .iter()
+            .filter(|&&h| h > 0)
+            .fold((0u32, 0u32), |(n, s), &h| (n + 1, s + h));
+        if n > 0 {
+            sum as f32 / n as f32
+        } else {
+            1.0
+        }
+    }
+}
+
 /// The ABV map of one face.
 #[derive(Clone, Debug)]
 pub struct AbvMap {
     /// `res × res` concentric cells over the inward hemisphere, values in [0, 1]; cells where no
-    /// ray met a primitive hold 1 (no P⁺: the runtime never reads them).
+    /// ray met a primitive hold the mean of the others.
     pub values: Vec<f32>,
     /// Rays per cell that met a primitive (0 marks an undefined cell).
     pub hits: Vec<u32>,
@@ -208,10 +224,18 @@ pub fn abv_map(
             }
         }
     }
+    // Cells no P⁺ ray reached take the mean of the others (the runtime rarely reads them, and
+    // a constant fill adds no wavelet edges).
+    let (h_sum, e_sum) = (hit.iter().sum::<u32>(), escape.iter().sum::<u32>());
+    let fill = if h_sum > 0 {
+        e_sum as f32 / h_sum as f32
+    } else {
+        1.0
+    };
     let values = hit
         .iter()
         .zip(&escape)
-        .map(|(&h, &e)| if h > 0 { e as f32 / h as f32 } else { 1.0 })
+        .map(|(&h, &e)| if h > 0 { e as f32 / h as f32 } else { fill })
         .collect();
     AbvMap {
         values,

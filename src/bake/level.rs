@@ -16,7 +16,7 @@ use super::visibility::aiv_map;
 use super::voxelize::{demorton3, Grid};
 use crate::absdf::estimate::{estimate, EstimateSettings};
 use crate::absdf::VoxelAppearance;
-use crate::math::haar::{forward, truncate, SparseHaar};
+use crate::math::haar::{forward, shrink, truncate, SparseHaar};
 use crate::scene::Scene;
 use crate::trace::Accel;
 
@@ -34,6 +34,8 @@ pub struct LevelSettings {
     /// Fraction of wavelet coefficients kept at most, and detail energy to keep.
     pub keep: f32,
     pub energy: f32,
+    /// Shrink the Monte Carlo noise out of the wavelet coefficients before truncation.
+    pub denoise: bool,
     pub estimate: EstimateSettings,
 }
 
@@ -47,6 +49,7 @@ impl Default for LevelSettings {
             abv_rays: 1,
             keep: 0.10,
             energy: 0.95,
+            denoise: true,
             estimate: EstimateSettings::default(),
         }
     }
@@ -83,9 +86,16 @@ pub struct LevelData {
     pub rays: u64,
 }
 
-fn compress(map: &[f32], res: u32, keep: f32, energy: f32) -> SparseHaar {
+/// Haar transform, shrinkage of the Monte Carlo noise (`rays_per_cell` rays estimated each
+/// pixel, a binomial proportion; skipped when `denoise` is off), truncation.
+fn compress(map: &[f32], res: u32, rays_per_cell: f32, s: &LevelSettings) -> SparseHaar {
     let (c, mut d) = forward(map, res as usize);
-    truncate(c, &mut d, keep, energy);
+    if s.denoise {
+        let mean = (map.iter().map(|&v| v as f64).sum::<f64>() / map.len().max(1) as f64) as f32;
+        let sigma = (mean * (1.0 - mean)).max(0.0).sqrt() / rays_per_cell.max(1.0).sqrt();
+        shrink(&mut d, sigma, res as usize);
+    }
+    truncate(c, &mut d, s.keep, s.energy);
     SparseHaar::new(c, &d, res as usize)
 }
 
@@ -118,7 +128,8 @@ pub fn bake_voxel(
     };
     let t1 = std::time::Instant::now();
     let (map, rays) = aiv_map(accel, &samples, s.aiv_res, s.aiv_rays, seed);
-    let aiv = compress(&map, s.aiv_res, s.keep, s.energy);
+    let per_cell = (samples.len() as f32 * s.aiv_rays as f32) / (s.aiv_res * s.aiv_res) as f32;
+    let aiv = compress(&map, s.aiv_res, per_cell, s);
     let cpu = [(t1 - t0).as_secs_f64(), t1.elapsed().as_secs_f64()];
     (
         Some(VoxelData {
@@ -147,7 +158,7 @@ pub fn bake_face(
     (
         FaceData {
             face,
-            abv: compress(&m.values, s.abv_res, s.keep, s.energy),
+            abv: compress(&m.values, s.abv_res, m.rays_per_cell(), s),
         },
         m.traced,
     )

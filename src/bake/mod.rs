@@ -43,6 +43,9 @@ pub struct BakeSettings {
     /// Wavelet truncation: fraction of coefficients kept, detail energy kept (paper Table 2).
     pub keep: f32,
     pub energy: f32,
+    /// Shrink Monte Carlo noise out of the visibility wavelets before truncation
+    /// (`math::haar::shrink`); off reproduces the paper's truncation alone.
+    pub denoise: bool,
     /// Store every effect in full even where the asset does not need it (for measuring what
     /// effect detection saves; renders are the same).
     pub keep_all_effects: bool,
@@ -63,6 +66,7 @@ impl Default for BakeSettings {
             moment_res: 3,
             keep: 0.10,
             energy: 0.95,
+            denoise: true,
             keep_all_effects: false,
         }
     }
@@ -137,6 +141,7 @@ impl BakeSettings {
             abv_rays: self.abv_rays,
             keep: self.keep,
             energy: self.energy,
+            denoise: self.denoise,
             estimate: EstimateSettings {
                 max_lobes: self.ndf_lobes as usize,
                 moment_res: self.moment_res,

@@ -176,6 +176,9 @@ enum Command {
         /// Store every effect in full even where the asset does not need it.
         #[arg(long)]
         keep_all_effects: bool,
+        /// Keep the Monte Carlo noise in the visibility wavelets (the paper's truncation alone).
+        #[arg(long)]
+        no_denoise: bool,
         /// Write the stats as JSON to this file.
         #[arg(long)]
         report: Option<PathBuf>,
@@ -766,6 +769,7 @@ fn run(cli: Cli) -> Result<()> {
             keep,
             energy,
             keep_all_effects,
+            no_denoise,
             report,
             verbose,
             strict,
@@ -783,6 +787,7 @@ fn run(cli: Cli) -> Result<()> {
                 moment_res,
                 keep,
                 energy,
+                denoise: !no_denoise,
                 keep_all_effects,
             };
             convert(
@@ -994,7 +999,7 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
                 "max_samples": s.max_samples(), "aiv_res": s.aiv_res(), "aiv_rays": s.aiv_rays(),
                 "abv_res": s.abv_res(), "abv_rays": s.abv_rays(), "ndf_lobes": s.ndf_lobes(),
                 "moment_res": s.moment_res(), "keep": s.keep(), "energy": s.energy(),
-                "keep_all_effects": s.keep_all_effects(),
+                "keep_all_effects": s.keep_all_effects(), "denoise": s.denoise(),
             },
             "levels": level_info,
             "effects": effects,

@@ -2249,6 +2249,7 @@ impl<'a> BakeSettings<'a> {
   pub const VT_ENERGY: ::flatbuffers::VOffsetT = 24;
   pub const VT_KEEP_ALL_EFFECTS: ::flatbuffers::VOffsetT = 26;
   pub const VT_MIN_RES: ::flatbuffers::VOffsetT = 28;
+  pub const VT_DENOISE: ::flatbuffers::VOffsetT = 30;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -2272,6 +2273,7 @@ impl<'a> BakeSettings<'a> {
     builder.add_max_samples(args.max_samples);
     builder.add_samples(args.samples);
     builder.add_max_res(args.max_res);
+    builder.add_denoise(args.denoise);
     builder.add_keep_all_effects(args.keep_all_effects);
     builder.finish()
   }
@@ -2371,6 +2373,14 @@ impl<'a> BakeSettings<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u32>(BakeSettings::VT_MIN_RES, Some(0)).unwrap()}
   }
+  /// True when Monte Carlo noise was shrunk out of the visibility wavelets before truncation.
+  #[inline]
+  pub fn denoise(&self) -> bool {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<bool>(BakeSettings::VT_DENOISE, Some(false)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for BakeSettings<'_> {
@@ -2392,6 +2402,7 @@ impl ::flatbuffers::Verifiable for BakeSettings<'_> {
      .visit_field::<f32>("energy", Self::VT_ENERGY, false)?
      .visit_field::<bool>("keep_all_effects", Self::VT_KEEP_ALL_EFFECTS, false)?
      .visit_field::<u32>("min_res", Self::VT_MIN_RES, false)?
+     .visit_field::<bool>("denoise", Self::VT_DENOISE, false)?
      .finish();
     Ok(())
   }
@@ -2410,6 +2421,7 @@ pub struct BakeSettingsArgs {
     pub energy: f32,
     pub keep_all_effects: bool,
     pub min_res: u32,
+    pub denoise: bool,
 }
 impl<'a> Default for BakeSettingsArgs {
   #[inline]
@@ -2428,6 +2440,7 @@ impl<'a> Default for BakeSettingsArgs {
       energy: 0.0,
       keep_all_effects: false,
       min_res: 0,
+      denoise: false,
     }
   }
 }
@@ -2490,6 +2503,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> BakeSettingsBuilder<'a, 'b, A
     self.fbb_.push_slot::<u32>(BakeSettings::VT_MIN_RES, min_res, 0);
   }
   #[inline]
+  pub fn add_denoise(&mut self, denoise: bool) {
+    self.fbb_.push_slot::<bool>(BakeSettings::VT_DENOISE, denoise, false);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> BakeSettingsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     BakeSettingsBuilder {
@@ -2520,6 +2537,7 @@ impl ::core::fmt::Debug for BakeSettings<'_> {
       ds.field("energy", &self.energy());
       ds.field("keep_all_effects", &self.keep_all_effects());
       ds.field("min_res", &self.min_res());
+      ds.field("denoise", &self.denoise());
       ds.finish()
   }
 }

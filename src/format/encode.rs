@@ -382,6 +382,7 @@ pub fn index(e: &IndexEntry) -> Vec<u8> {
             energy: s.energy,
             keep_all_effects: s.keep_all_effects,
             min_res: s.min_res,
+            denoise: s.denoise,
         },
     );
     let mut total = Counts::default();

@@ -123,8 +123,16 @@ class BakeSettings(object):
             return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
         return 0
 
+    # True when Monte Carlo noise was shrunk out of the visibility wavelets before truncation.
+    # BakeSettings
+    def Denoise(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(30))
+        if o != 0:
+            return bool(self._tab.Get(flatbuffers.number_types.BoolFlags, o + self._tab.Pos))
+        return False
+
 def BakeSettingsStart(builder):
-    builder.StartObject(13)
+    builder.StartObject(14)
 
 def Start(builder):
     BakeSettingsStart(builder)
@@ -206,6 +214,12 @@ def BakeSettingsAddMinRes(builder, minRes):
 
 def AddMinRes(builder, minRes):
     BakeSettingsAddMinRes(builder, minRes)
+
+def BakeSettingsAddDenoise(builder, denoise):
+    builder.PrependBoolSlot(13, denoise, 0)
+
+def AddDenoise(builder, denoise):
+    BakeSettingsAddDenoise(builder, denoise)
 
 def BakeSettingsEnd(builder):
     return builder.EndObject()
