@@ -66,6 +66,9 @@ pub struct VoxelData {
     pub appearance: VoxelAppearance,
     pub ellipsoid: Ellipsoid,
     pub aiv: SparseHaar,
+    /// Exposure η in [1/16, 1]: how much the visibility of the voxel's surfaces concentrates
+    /// on some of their sides ([`super::visibility`]); 1 for an open sheet, 1/2 for a solid.
+    pub exposure: f32,
 }
 
 /// A boundary face's baked data.
@@ -127,7 +130,7 @@ pub fn bake_voxel(
         return (None, 0, [t0.elapsed().as_secs_f64(), 0.0]);
     };
     let t1 = std::time::Instant::now();
-    let (map, rays) = aiv_map(accel, &samples, s.aiv_res, s.aiv_rays, seed);
+    let (map, rays, exposure) = aiv_map(accel, &samples, s.aiv_res, s.aiv_rays, seed);
     let per_cell = (samples.len() as f32 * s.aiv_rays as f32) / (s.aiv_res * s.aiv_res) as f32;
     let aiv = compress(&map, s.aiv_res, per_cell, s);
     let cpu = [(t1 - t0).as_secs_f64(), t1.elapsed().as_secs_f64()];
@@ -139,10 +142,18 @@ pub fn bake_voxel(
             appearance,
             ellipsoid,
             aiv,
+            // Quantized to 1/256 so that stored and baked values compare equal.
+            exposure: quantize_exposure(exposure),
         }),
         rays,
         cpu,
     )
+}
+
+/// Exposure as stored: multiples of 1/256 (exactly representable in f32), 1 when within 1/512.
+pub fn quantize_exposure(e: f32) -> f32 {
+    use super::visibility::MIN_EXPOSURE;
+    ((e.clamp(MIN_EXPOSURE, 1.0) * 256.0).round() / 256.0).clamp(MIN_EXPOSURE, 1.0)
 }
 
 /// Bakes one boundary face's ABV tree; returns it with the rays traced.

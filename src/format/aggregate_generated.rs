@@ -31,6 +31,8 @@ mod bitflags_effect {
       const AbvTrees = 32;
       /// Alpha cut-outs: voxels whose coverage is below one.
       const CutOuts = 64;
+      /// 1.1: exposure below one (visibility concentrated on some sides, e.g. solids), `Block.exposure`.
+      const Exposure = 128;
     }
   }
 }
@@ -2571,6 +2573,7 @@ impl<'a> LevelCounts<'a> {
   pub const VT_CUT_OUT: ::flatbuffers::VOffsetT = 24;
   pub const VT_AIV_NODES: ::flatbuffers::VOffsetT = 26;
   pub const VT_ABV_NODES: ::flatbuffers::VOffsetT = 28;
+  pub const VT_EXPOSURE: ::flatbuffers::VOffsetT = 30;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -2582,6 +2585,7 @@ impl<'a> LevelCounts<'a> {
     args: &'args LevelCountsArgs
   ) -> ::flatbuffers::WIPOffset<LevelCounts<'bldr>> {
     let mut builder = LevelCountsBuilder::new(_fbb);
+    builder.add_exposure(args.exposure);
     builder.add_abv_nodes(args.abv_nodes);
     builder.add_aiv_nodes(args.aiv_nodes);
     builder.add_cut_out(args.cut_out);
@@ -2690,6 +2694,14 @@ impl<'a> LevelCounts<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u64>(LevelCounts::VT_ABV_NODES, Some(0)).unwrap()}
   }
+  /// 1.1: voxels whose exposure is below one.
+  #[inline]
+  pub fn exposure(&self) -> u64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u64>(LevelCounts::VT_EXPOSURE, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for LevelCounts<'_> {
@@ -2711,6 +2723,7 @@ impl ::flatbuffers::Verifiable for LevelCounts<'_> {
      .visit_field::<u64>("cut_out", Self::VT_CUT_OUT, false)?
      .visit_field::<u64>("aiv_nodes", Self::VT_AIV_NODES, false)?
      .visit_field::<u64>("abv_nodes", Self::VT_ABV_NODES, false)?
+     .visit_field::<u64>("exposure", Self::VT_EXPOSURE, false)?
      .finish();
     Ok(())
   }
@@ -2729,6 +2742,7 @@ pub struct LevelCountsArgs {
     pub cut_out: u64,
     pub aiv_nodes: u64,
     pub abv_nodes: u64,
+    pub exposure: u64,
 }
 impl<'a> Default for LevelCountsArgs {
   #[inline]
@@ -2747,6 +2761,7 @@ impl<'a> Default for LevelCountsArgs {
       cut_out: 0,
       aiv_nodes: 0,
       abv_nodes: 0,
+      exposure: 0,
     }
   }
 }
@@ -2809,6 +2824,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> LevelCountsBuilder<'a, 'b, A>
     self.fbb_.push_slot::<u64>(LevelCounts::VT_ABV_NODES, abv_nodes, 0);
   }
   #[inline]
+  pub fn add_exposure(&mut self, exposure: u64) {
+    self.fbb_.push_slot::<u64>(LevelCounts::VT_EXPOSURE, exposure, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> LevelCountsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     LevelCountsBuilder {
@@ -2839,6 +2858,7 @@ impl ::core::fmt::Debug for LevelCounts<'_> {
       ds.field("cut_out", &self.cut_out());
       ds.field("aiv_nodes", &self.aiv_nodes());
       ds.field("abv_nodes", &self.abv_nodes());
+      ds.field("exposure", &self.exposure());
       ds.finish()
   }
 }
@@ -3304,6 +3324,7 @@ impl<'a> Block<'a> {
   pub const VT_AIV_NODES: ::flatbuffers::VOffsetT = 16;
   pub const VT_FACES: ::flatbuffers::VOffsetT = 18;
   pub const VT_ABV_NODES: ::flatbuffers::VOffsetT = 20;
+  pub const VT_EXPOSURE: ::flatbuffers::VOffsetT = 22;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3315,6 +3336,7 @@ impl<'a> Block<'a> {
     args: &'args BlockArgs<'args>
   ) -> ::flatbuffers::WIPOffset<Block<'bldr>> {
     let mut builder = BlockBuilder::new(_fbb);
+    if let Some(x) = args.exposure { builder.add_exposure(x); }
     if let Some(x) = args.abv_nodes { builder.add_abv_nodes(x); }
     if let Some(x) = args.faces { builder.add_faces(x); }
     if let Some(x) = args.aiv_nodes { builder.add_aiv_nodes(x); }
@@ -3394,6 +3416,17 @@ impl<'a> Block<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, HaarNode>>>(Block::VT_ABV_NODES, None)}
   }
+  /// 1.1, voxel blocks: per voxel (same order as `voxels`) the exposure η in [1/16, 1]:
+  /// E[v]²/E[v²] over (surface sample, side) pairs, v the side's visibility (1 for an open
+  /// sheet, 1/2 for the walls of a solid). The runtime divides the incident AIV by it (and caps
+  /// the result at 1). Absent (older files, or no voxel below one): 1 for every voxel.
+  #[inline]
+  pub fn exposure(&self) -> Option<::flatbuffers::Vector<'a, f32>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, f32>>>(Block::VT_EXPOSURE, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for Block<'_> {
@@ -3411,6 +3444,7 @@ impl ::flatbuffers::Verifiable for Block<'_> {
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, HaarNode>>>("aiv_nodes", Self::VT_AIV_NODES, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, Face>>>("faces", Self::VT_FACES, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, HaarNode>>>("abv_nodes", Self::VT_ABV_NODES, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, f32>>>("exposure", Self::VT_EXPOSURE, false)?
      .finish();
     Ok(())
   }
@@ -3425,6 +3459,7 @@ pub struct BlockArgs<'a> {
     pub aiv_nodes: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, HaarNode>>>,
     pub faces: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, Face>>>,
     pub abv_nodes: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, HaarNode>>>,
+    pub exposure: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, f32>>>,
 }
 impl<'a> Default for BlockArgs<'a> {
   #[inline]
@@ -3439,6 +3474,7 @@ impl<'a> Default for BlockArgs<'a> {
       aiv_nodes: None,
       faces: None,
       abv_nodes: None,
+      exposure: None,
     }
   }
 }
@@ -3485,6 +3521,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> BlockBuilder<'a, 'b, A> {
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(Block::VT_ABV_NODES, abv_nodes);
   }
   #[inline]
+  pub fn add_exposure(&mut self, exposure: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , f32>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(Block::VT_EXPOSURE, exposure);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> BlockBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     BlockBuilder {
@@ -3511,6 +3551,7 @@ impl ::core::fmt::Debug for Block<'_> {
       ds.field("aiv_nodes", &self.aiv_nodes());
       ds.field("faces", &self.faces());
       ds.field("abv_nodes", &self.abv_nodes());
+      ds.field("exposure", &self.exposure());
       ds.finish()
   }
 }

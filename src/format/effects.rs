@@ -16,7 +16,7 @@ pub struct EffectLine {
 /// The verdicts for a bake whose levels have these counts.
 pub fn effect_lines(levels: &[(u32, Counts)], keep_all: bool) -> Vec<EffectLine> {
     type Get = fn(&Counts) -> (u64, u64);
-    let table: [(&str, Get, &str, &str); 7] = [
+    let table: [(&str, Get, &str, &str); 8] = [
         (
             "directional material moments (Eq. 23)",
             |c| (c.directional_moments, c.voxels),
@@ -58,6 +58,12 @@ pub fn effect_lines(levels: &[(u32, Counts)], keep_all: bool) -> Vec<EffectLine>
             |c| (c.cut_out, c.voxels),
             "partly cut-out voxels (their coverage is below one)",
             "no cut-out surface",
+        ),
+        (
+            "exposure (correlated visibility, e.g. solids)",
+            |c| (c.exposure, c.voxels),
+            "visibility concentrates on some surface sides here: the incident AIV is divided by η",
+            "every side of every surface sees alike (exposure 1): no correction stored",
         ),
     ];
     table

@@ -31,6 +31,8 @@ pub struct Counts {
     pub cut_out: u64,
     pub aiv_nodes: u64,
     pub abv_nodes: u64,
+    /// Voxels whose exposure is below one (format 1.1).
+    pub exposure: u64,
 }
 
 impl Counts {
@@ -48,6 +50,7 @@ impl Counts {
         self.cut_out += o.cut_out;
         self.aiv_nodes += o.aiv_nodes;
         self.abv_nodes += o.abv_nodes;
+        self.exposure += o.exposure;
     }
 
     /// The effects at least one voxel or face stores.
@@ -61,6 +64,7 @@ impl Counts {
             (self.aiv_trees, fb::Effect::AivTrees),
             (self.abv_trees, fb::Effect::AbvTrees),
             (self.cut_out, fb::Effect::CutOuts),
+            (self.exposure, fb::Effect::Exposure),
         ];
         for (n, f) in pairs {
             if n > 0 {
@@ -85,6 +89,7 @@ impl Counts {
             cut_out: c.cut_out(),
             aiv_nodes: c.aiv_nodes(),
             abv_nodes: c.abv_nodes(),
+            exposure: c.exposure(),
         }
     }
 }
@@ -100,6 +105,7 @@ pub struct ComponentBytes {
     pub aiv_nodes: u64,
     pub faces: u64,
     pub abv_nodes: u64,
+    pub exposure: u64,
 }
 
 impl ComponentBytes {
@@ -112,6 +118,7 @@ impl ComponentBytes {
         self.aiv_nodes += o.aiv_nodes;
         self.faces += o.faces;
         self.abv_nodes += o.abv_nodes;
+        self.exposure += o.exposure;
     }
 }
 
@@ -160,8 +167,13 @@ pub fn voxel_block(
     let mut moments = Vec::new();
     let mut diel = Vec::new();
     let mut nodes = Vec::new();
+    let mut exposure = Vec::with_capacity(voxels.len());
     for v in voxels {
         let a = &v.appearance;
+        exposure.push(v.exposure);
+        if v.exposure < 1.0 {
+            counts.exposure += 1;
+        }
         let mut flags = fb::VoxelFlags::empty();
         counts.voxels += 1;
         // Lobes.
@@ -258,6 +270,13 @@ pub fn voxel_block(
     sizes.moments += bytes_of(&moments);
     sizes.dielectric_moments += bytes_of(&diel);
     sizes.aiv_nodes += bytes_of(&nodes);
+    // Only blocks with some closed surface store exposures.
+    let exposure = if exposure.iter().any(|&e| e < 1.0) {
+        sizes.exposure += bytes_of(&exposure);
+        Some(exposure)
+    } else {
+        None
+    };
     let mut b = FlatBufferBuilder::with_capacity(
         64 + recs.len() * 120 + lobes.len() * 48 + moments.len() * 44 + nodes.len() * 20,
     );
@@ -267,6 +286,7 @@ pub fn voxel_block(
     let moments = b.create_vector(&moments);
     let diel = b.create_vector(&diel);
     let nodes = b.create_vector(&nodes);
+    let exposure = exposure.map(|e| b.create_vector(&e));
     let root = fb::Block::create(
         &mut b,
         &fb::BlockArgs {
@@ -279,6 +299,7 @@ pub fn voxel_block(
             aiv_nodes: Some(nodes),
             faces: None,
             abv_nodes: None,
+            exposure,
         },
     );
     b.finish(root, Some(BLOCK_ID));
@@ -406,6 +427,7 @@ pub fn index(e: &IndexEntry) -> Vec<u8> {
                 cut_out: c.cut_out,
                 aiv_nodes: c.aiv_nodes,
                 abv_nodes: c.abv_nodes,
+                exposure: c.exposure,
             },
         );
         let vb = b.create_vector(&l.voxel_blocks);

@@ -186,6 +186,7 @@ impl Aggregate {
             key,
             rec: block.voxels().unwrap().get(a),
             block,
+            index: a as u32,
             aiv_res: self.aiv_res(),
         })
     }
@@ -202,6 +203,7 @@ impl Aggregate {
                 key: keys.get(i),
                 rec: recs.get(i),
                 block,
+                index: i as u32,
                 aiv_res,
             })
         })
@@ -218,6 +220,7 @@ impl Aggregate {
                 appearance: v.appearance(),
                 ellipsoid: v.ellipsoid(),
                 aiv: v.aiv_tree(),
+                exposure: v.exposure(),
             })
             .collect();
         let lv = self.index().levels().unwrap().get(l);
@@ -258,10 +261,19 @@ pub struct VoxelRef<'a> {
     pub key: u64,
     pub rec: &'a fb::Voxel,
     block: fb::Block<'a>,
+    /// Position in the block.
+    index: u32,
     aiv_res: u32,
 }
 
 impl<'a> VoxelRef<'a> {
+    /// The exposure η in [1/16, 1] (format 1.1; 1 where the block stores none).
+    pub fn exposure(&self) -> f32 {
+        self.block
+            .exposure()
+            .map_or(1.0, |e| e.get(self.index as usize))
+    }
+
     pub fn coords(&self) -> UVec3 {
         demorton3(self.key)
     }
@@ -532,6 +544,11 @@ fn check_voxel_block(
     }
     if keys.get(0) != r.first_key() || keys.get(n - 1) != r.last_key() {
         return Err(err("key range mismatch"));
+    }
+    if let Some(e) = b.exposure() {
+        if e.len() != n || e.iter().any(|x| !(0.0625..=1.0).contains(&x)) {
+            return Err(err("exposure not one value in [1/16, 1] per voxel"));
+        }
     }
     for i in 0..n {
         let k = keys.get(i);

@@ -22,6 +22,7 @@
 //! ray met any primitive (P⁺), in full otherwise. The sum is order-independent.
 
 pub mod primitive;
+mod volume;
 
 use std::collections::HashMap;
 use std::hash::BuildHasherDefault;
@@ -63,7 +64,7 @@ impl std::hash::Hasher for KeyHasher {
 
 type FastMap<V> = HashMap<u64, V, BuildHasherDefault<KeyHasher>>;
 
-/// Which primitive stands for a voxel's geometry.
+/// What stands for a voxel's geometry.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum PrimitiveKind {
     /// The paper's truncated ellipsoid.
@@ -71,6 +72,10 @@ pub enum PrimitiveKind {
     TruncatedEllipsoid,
     /// The whole voxel (the Fig. 6 ablation).
     Cube,
+    /// No primitive and no aggregated visibility: the voxel as a homogeneous medium with
+    /// exponential transmittance (the "traditional volumetric model", a quality-study baseline;
+    /// see `volume.rs`).
+    Volume,
 }
 
 /// Render-time options.
@@ -102,6 +107,9 @@ pub struct ConeResult {
     pub transmittance: f32,
     /// Primitives the centre ray met.
     pub primitives: u32,
+    /// The surfaces' share of the cone, Σ V̂(ω_o)·|A|_ω/|B|_ω over the primitives met (the
+    /// alpha of the aggregate). In expectation over a pixel, coverage + transmittance ≈ 1.
+    pub coverage: f32,
 }
 
 /// A voxel ready for shading.
@@ -113,6 +121,8 @@ struct Voxel<'a> {
     /// (weight / mass, lobe) for E|n·ω| = Σ w_k σ_k(ω) / m5_k.
     lobes: [(f32, Sggx); 4],
     lobe_count: usize,
+    /// 1 / exposure: the incident AIV counts exposed sides only (see `bake::visibility`).
+    inv_exposure: f32,
     vref: VoxelRef<'a>,
 }
 
@@ -173,6 +183,7 @@ impl<'a> LodScene<'a> {
                             area: v.rec.area() * v.rec.coverage(),
                             lobes,
                             lobe_count,
+                            inv_exposure: 1.0 / v.exposure().clamp(1.0 / 16.0, 1.0),
                             vref: *v,
                         }
                     })
@@ -233,13 +244,20 @@ impl<'a> LodScene<'a> {
         s.clamp(0.0, 1.0)
     }
 
+    /// The AIV for light arriving from `wi`, corrected for the correlation of incident and
+    /// outgoing visibility: min(1, V̂(ω_i)/η) (see `bake::visibility`).
+    #[inline]
+    fn incident_aiv(v: &Voxel, wi: Vec3) -> f32 {
+        (v.vref.aiv(wi) * v.inv_exposure).min(1.0)
+    }
+
     /// Reflected radiance of a voxel towards `wo` (Algorithm 1, lines 13–17).
     fn shade(&self, v: &Voxel, wo: Vec3, lights: &Lights, nee: u32, rng: &mut Pcg32) -> Vec3 {
         let mut l = Vec3::ZERO;
         if let Some(sun) = &lights.sun {
             let f = v.absdf.eval(sun.direction, wo);
             if f.max_element() > 0.0 {
-                l += f * sun.irradiance * v.vref.aiv(sun.direction);
+                l += f * sun.irradiance * Self::incident_aiv(v, sun.direction);
             }
         }
         let env = &lights.environment;
@@ -252,7 +270,8 @@ impl<'a> LodScene<'a> {
                     if f.max_element() > 0.0 {
                         acc += f
                             * ls.radiance
-                            * (v.vref.aiv(ls.wi) * power_heuristic(ls.pdf, pdf_b) / ls.pdf);
+                            * (Self::incident_aiv(v, ls.wi) * power_heuristic(ls.pdf, pdf_b)
+                                / ls.pdf);
                     }
                 }
             }
@@ -263,7 +282,7 @@ impl<'a> LodScene<'a> {
                     let pdf_l = env.pdf(bs.wi);
                     acc += bs.value
                         * le
-                        * (v.vref.aiv(bs.wi) * power_heuristic(bs.pdf, pdf_l) / bs.pdf);
+                        * (Self::incident_aiv(v, bs.wi) * power_heuristic(bs.pdf, pdf_l) / bs.pdf);
                 }
             }
         }
@@ -318,6 +337,7 @@ impl<'a> LodScene<'a> {
             radiance: background,
             transmittance: 1.0,
             primitives: 0,
+            coverage: 0.0,
         };
         let Some(first) = self.levels.first() else {
             return miss;
@@ -336,6 +356,9 @@ impl<'a> LodScene<'a> {
                 .min(self.levels.len() - 1)
         };
         let mut li = pick(tmin);
+        if settings.primitive == PrimitiveKind::Volume {
+            return self.trace_volume(ray, li, lights, settings.nee, rng);
+        }
         let step = IVec3::new(
             if d.x > 0.0 {
                 1
@@ -406,6 +429,7 @@ impl<'a> LodScene<'a> {
         };
         let mut result = Vec3::ZERO;
         let mut hits = 0u32;
+        let mut coverage = 0.0f32;
         let mut vb: Option<f32> = None;
         let wo = -d;
         let max_steps = 3 * g0.res as usize + 8;
@@ -425,7 +449,7 @@ impl<'a> LodScene<'a> {
                         Some(p) => (p.intersect(ray.origin, d, inv, t, t_exit).is_some(), 0.0),
                         None => (false, 0.0),
                     },
-                    PrimitiveKind::Cube => (
+                    PrimitiveKind::Cube | PrimitiveKind::Volume => (
                         true,
                         box_projected_area(Vec3::splat(level.grid.voxel_size()), d),
                     ),
@@ -444,6 +468,7 @@ impl<'a> LodScene<'a> {
                         let add = lo * vo * c;
                         if add.is_finite() {
                             result += add;
+                            coverage += vo * c;
                         }
                     }
                 }
@@ -491,6 +516,7 @@ impl<'a> LodScene<'a> {
             },
             transmittance: vb,
             primitives: hits,
+            coverage,
         }
     }
 

@@ -233,8 +233,39 @@ class Block(object):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(20))
         return o == 0
 
+    # 1.1, voxel blocks: per voxel (same order as `voxels`) the exposure η in [1/16, 1]:
+    # E[v]²/E[v²] over (surface sample, side) pairs, v the side's visibility (1 for an open
+    # sheet, 1/2 for the walls of a solid). The runtime divides the incident AIV by it (and caps
+    # the result at 1). Absent (older files, or no voxel below one): 1 for every voxel.
+    # Block
+    def Exposure(self, j):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        if o != 0:
+            a = self._tab.Vector(o)
+            return self._tab.Get(flatbuffers.number_types.Float32Flags, a + flatbuffers.number_types.UOffsetTFlags.py_type(j * 4))
+        return 0
+
+    # Block
+    def ExposureAsNumpy(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        if o != 0:
+            return self._tab.GetVectorAsNumpy(flatbuffers.number_types.Float32Flags, o)
+        return 0
+
+    # Block
+    def ExposureLength(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # Block
+    def ExposureIsNone(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
+        return o == 0
+
 def BlockStart(builder):
-    builder.StartObject(9)
+    builder.StartObject(10)
 
 def Start(builder):
     BlockStart(builder)
@@ -340,6 +371,18 @@ def BlockStartAbvNodesVector(builder, numElems):
 
 def StartAbvNodesVector(builder, numElems):
     return BlockStartAbvNodesVector(builder, numElems)
+
+def BlockAddExposure(builder, exposure):
+    builder.PrependUOffsetTRelativeSlot(9, flatbuffers.number_types.UOffsetTFlags.py_type(exposure), 0)
+
+def AddExposure(builder, exposure):
+    BlockAddExposure(builder, exposure)
+
+def BlockStartExposureVector(builder, numElems):
+    return builder.StartVector(4, numElems, 4)
+
+def StartExposureVector(builder, numElems):
+    return BlockStartExposureVector(builder, numElems)
 
 def BlockEnd(builder):
     return builder.EndObject()

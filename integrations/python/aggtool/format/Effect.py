@@ -19,3 +19,5 @@ class Effect(object):
     AbvTrees = 32
     # Alpha cut-outs: voxels whose coverage is below one.
     CutOuts = 64
+    # 1.1: exposure below one (visibility concentrated on some sides, e.g. solids), `Block.exposure`.
+    Exposure = 128

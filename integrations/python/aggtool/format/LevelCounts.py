@@ -120,8 +120,16 @@ class LevelCounts(object):
             return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
         return 0
 
+    # 1.1: voxels whose exposure is below one.
+    # LevelCounts
+    def Exposure(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(30))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint64Flags, o + self._tab.Pos)
+        return 0
+
 def LevelCountsStart(builder):
-    builder.StartObject(13)
+    builder.StartObject(14)
 
 def Start(builder):
     LevelCountsStart(builder)
@@ -203,6 +211,12 @@ def LevelCountsAddAbvNodes(builder, abvNodes):
 
 def AddAbvNodes(builder, abvNodes):
     LevelCountsAddAbvNodes(builder, abvNodes)
+
+def LevelCountsAddExposure(builder, exposure):
+    builder.PrependUint64Slot(13, exposure, 0)
+
+def AddExposure(builder, exposure):
+    LevelCountsAddExposure(builder, exposure)
 
 def LevelCountsEnd(builder):
     return builder.EndObject()
