@@ -4,19 +4,31 @@
 # Markdown table: bake seconds (wall, whole command), peak resident memory, .agg size, voxels
 # and faces of the finest level. Bakes go to a temporary folder that is removed afterwards.
 #
-#   cargo build --release && benches/bake-assets.sh [RES ...]
+#   cargo build --release && benches/bake-assets.sh [RES ...] [-- ASSET ...]
+#
+# With `-- ASSET ...` only those assets are baked, in that order. With REPORTS=DIR set, each
+# bake's --report JSON (per-stage seconds, bytes per component) is kept there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bin=target/release/aggtool
 assets=../shared/assets
 [ -x "$bin" ] || { echo "build first: cargo build --release" >&2; exit 1; }
 [ -d "$assets" ] || { echo "skipped: $assets is absent" >&2; exit 0; }
-res_list=("$@"); [ ${#res_list[@]} -gt 0 ] || res_list=(64 256)
+res_list=(); picked=()
+while [ $# -gt 0 ]; do
+  if [ "$1" = "--" ]; then shift; picked=("$@"); break; fi
+  res_list+=("$1"); shift
+done
+[ ${#res_list[@]} -gt 0 ] || res_list=(64 256)
+list_assets() {
+  if [ ${#picked[@]} -gt 0 ]; then printf '%s\n' "${picked[@]}"
+  else find "$assets" \( -name '*.obj' -o -name '*.glb' -o -name '*.gltf' \) | sort; fi
+}
 tmp=$(mktemp -d); trap 'rm -rf "$tmp"' EXIT
 echo "| asset | res | seconds | peak MiB | .agg MiB | voxels | faces |"
 echo "|---|---|---|---|---|---|---|"
 for res in "${res_list[@]}"; do
-  find "$assets" \( -name '*.obj' -o -name '*.glb' -o -name '*.gltf' \) | sort | while read -r a; do
+  list_assets | while read -r a; do
     name=$(basename "$a"); out="$tmp/$name.agg"
     start=$(date +%s.%N)
     if /usr/bin/time -f "%M" -o "$tmp/mem" "$bin" convert "$a" -o "$out" --max-res "$res" --report "$tmp/r.json" >"$tmp/log" 2>&1; then
@@ -32,6 +44,7 @@ PY
     else
       echo "| $name | ${res}³ | FAILED: $(tail -1 "$tmp/log") | | | | |"
     fi
+    [ -z "${REPORTS:-}" ] || { mkdir -p "$REPORTS"; cp "$tmp/r.json" "$REPORTS/$name-$res.json" 2>/dev/null || true; }
     rm -f "$out"
   done
 done

@@ -14,11 +14,14 @@
 //! - [`runtime`]: the LoD renderer of `.agg` aggregates (cone tracing, Algorithm 1, Eq. 30);
 //! - [`render`]: view files, lights, the reference path tracer, image I/O and comparison;
 //! - [`gen`]: generators for the paper's hard cases;
+//! - [`eval`]: the quality and speed studies (our LoD against the reference and the
+//!   alternatives: cube primitives, an exponential volume, a meshopt-simplified mesh);
 //! - [`validation`]: shared test harnesses (chi-square).
 
 pub mod absdf;
 pub mod bake;
 pub mod bsdf;
+pub mod eval;
 pub mod format;
 pub mod gen;
 pub mod import;

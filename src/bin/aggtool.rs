@@ -34,6 +34,35 @@ enum Command {
         #[arg(short, long, default_value = "aggtool-demo")]
         output: PathBuf,
     },
+    /// Quality study (paper Table 3): our LoD against the reference and the alternatives
+    /// (cube primitives, exponential volume, meshopt-simplified mesh at equal memory) on assets
+    /// and generated hard cases; or, with --speed, equal-spp and equal-time figures.
+    Eval {
+        /// Assets to study (.gltf, .glb, .obj); none means only the generated hard cases.
+        assets: Vec<PathBuf>,
+        /// Also study every generated hard case (the default when no asset is given).
+        #[arg(long)]
+        hard_cases: bool,
+        /// Triangles of each generated hard case.
+        #[arg(long, default_value_t = 100_000)]
+        triangles: usize,
+        /// LoD resolutions (each gives an image of res² pixels).
+        #[arg(long, value_delimiter = ',', default_value = "32,64")]
+        res: Vec<u32>,
+        /// Samples per pixel of every method.
+        #[arg(long, default_value_t = 64)]
+        spp: u32,
+        /// Samples per pixel of the reference.
+        #[arg(long, default_value_t = 1024)]
+        reference_spp: u32,
+        /// Speed study instead: equal-spp time and equal-time RMSE against the reference,
+        /// images of this many pixels square, LoD by footprint.
+        #[arg(long)]
+        speed: Option<u32>,
+        /// Output folder (table.md, table.json, pictures).
+        #[arg(short, long, default_value = "aggtool-eval")]
+        output: PathBuf,
+    },
     /// Render an asset with the reference path tracer (direct illumination) to EXR and PNG.
     Reference {
         /// The asset (.gltf, .glb or .obj).
@@ -212,8 +241,12 @@ enum Command {
         #[arg(long)]
         seed: Option<u64>,
         /// Use the voxel cube as the primitive (the Fig. 6 ablation).
-        #[arg(long)]
+        #[arg(long, conflicts_with = "volume")]
         cube: bool,
+        /// Render the voxels as an exponential-transmittance volume instead (the traditional
+        /// volumetric model, a baseline).
+        #[arg(long)]
+        volume: bool,
         /// Exposure of the PNG in stops.
         #[arg(long, default_value_t = 0.0)]
         exposure: f32,
@@ -541,6 +574,116 @@ fn side_by_side(path: &Path, images: &[&[u8]], w: u32, h: u32) -> Result<()> {
     Ok(())
 }
 
+/// `aggtool eval`: the quality (or speed) study over assets and hard cases.
+#[allow(clippy::too_many_arguments)]
+fn eval(
+    assets: &[PathBuf],
+    hard_cases: bool,
+    triangles: usize,
+    res: Vec<u32>,
+    spp: u32,
+    reference_spp: u32,
+    speed: Option<u32>,
+    output: &Path,
+) -> Result<()> {
+    use aggtool::eval;
+    if let Some(r) = res.iter().find(|r| !r.is_power_of_two() || **r < 4) {
+        bail!("--res {r}: each resolution must be a power of two of at least 4");
+    }
+    std::fs::create_dir_all(output)
+        .with_context(|| format!("cannot create {}", output.display()))?;
+    let mut scenes: Vec<(String, Box<dyn Fn() -> Result<Scene>>)> = Vec::new();
+    for a in assets {
+        let name = a
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "asset".into());
+        let a = a.clone();
+        scenes.push((name, Box::new(move || load_scene(&a, false))));
+    }
+    if hard_cases {
+        for &n in gen::NAMES {
+            let settings = GenSettings {
+                triangles,
+                ..GenSettings::default()
+            };
+            scenes.push((
+                n.to_string(),
+                Box::new(move || {
+                    gen::generate(n, &settings)
+                        .map(|s| s.to_scene())
+                        .ok_or_else(|| anyhow::anyhow!("unknown scene {n}"))
+                }),
+            ));
+        }
+    }
+    if let Some(px) = speed {
+        let mut rows = Vec::new();
+        println!("| scene | triangles | image | spp | bake s | .agg MiB | LoD s | reference s | speed-up | LoD RMSE | reference RMSE | equal-time reference spp | its RMSE |");
+        println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+        for (name, load) in &scenes {
+            let scene = load()?;
+            let bake = aggtool::bake::BakeSettings {
+                max_res: px.max(8),
+                ..Default::default()
+            };
+            let r = eval::speed_scene(name, &scene, &bake, px, spp, reference_spp, output, true)?;
+            println!(
+                "| {} | {} | {}² | {} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2}× | {:.4} | {:.4} | {} ({:.2} s) | {:.4} |",
+                r.scene, r.triangles, r.res, r.spp, r.bake_seconds, r.agg_bytes as f64 / 1048576.0,
+                r.lod_seconds, r.reference_seconds, r.reference_seconds / r.lod_seconds.max(1e-9),
+                r.lod_rmse, r.reference_rmse, r.equal_time_reference_spp,
+                r.equal_time_reference_seconds, r.equal_time_reference_rmse
+            );
+            rows.push(r);
+        }
+        let json = output.join("speed.json");
+        std::fs::write(&json, serde_json::to_string_pretty(&rows)?)?;
+        println!(
+            "output: {} and {}/*-speed.png (reference | LoD | reference at equal time)",
+            json.display(),
+            output.display()
+        );
+        return Ok(());
+    }
+    let settings = eval::StudySettings {
+        resolutions: res,
+        spp,
+        reference_spp,
+        ..Default::default()
+    };
+    let mut all = Vec::new();
+    for (name, load) in &scenes {
+        let t = std::time::Instant::now();
+        let scene = load()?;
+        let r = eval::study_scene(name, &scene, &settings, output, true)?;
+        for x in &r {
+            let line: Vec<String> = x
+                .methods
+                .iter()
+                .map(|m| format!("{} {:.4}", m.method, m.rmse))
+                .collect();
+            println!("{name} {}³: {}", x.res, line.join(", "));
+        }
+        println!("  ({:.0} s)", t.elapsed().as_secs_f64());
+        all.extend(r);
+    }
+    let table = eval::markdown_table(&all);
+    let md = output.join("table.md");
+    std::fs::write(&md, &table)?;
+    std::fs::write(
+        output.join("table.json"),
+        serde_json::to_string_pretty(&all)?,
+    )?;
+    println!("{table}");
+    println!(
+        "output: {} and table.json; pictures {}/SCENE-RES.png: top reference, ours, cube, volume, mesh, ref@spp; bottom their differences on one scale",
+        md.display(),
+        output.display()
+    );
+    Ok(())
+}
+
 /// The main job on a built-in scene: generate, bake, render the LoD and the reference,
 /// compare.
 fn demo(output: &Path) -> Result<()> {
@@ -622,6 +765,25 @@ fn demo(output: &Path) -> Result<()> {
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Demo { output } => demo(&output),
+        Command::Eval {
+            assets,
+            hard_cases,
+            triangles,
+            res,
+            spp,
+            reference_spp,
+            speed,
+            output,
+        } => eval(
+            &assets,
+            hard_cases || assets.is_empty(),
+            triangles,
+            res,
+            spp,
+            reference_spp,
+            speed,
+            &output,
+        ),
         Command::Reference {
             asset,
             view,
@@ -809,6 +971,7 @@ fn run(cli: Cli) -> Result<()> {
             nee,
             seed,
             cube,
+            volume,
             exposure,
         } => {
             let mut view = View::load(&view)?;
@@ -824,6 +987,8 @@ fn run(cli: Cli) -> Result<()> {
                 level,
                 primitive: if cube {
                     aggtool::runtime::PrimitiveKind::Cube
+                } else if volume {
+                    aggtool::runtime::PrimitiveKind::Volume
                 } else {
                     aggtool::runtime::PrimitiveKind::TruncatedEllipsoid
                 },

@@ -1,0 +1,425 @@
+//! The quality and speed studies of the runtime (paper §8, Table 3, Fig. 13 and Fig. 17),
+//! behind `aggtool eval`.
+//!
+//! Quality: per scene, one bake; per LoD resolution r (32³, 64³ by default) an image of r²
+//! pixels (one voxel about one pixel) rendered by
+//! - **ours**: the aggregate at that level (truncated ellipsoids, AIV, ABV; Eq. 30),
+//! - **cube**: the same with the voxel cube as primitive (the Fig. 6 ablation),
+//! - **volume**: the voxels as an exponential-transmittance medium (the traditional volumetric
+//!   model, [`crate::runtime::PrimitiveKind::Volume`]),
+//! - **mesh**: the asset simplified by meshoptimizer to the memory of that level, rendered by the
+//!   reference renderer ([`simplify`]),
+//! - **ref@spp**: the original mesh at the methods' sample count: the noise floor at equal spp,
+//!
+//! each against the reference renderer on the original mesh at a high sample count: RMSE,
+//! memory, render time, and a picture of images and differences.
+//!
+//! Speed: equal-spp render time of the LoD against the reference renderer, and the RMSE each
+//! reaches in the same time (Fig. 17).
+
+pub mod simplify;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use serde::Serialize;
+
+use crate::bake::{bake_to_file, BakeSettings};
+use crate::format::Aggregate;
+use crate::render::camera::Camera;
+use crate::render::compare::{compare, difference_image};
+use crate::render::image::{write_rgb8_png, Image};
+use crate::render::lights::Lights;
+use crate::render::reference::{self, ReferenceSettings};
+use crate::render::view::{EnvironmentDesc, Rgb, SunDesc, View};
+use crate::runtime::{LodScene, PrimitiveKind, TraceSettings};
+use crate::scene::Scene;
+use crate::trace::Accel;
+
+/// Settings of the quality study.
+#[derive(Clone, Debug)]
+pub struct StudySettings {
+    /// LoD resolutions; each gives an image of res² pixels.
+    pub resolutions: Vec<u32>,
+    /// Samples per pixel of every method.
+    pub spp: u32,
+    /// Samples per pixel of the reference.
+    pub reference_spp: u32,
+    /// Bake settings (`max_res` is raised to the largest resolution).
+    pub bake: BakeSettings,
+}
+
+impl Default for StudySettings {
+    fn default() -> Self {
+        StudySettings {
+            resolutions: vec![32, 64],
+            spp: 64,
+            reference_spp: 1024,
+            bake: BakeSettings {
+                max_res: 64,
+                ..Default::default()
+            },
+        }
+    }
+}
+
+/// One method's figures on one scene at one resolution.
+#[derive(Clone, Debug, Serialize)]
+pub struct MethodResult {
+    pub method: String,
+    pub rmse: f64,
+    pub relmse: f64,
+    /// Bytes the method needs for this LoD (see [`level_bytes`] and [`simplify`]).
+    pub memory_bytes: u64,
+    pub render_seconds: f64,
+    pub note: String,
+}
+
+/// One scene at one resolution.
+#[derive(Clone, Debug, Serialize)]
+pub struct SceneResult {
+    pub scene: String,
+    pub res: u32,
+    pub triangles: usize,
+    pub bake_seconds: f64,
+    pub reference_seconds: f64,
+    pub methods: Vec<MethodResult>,
+    pub picture: PathBuf,
+}
+
+/// The study's lights: a sun and a blue sky, the same for every method.
+pub fn study_view(scene: &Scene, res: u32, spp: u32) -> View {
+    let (c, r) = scene.bounding_sphere();
+    let mut view = View::framing(c, r, res, res, spp);
+    view.sun = Some(SunDesc {
+        direction: [0.4, 1.0, 0.3],
+        irradiance: Rgb::Scalar(3.0),
+    });
+    view.environment = Some(EnvironmentDesc::Constant {
+        constant: Rgb::Rgb([0.3, 0.4, 0.6]),
+    });
+    view
+}
+
+/// Bytes of level `l` in an aggregate: its voxel blocks (records, AIV trees) and face blocks
+/// (ABV trees), all a renderer reads to draw that level.
+pub fn level_bytes(agg: &Aggregate, l: usize) -> u64 {
+    let lv = agg.index().levels().unwrap().get(l);
+    let v: u64 = lv
+        .voxel_blocks()
+        .into_iter()
+        .flatten()
+        .map(|r| r.size())
+        .sum();
+    let f: u64 = lv
+        .face_blocks()
+        .into_iter()
+        .flatten()
+        .map(|r| r.size())
+        .sum();
+    v + f
+}
+
+/// Bytes the volume baseline needs for level `l`: the voxel records and keys, no trees.
+pub fn volume_bytes(agg: &Aggregate, l: usize) -> u64 {
+    agg.counts(l).voxels * (std::mem::size_of::<crate::format::fb::Voxel>() as u64 + 8)
+}
+
+fn reference_render(accel: &Accel, view: &View, spp: u32, seed: u64) -> Result<(Image, f64)> {
+    let lights = Lights::from_view(view)?;
+    let camera = Camera::new(&view.camera);
+    let (img, stats) = reference::render(
+        accel,
+        &camera,
+        &lights,
+        ReferenceSettings {
+            spp,
+            seed,
+            progress: false,
+        },
+    );
+    Ok((img, stats.seconds))
+}
+
+fn lod_render(
+    lod: &LodScene,
+    view: &View,
+    spp: u32,
+    seed: u64,
+    settings: &TraceSettings,
+) -> Result<(Image, f64)> {
+    let lights = Lights::from_view(view)?;
+    let camera = Camera::new(&view.camera);
+    Ok(crate::runtime::render(
+        lod, &camera, &lights, spp, seed, settings, false,
+    ))
+}
+
+/// Nearest-neighbour enlargement of an sRGB8 image by `k`.
+fn enlarge(rgb: &[u8], w: u32, h: u32, k: u32) -> Vec<u8> {
+    let mut out = vec![0u8; (w * k * h * k * 3) as usize];
+    for y in 0..h * k {
+        for x in 0..w * k {
+            let s = (((y / k) * w + x / k) * 3) as usize;
+            let d = ((y * w * k + x) * 3) as usize;
+            out[d..d + 3].copy_from_slice(&rgb[s..s + 3]);
+        }
+    }
+    out
+}
+
+/// Writes rows of equally sized sRGB8 tiles as one PNG with 4-pixel gaps.
+pub fn tile_png(path: &Path, rows: &[Vec<Vec<u8>>], w: u32, h: u32) -> Result<()> {
+    let gap = 4u32;
+    let cols = rows.iter().map(|r| r.len()).max().unwrap_or(0) as u32;
+    let (tw, th) = (
+        cols * w + (cols.saturating_sub(1)) * gap,
+        rows.len() as u32 * h + (rows.len() as u32).saturating_sub(1) * gap,
+    );
+    let mut rgb = vec![255u8; (tw * th * 3) as usize];
+    for (r, row) in rows.iter().enumerate() {
+        for (c, tile) in row.iter().enumerate() {
+            let (ox, oy) = (c as u32 * (w + gap), r as u32 * (h + gap));
+            for y in 0..h {
+                let src = &tile[(y * w * 3) as usize..((y + 1) * w * 3) as usize];
+                let d = (((oy + y) * tw + ox) * 3) as usize;
+                rgb[d..d + src.len()].copy_from_slice(src);
+            }
+        }
+    }
+    write_rgb8_png(path, tw, th, &rgb)?;
+    Ok(())
+}
+
+/// Runs the quality study on one scene: bakes it into `dir`, renders every method at every
+/// resolution, writes one picture per resolution, and returns the figures.
+pub fn study_scene(
+    name: &str,
+    scene: &Scene,
+    settings: &StudySettings,
+    dir: &Path,
+    progress: bool,
+) -> Result<Vec<SceneResult>> {
+    std::fs::create_dir_all(dir)?;
+    let max_res = settings.resolutions.iter().copied().max().unwrap_or(64);
+    let bake = BakeSettings {
+        max_res: settings.bake.max_res.max(max_res),
+        ..settings.bake.clone()
+    };
+    let agg_path = dir.join(format!("{name}.agg"));
+    let t = Instant::now();
+    bake_to_file(scene, name, &bake, &agg_path, progress)
+        .with_context(|| format!("baking {name}"))?;
+    let bake_seconds = t.elapsed().as_secs_f64();
+    let agg = Aggregate::open(&agg_path)?;
+    let lod = LodScene::new(&agg);
+    let accel = Accel::build(scene);
+    let full_bytes = simplify::scene_bytes(scene) as u64;
+    let mut results = Vec::new();
+    for &res in &settings.resolutions {
+        let Some(l) = (0..agg.level_count()).find(|&l| agg.grid(l).res == res) else {
+            eprintln!("warning: {name}: no {res}³ level, skipped");
+            continue;
+        };
+        let view = study_view(scene, res, settings.spp);
+        let (truth, reference_seconds) =
+            reference_render(&accel, &view, settings.reference_spp, 7)?;
+        let mut images: Vec<(String, Image)> = Vec::new();
+        let mut methods = Vec::new();
+        let mut push = |method: &str, img: Image, bytes: u64, secs: f64, note: String| {
+            let c = compare(&img, &truth).expect("same size");
+            methods.push(MethodResult {
+                method: method.to_string(),
+                rmse: c.rmse,
+                relmse: c.relmse,
+                memory_bytes: bytes,
+                render_seconds: secs,
+                note,
+            });
+            images.push((method.to_string(), img));
+        };
+        let ours_bytes = level_bytes(&agg, l);
+        for (method, kind, bytes) in [
+            ("ours", PrimitiveKind::TruncatedEllipsoid, ours_bytes),
+            ("cube", PrimitiveKind::Cube, ours_bytes),
+            ("volume", PrimitiveKind::Volume, volume_bytes(&agg, l)),
+        ] {
+            let ts = TraceSettings {
+                nee: 1,
+                level: Some(l),
+                primitive: kind,
+            };
+            let (img, secs) = lod_render(&lod, &view, settings.spp, 1, &ts)?;
+            push(method, img, bytes, secs, String::new());
+        }
+        let simp = simplify::simplify_to_budget(scene, ours_bytes as usize);
+        let simp_accel = Accel::build(&simp.scene);
+        let (img, secs) = reference_render(&simp_accel, &view, settings.spp, 1)?;
+        let note = if simp.unchanged {
+            format!(
+                "mesh ({} tris) already within budget: not simplified",
+                simp.triangles_before
+            )
+        } else {
+            format!("{} → {} tris", simp.triangles_before, simp.triangles_after)
+        };
+        push("mesh", img, simp.bytes_after as u64, secs, note);
+        let (img, secs) = reference_render(&accel, &view, settings.spp, 1)?;
+        push("ref@spp", img, full_bytes, secs, "original mesh".into());
+        // Picture: images over their differences, all differences on one scale.
+        let k = (256 / res).max(1);
+        let scale = {
+            let (_, s) = difference_image(&images[0].1, &truth, None);
+            s
+        };
+        let mut top = vec![enlarge(&truth.to_srgb8(0.0), res, res, k)];
+        let mut bottom = vec![vec![0u8; (res * k * res * k * 3) as usize]];
+        for (_, img) in &images {
+            top.push(enlarge(&img.to_srgb8(0.0), res, res, k));
+            let (d, _) = difference_image(img, &truth, Some(scale));
+            bottom.push(enlarge(&d.to_srgb8(0.0), res, res, k));
+        }
+        let picture = dir.join(format!("{name}-{res}.png"));
+        tile_png(&picture, &[top, bottom], res * k, res * k)?;
+        results.push(SceneResult {
+            scene: name.to_string(),
+            res,
+            triangles: scene.instanced_triangle_count(),
+            bake_seconds,
+            reference_seconds,
+            methods,
+            picture,
+        });
+    }
+    drop(lod);
+    drop(agg);
+    std::fs::remove_file(&agg_path).ok();
+    Ok(results)
+}
+
+/// The study's Markdown table: one row per scene and resolution, RMSE / memory / time per
+/// method, the lowest RMSE in bold.
+pub fn markdown_table(results: &[SceneResult]) -> String {
+    let names: Vec<String> = results
+        .first()
+        .map(|r| r.methods.iter().map(|m| m.method.clone()).collect())
+        .unwrap_or_default();
+    let mut s = String::from("| scene | LoD | ");
+    for n in &names {
+        s += &format!("{n} RMSE | {n} MiB | {n} s | ");
+    }
+    s += "\n|---|---|";
+    for _ in &names {
+        s += "---|---|---|";
+    }
+    s += "\n";
+    for r in results {
+        // The best of the four LoD methods (not the equal-spp reference on the full mesh).
+        let best = r
+            .methods
+            .iter()
+            .filter(|m| m.method != "ref@spp")
+            .map(|m| m.rmse)
+            .fold(f64::INFINITY, f64::min);
+        s += &format!("| {} | {}³ | ", r.scene, r.res);
+        for m in &r.methods {
+            let rm = if m.rmse == best {
+                format!("**{:.4}**", m.rmse)
+            } else {
+                format!("{:.4}", m.rmse)
+            };
+            s += &format!(
+                "{rm} | {:.2} | {:.2} | ",
+                m.memory_bytes as f64 / 1048576.0,
+                m.render_seconds
+            );
+        }
+        s += "\n";
+    }
+    s
+}
+
+/// Figures of the speed study on one scene.
+#[derive(Clone, Debug, Serialize)]
+pub struct SpeedResult {
+    pub scene: String,
+    pub triangles: usize,
+    pub res: u32,
+    pub spp: u32,
+    pub bake_seconds: f64,
+    pub agg_bytes: u64,
+    /// Equal spp: seconds of each renderer.
+    pub lod_seconds: f64,
+    pub reference_seconds: f64,
+    pub lod_rmse: f64,
+    pub reference_rmse: f64,
+    /// Equal time: the reference's spp that fits in the LoD's time, and its RMSE.
+    pub equal_time_reference_spp: u32,
+    pub equal_time_reference_seconds: f64,
+    pub equal_time_reference_rmse: f64,
+    pub picture: PathBuf,
+}
+
+/// The speed study on one scene: an image of `res`² pixels with LoD chosen by footprint from
+/// a bake of `bake.max_res`, at `spp`, against the reference at `reference_spp`.
+pub fn speed_scene(
+    name: &str,
+    scene: &Scene,
+    bake: &BakeSettings,
+    res: u32,
+    spp: u32,
+    reference_spp: u32,
+    dir: &Path,
+    progress: bool,
+) -> Result<SpeedResult> {
+    std::fs::create_dir_all(dir)?;
+    let agg_path = dir.join(format!("{name}.agg"));
+    let t = Instant::now();
+    let report = bake_to_file(scene, name, bake, &agg_path, progress)?;
+    let bake_seconds = t.elapsed().as_secs_f64();
+    let agg = Aggregate::open(&agg_path)?;
+    let lod = LodScene::new(&agg);
+    let accel = Accel::build(scene);
+    let view = study_view(scene, res, spp);
+    let (truth, _) = reference_render(&accel, &view, reference_spp, 7)?;
+    let (lod_img, lod_seconds) = lod_render(&lod, &view, spp, 1, &TraceSettings::default())?;
+    let (ref_img, reference_seconds) = reference_render(&accel, &view, spp, 1)?;
+    let lod_rmse = compare(&lod_img, &truth).expect("same size").rmse;
+    let reference_rmse = compare(&ref_img, &truth).expect("same size").rmse;
+    // Equal time: scale the reference's spp to the LoD's time, then correct once.
+    let per_spp = reference_seconds / spp as f64;
+    let mut eq_spp = ((lod_seconds / per_spp).floor() as u32).max(1);
+    let (mut eq_img, mut eq_secs) = reference_render(&accel, &view, eq_spp, 3)?;
+    if eq_secs > lod_seconds * 1.25 && eq_spp > 1 {
+        eq_spp = ((eq_spp as f64 * lod_seconds / eq_secs).floor() as u32).max(1);
+        (eq_img, eq_secs) = reference_render(&accel, &view, eq_spp, 3)?;
+    }
+    let eq_rmse = compare(&eq_img, &truth).expect("same size").rmse;
+    let k = (256 / res).max(1);
+    let tiles: Vec<Vec<u8>> = [&truth, &lod_img, &eq_img]
+        .iter()
+        .map(|i| enlarge(&i.to_srgb8(0.0), res, res, k))
+        .collect();
+    let picture = dir.join(format!("{name}-speed.png"));
+    tile_png(&picture, &[tiles], res * k, res * k)?;
+    drop(lod);
+    drop(agg);
+    std::fs::remove_file(&agg_path).ok();
+    Ok(SpeedResult {
+        scene: name.to_string(),
+        triangles: scene.instanced_triangle_count(),
+        res,
+        spp,
+        bake_seconds,
+        agg_bytes: report.bytes,
+        lod_seconds,
+        reference_seconds,
+        lod_rmse,
+        reference_rmse,
+        equal_time_reference_spp: eq_spp,
+        equal_time_reference_seconds: eq_secs,
+        equal_time_reference_rmse: eq_rmse,
+        picture,
+    })
+}

@@ -1,0 +1,214 @@
+//! The "traditional volumetric model" the paper argues against (§6.1, Fig. 7), as a baseline
+//! for the quality study: the same voxels, read as a participating medium.
+//!
+//! Each voxel becomes a homogeneous medium of flat scatterers whose extinction is the voxel's
+//! projected surface area per unit volume,
+//!
+//! ```text
+//! σ_t(ω) = |A|·E|n·ω| / s³          (area · coverage, normals from the voxel's SGGX mixture)
+//! ```
+//!
+//! transmittance is Beer–Lambert along the ray (exp(−∫σ_t)), light is scattered once by the
+//! voxel's averaged BSDF (the same f̂ as the aggregate, so that only the visibility model
+//! differs), and shadowing towards each light sample is again exponential transmittance, marched
+//! through the same level. There is no AIV, ABV, primitive or |A|/|B| term: correlation between
+//! voxels is what this model cannot express.
+
+use glam::{IVec3, Vec3};
+
+use super::{ConeResult, LodScene, Voxel};
+use crate::bake::voxelize::morton3;
+use crate::math::rng::Pcg32;
+use crate::math::sampling::power_heuristic;
+use crate::render::lights::Lights;
+use crate::trace::Ray;
+
+use super::primitive::box_interval;
+
+impl<'a> LodScene<'a> {
+    /// Walks the voxels of level `li` along `origin + t·dir` for t in [tmin, tmax], calling
+    /// `f(voxel, t0, t1)` for each occupied one in order; `f` returns false to stop.
+    fn march(
+        &self,
+        li: usize,
+        origin: Vec3,
+        dir: Vec3,
+        tmin: f32,
+        tmax: f32,
+        mut f: impl FnMut(&Voxel, f32, f32) -> bool,
+    ) {
+        let level = &self.levels[li];
+        let g = &level.grid;
+        let inv = dir.recip();
+        let (c0, c1) = box_interval(g.origin, g.origin + Vec3::splat(g.size), origin, inv);
+        let (t0, t1) = (c0.max(tmin), c1.min(tmax));
+        if !(t0 <= t1) {
+            return;
+        }
+        let s = g.voxel_size();
+        let res = g.res as i32;
+        let step = IVec3::new(
+            (dir.x > 0.0) as i32 - (dir.x < 0.0) as i32,
+            (dir.y > 0.0) as i32 - (dir.y < 0.0) as i32,
+            (dir.z > 0.0) as i32 - (dir.z < 0.0) as i32,
+        );
+        let mut v = ((origin + dir * t0 - g.origin) / s)
+            .floor()
+            .as_ivec3()
+            .clamp(IVec3::ZERO, IVec3::splat(res - 1));
+        let next = |i: i32, a: usize| -> f32 {
+            if step[a] == 0 {
+                return f32::INFINITY;
+            }
+            let b = g.origin[a] + (i + (step[a] > 0) as i32) as f32 * s;
+            (b - origin[a]) * inv[a]
+        };
+        let mut t_next = Vec3::new(next(v.x, 0), next(v.y, 1), next(v.z, 2));
+        let delta = Vec3::select(
+            step.cmpeq(IVec3::ZERO),
+            Vec3::INFINITY,
+            (Vec3::splat(s) * inv).abs(),
+        );
+        let mut t = t0;
+        for _ in 0..3 * res as usize + 8 {
+            let t_exit = t_next.min_element().min(t1);
+            if let Some(&idx) = level.by_key.get(&morton3(v.as_uvec3())) {
+                if t_exit > t && !f(&level.voxels[idx as usize], t, t_exit) {
+                    return;
+                }
+            }
+            if t_exit >= t1 {
+                return;
+            }
+            let axis = if t_next.x <= t_next.y && t_next.x <= t_next.z {
+                0
+            } else if t_next.y <= t_next.z {
+                1
+            } else {
+                2
+            };
+            t = t_next[axis];
+            v[axis] += step[axis];
+            if v[axis] < 0 || v[axis] >= res {
+                return;
+            }
+            t_next[axis] += delta[axis];
+        }
+    }
+
+    /// Extinction coefficient of a voxel of level `li` towards `w`.
+    #[inline]
+    fn extinction(&self, li: usize, v: &Voxel, w: Vec3) -> f32 {
+        let s = self.levels[li].grid.voxel_size();
+        (v.area * Self::mean_cosine(v, w) / (s * s * s)).max(0.0)
+    }
+
+    /// Beer–Lambert transmittance from `p` along `w` to the end of level `li`'s grid.
+    fn volume_transmittance(&self, li: usize, p: Vec3, w: Vec3) -> f32 {
+        let mut tau = 0.0f32;
+        self.march(li, p, w, 0.0, f32::INFINITY, |v, t0, t1| {
+            tau += self.extinction(li, v, w) * (t1 - t0);
+            tau < 20.0
+        });
+        (-tau).exp()
+    }
+
+    /// Single-scattered radiance towards `wo` at `p` inside a voxel: f̂ with exponential shadowing.
+    fn shade_volume(
+        &self,
+        li: usize,
+        v: &Voxel,
+        p: Vec3,
+        wo: Vec3,
+        lights: &Lights,
+        nee: u32,
+        rng: &mut Pcg32,
+    ) -> Vec3 {
+        let mut l = Vec3::ZERO;
+        if let Some(sun) = &lights.sun {
+            let f = v.absdf.eval(sun.direction, wo);
+            if f.max_element() > 0.0 {
+                l += f * sun.irradiance * self.volume_transmittance(li, p, sun.direction);
+            }
+        }
+        let env = &lights.environment;
+        let m = nee.max(1);
+        let mut acc = Vec3::ZERO;
+        for _ in 0..m {
+            if let Some(ls) = env.sample(rng.next_2d()) {
+                if ls.pdf > 0.0 && ls.radiance.max_element() > 0.0 {
+                    let (f, pdf_b) = v.absdf.eval_pdf(ls.wi, wo);
+                    if f.max_element() > 0.0 {
+                        let tr = self.volume_transmittance(li, p, ls.wi);
+                        acc += f * ls.radiance * (tr * power_heuristic(ls.pdf, pdf_b) / ls.pdf);
+                    }
+                }
+            }
+            let u_lobe = rng.next_f32();
+            if let Some(bs) = v.absdf.sample(wo, u_lobe, rng.next_2d()) {
+                let le = env.eval(bs.wi);
+                if le.max_element() > 0.0 {
+                    let tr = self.volume_transmittance(li, p, bs.wi);
+                    acc += bs.value * le * (tr * power_heuristic(bs.pdf, env.pdf(bs.wi)) / bs.pdf);
+                }
+            }
+        }
+        l + acc / m as f32
+    }
+
+    /// Traces a ray through level `li` read as an exponential-transmittance volume (the
+    /// baseline above). `transmittance` is the background's Beer–Lambert weight.
+    pub fn trace_volume(
+        &self,
+        ray: &Ray,
+        li: usize,
+        lights: &Lights,
+        nee: u32,
+        rng: &mut Pcg32,
+    ) -> ConeResult {
+        let background = lights.environment.eval(ray.dir);
+        if self.levels.is_empty() {
+            return ConeResult {
+                radiance: background,
+                transmittance: 1.0,
+                primitives: 0,
+                coverage: 0.0,
+            };
+        }
+        let li = li.min(self.levels.len() - 1);
+        let wo = -ray.dir;
+        let mut tr = 1.0f32;
+        let mut sum = Vec3::ZERO;
+        let mut touched = 0u32;
+        self.march(li, ray.origin, ray.dir, ray.tmin, ray.tmax, |v, t0, t1| {
+            let sigma = self.extinction(li, v, ray.dir);
+            let len = t1 - t0;
+            let absorbed = 1.0 - (-sigma * len).exp();
+            if absorbed > 1e-6 {
+                touched += 1;
+                // A point distributed like the segment's first scattering.
+                let u = rng.next_f32();
+                let dt = (-(1.0 - u * absorbed).ln() / sigma).clamp(0.0, len);
+                let p = ray.at(t0 + dt);
+                let ls = self.shade_volume(li, v, p, wo, lights, nee, rng);
+                let add = ls * (tr * absorbed);
+                if add.is_finite() {
+                    sum += add;
+                }
+                tr *= 1.0 - absorbed;
+            }
+            tr > 1e-4
+        });
+        let radiance = sum + background * tr;
+        ConeResult {
+            radiance: if radiance.is_finite() {
+                radiance
+            } else {
+                Vec3::ZERO
+            },
+            transmittance: tr,
+            primitives: touched,
+            coverage: 1.0 - tr,
+        }
+    }
+}
