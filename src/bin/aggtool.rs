@@ -38,7 +38,8 @@ enum Command {
     /// (cube primitives, exponential volume, meshopt-simplified mesh at equal memory) on assets
     /// and generated hard cases; or, with --speed, equal-spp and equal-time figures.
     Eval {
-        /// Assets to study (.gltf, .glb, .obj); none means only the generated hard cases.
+        /// Assets to study (.gltf, .glb, .obj, or gen:NAME for one generated hard case); none
+        /// means every generated hard case.
         assets: Vec<PathBuf>,
         /// Also study every generated hard case (the default when no asset is given).
         #[arg(long)]
@@ -592,8 +593,33 @@ fn eval(
     }
     std::fs::create_dir_all(output)
         .with_context(|| format!("cannot create {}", output.display()))?;
-    let mut scenes: Vec<(String, Box<dyn Fn() -> Result<Scene>>)> = Vec::new();
+    type Loader = Box<dyn Fn() -> Result<Scene>>;
+    let mut scenes: Vec<(String, Loader)> = Vec::new();
     for a in assets {
+        // `gen:NAME` is a generated hard case of --triangles triangles.
+        if let Some(n) = a.to_str().and_then(|s| s.strip_prefix("gen:")) {
+            let n = n.to_string();
+            if !gen::NAMES.contains(&n.as_str()) {
+                bail!(
+                    "{}: unknown hard case; choose one of: {}",
+                    a.display(),
+                    gen::NAMES.join(", ")
+                );
+            }
+            let settings = GenSettings {
+                triangles,
+                ..GenSettings::default()
+            };
+            scenes.push((
+                n.clone(),
+                Box::new(move || {
+                    gen::generate(&n, &settings)
+                        .map(|s| s.to_scene())
+                        .ok_or_else(|| anyhow::anyhow!("unknown scene {n}"))
+                }),
+            ));
+            continue;
+        }
         let name = a
             .file_stem()
             .map(|s| s.to_string_lossy().into_owned())
@@ -744,11 +770,32 @@ fn demo(output: &Path) -> Result<()> {
     let cmp = compare(&a, &b).map_err(anyhow::Error::msg)?;
     let (diff, scale) = difference_image(&a, &b, None);
     let sbs = output.join("side-by-side.png");
+    let captions = [
+        [
+            "reference".to_string(),
+            format!("{} spp {:.2} s", view.spp, ref_stats.seconds),
+        ],
+        [
+            format!("lod {} spp", lod_view.spp),
+            format!("{lod_s:.2} s bake {bake_s:.0} s"),
+        ],
+        [
+            format!("rmse {:.4}", cmp.rmse),
+            format!("white = {scale:.3}"),
+        ],
+    ];
+    let (w, h) = (a.width, a.height);
+    let panels: Vec<(Vec<u8>, u32)> = [&b.to_srgb8(0.0), &a.to_srgb8(0.0), &diff.to_srgb8(0.0)]
+        .iter()
+        .zip(&captions)
+        .map(|(img, c)| aggtool::render::label::with_caption(img, w, h, &[&c[0], &c[1]], 1))
+        .collect();
+    let ph = panels[0].1;
     side_by_side(
         &sbs,
-        &[&b.to_srgb8(0.0), &a.to_srgb8(0.0), &diff.to_srgb8(0.0)],
-        a.width,
-        a.height,
+        &panels.iter().map(|p| p.0.as_slice()).collect::<Vec<_>>(),
+        w,
+        ph,
     )?;
     println!(
         "stats: reference {:.2} s at {} spp; LoD {:.2} s at {} spp; RMSE {:.4} (relMSE {:.4}); difference white = {scale:.3}",

@@ -267,21 +267,52 @@ pub fn study_scene(
         push("mesh", img, simp.bytes_after as u64, secs, note);
         let (img, secs) = reference_render(&accel, &view, settings.spp, 1)?;
         push("ref@spp", img, full_bytes, secs, "original mesh".into());
-        // Picture: images over their differences, all differences on one scale.
+        // Picture: images over their differences, all differences on one scale; captions.
         let k = (256 / res).max(1);
+        let (side, scale_px) = (res * k, if res * k >= 200 { 2 } else { 1 });
         let scale = {
             let (_, s) = difference_image(&images[0].1, &truth, None);
             s
         };
-        let mut top = vec![enlarge(&truth.to_srgb8(0.0), res, res, k)];
-        let mut bottom = vec![vec![0u8; (res * k * res * k * 3) as usize]];
-        for (_, img) in &images {
-            top.push(enlarge(&img.to_srgb8(0.0), res, res, k));
+        let caption = |img: &[u8], lines: &[&str]| -> Vec<u8> {
+            crate::render::label::with_caption(img, side, side, lines, scale_px).0
+        };
+        let ref_lines = [
+            "reference".to_string(),
+            format!("{} spp", settings.reference_spp),
+            format!("{reference_seconds:.2} s"),
+        ];
+        let mut top = vec![caption(
+            &enlarge(&truth.to_srgb8(0.0), res, res, k),
+            &ref_lines.iter().map(String::as_str).collect::<Vec<_>>(),
+        )];
+        let mut bottom = vec![caption(
+            &vec![0u8; (side * side * 3) as usize],
+            &["difference", &format!("white = {scale:.3}"), ""],
+        )];
+        for ((name, img), m) in images.iter().zip(&methods) {
+            let lines = [
+                name.clone(),
+                format!("rmse {:.4}", m.rmse),
+                format!(
+                    "{:.2} mib {:.2} s",
+                    m.memory_bytes as f64 / 1048576.0,
+                    m.render_seconds
+                ),
+            ];
+            top.push(caption(
+                &enlarge(&img.to_srgb8(0.0), res, res, k),
+                &lines.iter().map(String::as_str).collect::<Vec<_>>(),
+            ));
             let (d, _) = difference_image(img, &truth, Some(scale));
-            bottom.push(enlarge(&d.to_srgb8(0.0), res, res, k));
+            bottom.push(caption(
+                &enlarge(&d.to_srgb8(0.0), res, res, k),
+                &[name, "", ""],
+            ));
         }
+        let tile_h = side + 3 * crate::render::label::line_height(scale_px) + 4 * scale_px;
         let picture = dir.join(format!("{name}-{res}.png"));
-        tile_png(&picture, &[top, bottom], res * k, res * k)?;
+        tile_png(&picture, &[top, bottom], side, tile_h)?;
         results.push(SceneResult {
             scene: name.to_string(),
             res,
@@ -397,12 +428,37 @@ pub fn speed_scene(
     }
     let eq_rmse = compare(&eq_img, &truth).expect("same size").rmse;
     let k = (256 / res).max(1);
+    let side = res * k;
+    let sc = if side >= 200 { 2 } else { 1 };
+    let captions = [
+        vec![format!("reference {reference_spp} spp"), String::new()],
+        vec![
+            format!("lod {spp} spp"),
+            format!("{lod_seconds:.2} s rmse {lod_rmse:.4}"),
+        ],
+        vec![
+            format!("reference {eq_spp} spp"),
+            format!("{eq_secs:.2} s rmse {eq_rmse:.4}"),
+        ],
+    ];
     let tiles: Vec<Vec<u8>> = [&truth, &lod_img, &eq_img]
         .iter()
-        .map(|i| enlarge(&i.to_srgb8(0.0), res, res, k))
+        .zip(&captions)
+        .map(|(i, c)| {
+            let lines: Vec<&str> = c.iter().map(String::as_str).collect();
+            crate::render::label::with_caption(
+                &enlarge(&i.to_srgb8(0.0), res, res, k),
+                side,
+                side,
+                &lines,
+                sc,
+            )
+            .0
+        })
         .collect();
+    let tile_h = side + 2 * crate::render::label::line_height(sc) + 4 * sc;
     let picture = dir.join(format!("{name}-speed.png"));
-    tile_png(&picture, &[tiles], res * k, res * k)?;
+    tile_png(&picture, &[tiles], side, tile_h)?;
     drop(lod);
     drop(agg);
     std::fs::remove_file(&agg_path).ok();

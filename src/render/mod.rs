@@ -4,6 +4,7 @@
 pub mod camera;
 pub mod compare;
 pub mod image;
+pub mod label;
 pub mod lights;
 pub mod reference;
 pub mod view;
