@@ -44,7 +44,22 @@ pub fn simplify_mesh(m: &Mesh, target: usize) -> Mesh {
     if m.triangles.len() <= target {
         return m.clone();
     }
-    let indices: Vec<u32> = m.triangles.iter().flatten().copied().collect();
+    // Weld corners that share a position (many assets are triangle soups, with no shared
+    // vertices): each index points at the first vertex with its position, so that the edge
+    // collapse sees the connectivity. The survivor's normal and UV stand for the others.
+    let mut first: std::collections::HashMap<[u32; 3], u32> = std::collections::HashMap::new();
+    let rep: Vec<u32> = m
+        .positions
+        .iter()
+        .enumerate()
+        .map(|(i, p)| *first.entry(p.to_array().map(f32::to_bits)).or_insert(i as u32))
+        .collect();
+    let indices: Vec<u32> = m
+        .triangles
+        .iter()
+        .flatten()
+        .map(|&i| rep.get(i as usize).copied().unwrap_or(i))
+        .collect();
     let bytes: Vec<u8> = m
         .positions
         .iter()
@@ -59,7 +74,8 @@ pub fn simplify_mesh(m: &Mesh, target: usize) -> Mesh {
         &adapter,
         target * 3,
         1.0,
-        meshopt::SimplifyOptions::Prune,
+        // No `Prune`: with an error bound this loose it deletes whole components.
+        meshopt::SimplifyOptions::None,
         None,
     );
     if out.len() > target * 3 * 3 / 2 {
@@ -195,5 +211,31 @@ mod tests {
             .all(|&i| (i as usize) < m.positions.len()));
         // A budget above the mesh leaves it alone.
         assert!(simplify_to_budget(&scene, before * 2).unchanged);
+    }
+
+    /// A triangle soup (no shared vertices, as many assets are) is welded and simplified by
+    /// edge collapse, not pruned to nothing or left untouched.
+    #[test]
+    fn triangle_soups_simplify() {
+        let g = grid_mesh(40);
+        let mut soup = Mesh::default();
+        for t in &g.triangles {
+            let base = soup.positions.len() as u32;
+            for &i in t {
+                soup.positions.push(g.positions[i as usize]);
+                soup.normals.push(g.normals[i as usize]);
+                soup.uvs.push(g.uvs[i as usize]);
+            }
+            soup.triangles.push([base, base + 1, base + 2]);
+        }
+        let target = soup.triangles.len() / 4;
+        let out = simplify_mesh(&soup, target);
+        assert!(
+            out.triangles.len() >= target / 2 && out.triangles.len() <= target * 3 / 2,
+            "{} triangles for a target of {target}",
+            out.triangles.len()
+        );
+        // Welding shares the vertices: fewer than three per triangle remain.
+        assert!(out.positions.len() < out.triangles.len() * 3);
     }
 }
