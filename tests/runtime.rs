@@ -147,8 +147,8 @@ fn empty_aggregate_is_transparent() {
 /// Lambertian voxel integrates to 0.88 of its albedo at normal view (the M1 fit of a
 /// near-delta lobe, see `Absdf::cosine_correction`; measured 0.845 here in all). A known
 /// deficiency, kept visible by this bound rather than hidden by a looser one.
-#[test]
-fn flat_lambertian_plane_gives_albedo_times_sky() {
+/// A 2 × 2 Lambertian plane of albedo 0.6 at y = 0.
+fn white_plane() -> Scene {
     let mesh = aggtool::gen::shapes::quad(
         Vec3::new(-1.0, 0.0, -1.0),
         Vec3::new(2.0, 0.0, 0.0),
@@ -157,7 +157,12 @@ fn flat_lambertian_plane_gives_albedo_times_sky() {
     );
     let mut data = SceneData::single(mesh, MaterialData::new("white", [0.6, 0.6, 0.6], 0.0, 1.0));
     data.make_lambertian();
-    let scene = data.to_scene();
+    data.to_scene()
+}
+
+#[test]
+fn flat_lambertian_plane_gives_albedo_times_sky() {
+    let scene = white_plane();
     let agg = baked(&scene, &small(16));
     let lod = LodScene::new(&agg);
     let lights = sky(2.0);
@@ -201,15 +206,7 @@ fn flat_lambertian_plane_gives_albedo_times_sky() {
 /// (σ_t = area·|n·ω| / s³ = 1/s), the correlation failure of paper Fig. 7 that the ABV avoids.
 #[test]
 fn volume_baseline_leaks_through_a_plane_as_beer_lambert_says() {
-    let mesh = aggtool::gen::shapes::quad(
-        Vec3::new(-1.0, 0.0, -1.0),
-        Vec3::new(2.0, 0.0, 0.0),
-        Vec3::new(0.0, 0.0, 2.0),
-        16,
-    );
-    let mut data = SceneData::single(mesh, MaterialData::new("white", [0.6, 0.6, 0.6], 0.0, 1.0));
-    data.make_lambertian();
-    let agg = baked(&data.to_scene(), &small(16));
+    let agg = baked(&white_plane(), &small(16));
     let lod = LodScene::new(&agg);
     let lights = sky(2.0);
     let mut rng = Pcg32::new(5, 5);

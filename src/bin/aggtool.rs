@@ -594,6 +594,17 @@ fn eval(
     std::fs::create_dir_all(output)
         .with_context(|| format!("cannot create {}", output.display()))?;
     type Loader = Box<dyn Fn() -> Result<Scene>>;
+    let generated = |n: String, triangles: usize| -> Loader {
+        let settings = GenSettings {
+            triangles,
+            ..GenSettings::default()
+        };
+        Box::new(move || {
+            gen::generate(&n, &settings)
+                .map(|s| s.to_scene())
+                .ok_or_else(|| anyhow::anyhow!("unknown scene {n}"))
+        })
+    };
     let mut scenes: Vec<(String, Loader)> = Vec::new();
     for a in assets {
         // `gen:NAME` is a generated hard case of --triangles triangles.
@@ -606,18 +617,7 @@ fn eval(
                     gen::NAMES.join(", ")
                 );
             }
-            let settings = GenSettings {
-                triangles,
-                ..GenSettings::default()
-            };
-            scenes.push((
-                n.clone(),
-                Box::new(move || {
-                    gen::generate(&n, &settings)
-                        .map(|s| s.to_scene())
-                        .ok_or_else(|| anyhow::anyhow!("unknown scene {n}"))
-                }),
-            ));
+            scenes.push((n.clone(), generated(n, triangles)));
             continue;
         }
         let name = a
@@ -629,18 +629,7 @@ fn eval(
     }
     if hard_cases {
         for &n in gen::NAMES {
-            let settings = GenSettings {
-                triangles,
-                ..GenSettings::default()
-            };
-            scenes.push((
-                n.to_string(),
-                Box::new(move || {
-                    gen::generate(n, &settings)
-                        .map(|s| s.to_scene())
-                        .ok_or_else(|| anyhow::anyhow!("unknown scene {n}"))
-                }),
-            ));
+            scenes.push((n.to_string(), generated(n.to_string(), triangles)));
         }
     }
     if let Some(px) = speed {

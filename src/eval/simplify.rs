@@ -52,7 +52,11 @@ pub fn simplify_mesh(m: &Mesh, target: usize) -> Mesh {
         .positions
         .iter()
         .enumerate()
-        .map(|(i, p)| *first.entry(p.to_array().map(f32::to_bits)).or_insert(i as u32))
+        .map(|(i, p)| {
+            *first
+                .entry(p.to_array().map(f32::to_bits))
+                .or_insert(i as u32)
+        })
         .collect();
     let indices: Vec<u32> = m
         .triangles

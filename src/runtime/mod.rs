@@ -141,6 +141,80 @@ struct Level<'a> {
     faces: FastMap<FaceRef<'a>>,
 }
 
+/// A 3D DDA (Amanatides–Woo) over one grid: the voxel the ray is in and the ray parameters at
+/// which it crosses the next plane along each axis.
+struct Dda {
+    v: IVec3,
+    step: IVec3,
+    t_next: Vec3,
+    delta: Vec3,
+    res: i32,
+}
+
+impl Dda {
+    /// Starts at parameter `t` (in voxel `v` if given, else the voxel holding the point).
+    fn new(g: &Grid, origin: Vec3, dir: Vec3, inv: Vec3, t: f32, v: Option<IVec3>) -> Dda {
+        let s = g.voxel_size();
+        let res = g.res as i32;
+        let step = IVec3::new(
+            (dir.x > 0.0) as i32 - (dir.x < 0.0) as i32,
+            (dir.y > 0.0) as i32 - (dir.y < 0.0) as i32,
+            (dir.z > 0.0) as i32 - (dir.z < 0.0) as i32,
+        );
+        let v = v.unwrap_or_else(|| {
+            ((origin + dir * t - g.origin) / s)
+                .floor()
+                .as_ivec3()
+                .clamp(IVec3::ZERO, IVec3::splat(res - 1))
+        });
+        let next = |a: usize| -> f32 {
+            if step[a] == 0 {
+                return f32::INFINITY;
+            }
+            let b = g.origin[a] + (v[a] + (step[a] > 0) as i32) as f32 * s;
+            (b - origin[a]) * inv[a]
+        };
+        Dda {
+            v,
+            step,
+            t_next: Vec3::new(next(0), next(1), next(2)),
+            delta: Vec3::select(
+                step.cmpeq(IVec3::ZERO),
+                Vec3::INFINITY,
+                (Vec3::splat(s) * inv).abs(),
+            ),
+            res,
+        }
+    }
+
+    /// Where the ray leaves the current voxel.
+    #[inline]
+    fn t_exit(&self) -> f32 {
+        self.t_next.min_element()
+    }
+
+    /// Moves into the next voxel: the axis crossed and the parameter there, or None when the
+    /// ray leaves the grid.
+    #[inline]
+    fn advance(&mut self) -> Option<(usize, f32)> {
+        let n = self.t_next;
+        let axis = if n.x <= n.y && n.x <= n.z {
+            0
+        } else if n.y <= n.z {
+            1
+        } else {
+            2
+        };
+        let t = n[axis];
+        self.v[axis] += self.step[axis];
+        if self.v[axis] < 0 || self.v[axis] >= self.res {
+            return None;
+        }
+        self.t_next[axis] += self.delta[axis];
+        Some((axis, t))
+    }
+}
+
 /// A prepared aggregate.
 pub struct LodScene<'a> {
     levels: Vec<Level<'a>>,
@@ -359,56 +433,7 @@ impl<'a> LodScene<'a> {
         if settings.primitive == PrimitiveKind::Volume {
             return self.trace_volume(ray, li, lights, settings.nee, rng);
         }
-        let step = IVec3::new(
-            if d.x > 0.0 {
-                1
-            } else if d.x < 0.0 {
-                -1
-            } else {
-                0
-            },
-            if d.y > 0.0 {
-                1
-            } else if d.y < 0.0 {
-                -1
-            } else {
-                0
-            },
-            if d.z > 0.0 {
-                1
-            } else if d.z < 0.0 {
-                -1
-            } else {
-                0
-            },
-        );
-        // DDA state at level li.
-        let init = |li: usize, t: f32, v: Option<IVec3>| -> (IVec3, Vec3, Vec3) {
-            let g = &self.levels[li].grid;
-            let s = g.voxel_size();
-            let res = g.res as i32;
-            let v = v.unwrap_or_else(|| {
-                ((ray.at(t) - g.origin) / s)
-                    .floor()
-                    .as_ivec3()
-                    .clamp(IVec3::ZERO, IVec3::splat(res - 1))
-            });
-            let next = |i: i32, a: usize| -> f32 {
-                if step[a] == 0 {
-                    return f32::INFINITY;
-                }
-                let b = g.origin[a] + (i + (step[a] > 0) as i32) as f32 * s;
-                (b - ray.origin[a]) * inv[a]
-            };
-            let t_next = Vec3::new(next(v.x, 0), next(v.y, 1), next(v.z, 2));
-            let delta = Vec3::select(
-                step.cmpeq(IVec3::ZERO),
-                Vec3::INFINITY,
-                (Vec3::splat(s) * inv).abs(),
-            );
-            (v, t_next, delta)
-        };
-        let (mut v, mut t_next, mut delta) = init(li, tmin, None);
+        let mut dda = Dda::new(&self.levels[li].grid, ray.origin, d, inv, tmin, None);
         let mut t = tmin;
         // The axis through which the current voxel was entered (for boundary faces): at the
         // start, the axis of the cube face the ray entered by.
@@ -435,13 +460,13 @@ impl<'a> LodScene<'a> {
         let max_steps = 3 * g0.res as usize + 8;
         for _ in 0..max_steps {
             let level = &self.levels[li];
-            let t_exit = t_next.min_element().min(tmax);
-            let key = morton3(v.as_uvec3());
+            let t_exit = dda.t_exit().min(tmax);
+            let key = morton3(dda.v.as_uvec3());
             if let Some(&idx) = level.by_key.get(&key) {
                 let vox = &level.voxels[idx as usize];
                 // The first occupied voxel: the ray entered the aggregate through its face.
                 if vb.is_none() {
-                    let dir = (2 * entry_axis + (step[entry_axis] < 0) as usize) as u8;
+                    let dir = (2 * entry_axis + (dda.step[entry_axis] < 0) as usize) as u8;
                     vb = self.abv(level, key, dir, d).or(Some(1.0));
                 }
                 let (hit, area_b) = match settings.primitive {
@@ -476,25 +501,20 @@ impl<'a> LodScene<'a> {
             if t_exit >= tmax {
                 break;
             }
-            let axis = if t_next.x <= t_next.y && t_next.x <= t_next.z {
-                0
-            } else if t_next.y <= t_next.z {
-                1
-            } else {
-                2
-            };
-            t = t_next[axis];
-            v[axis] += step[axis];
-            entry_axis = axis;
-            let res = level.grid.res as i32;
-            if v[axis] < 0 || v[axis] >= res {
+            let Some((axis, t_cross)) = dda.advance() else {
                 break;
-            }
-            t_next[axis] += delta[axis];
+            };
+            t = t_cross;
+            entry_axis = axis;
             // A coarser level only where the crossed plane is also a plane of that level.
             let want = pick(t);
             if want > li {
-                let b = if step[axis] > 0 { v[axis] } else { v[axis] + 1 };
+                let v = dda.v;
+                let b = if dda.step[axis] > 0 {
+                    v[axis]
+                } else {
+                    v[axis] + 1
+                };
                 let mut k = 0;
                 while li + k < want && b % (1 << (k + 1)) == 0 {
                     k += 1;
@@ -502,7 +522,7 @@ impl<'a> LodScene<'a> {
                 if k > 0 {
                     li += k;
                     let coarse = IVec3::new(v.x >> k, v.y >> k, v.z >> k);
-                    (v, t_next, delta) = init(li, t, Some(coarse));
+                    dda = Dda::new(&self.levels[li].grid, ray.origin, d, inv, t, Some(coarse));
                 }
             }
         }

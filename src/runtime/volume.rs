@@ -14,7 +14,7 @@
 //! through the same level. There is no AIV, ABV, primitive or |A|/|B| term: correlation between
 //! voxels is what this model cannot express.
 
-use glam::{IVec3, Vec3};
+use glam::Vec3;
 
 use super::{ConeResult, LodScene, Voxel};
 use crate::bake::voxelize::morton3;
@@ -45,34 +45,11 @@ impl<'a> LodScene<'a> {
         if !(t0 <= t1) {
             return;
         }
-        let s = g.voxel_size();
-        let res = g.res as i32;
-        let step = IVec3::new(
-            (dir.x > 0.0) as i32 - (dir.x < 0.0) as i32,
-            (dir.y > 0.0) as i32 - (dir.y < 0.0) as i32,
-            (dir.z > 0.0) as i32 - (dir.z < 0.0) as i32,
-        );
-        let mut v = ((origin + dir * t0 - g.origin) / s)
-            .floor()
-            .as_ivec3()
-            .clamp(IVec3::ZERO, IVec3::splat(res - 1));
-        let next = |i: i32, a: usize| -> f32 {
-            if step[a] == 0 {
-                return f32::INFINITY;
-            }
-            let b = g.origin[a] + (i + (step[a] > 0) as i32) as f32 * s;
-            (b - origin[a]) * inv[a]
-        };
-        let mut t_next = Vec3::new(next(v.x, 0), next(v.y, 1), next(v.z, 2));
-        let delta = Vec3::select(
-            step.cmpeq(IVec3::ZERO),
-            Vec3::INFINITY,
-            (Vec3::splat(s) * inv).abs(),
-        );
+        let mut dda = super::Dda::new(g, origin, dir, inv, t0, None);
         let mut t = t0;
-        for _ in 0..3 * res as usize + 8 {
-            let t_exit = t_next.min_element().min(t1);
-            if let Some(&idx) = level.by_key.get(&morton3(v.as_uvec3())) {
+        for _ in 0..3 * g.res as usize + 8 {
+            let t_exit = dda.t_exit().min(t1);
+            if let Some(&idx) = level.by_key.get(&morton3(dda.v.as_uvec3())) {
                 if t_exit > t && !f(&level.voxels[idx as usize], t, t_exit) {
                     return;
                 }
@@ -80,19 +57,10 @@ impl<'a> LodScene<'a> {
             if t_exit >= t1 {
                 return;
             }
-            let axis = if t_next.x <= t_next.y && t_next.x <= t_next.z {
-                0
-            } else if t_next.y <= t_next.z {
-                1
-            } else {
-                2
-            };
-            t = t_next[axis];
-            v[axis] += step[axis];
-            if v[axis] < 0 || v[axis] >= res {
-                return;
+            match dda.advance() {
+                Some((_, tc)) => t = tc,
+                None => return,
             }
-            t_next[axis] += delta[axis];
         }
     }
 
