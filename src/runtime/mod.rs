@@ -327,11 +327,24 @@ impl<'a> LodScene<'a> {
 
     /// Reflected radiance of a voxel towards `wo` (Algorithm 1, lines 13–17).
     fn shade(&self, v: &Voxel, wo: Vec3, lights: &Lights, nee: u32, rng: &mut Pcg32) -> Vec3 {
+        Self::shade_with(v, wo, lights, nee, rng, |w| Self::incident_aiv(v, w))
+    }
+
+    /// Reflected radiance of a voxel's ABSDF towards `wo` with `visibility(ω_i)` for the light:
+    /// the sun, then `nee` environment samples and `nee` ABSDF samples combined by MIS.
+    fn shade_with(
+        v: &Voxel,
+        wo: Vec3,
+        lights: &Lights,
+        nee: u32,
+        rng: &mut Pcg32,
+        mut visibility: impl FnMut(Vec3) -> f32,
+    ) -> Vec3 {
         let mut l = Vec3::ZERO;
         if let Some(sun) = &lights.sun {
             let f = v.absdf.eval(sun.direction, wo);
             if f.max_element() > 0.0 {
-                l += f * sun.irradiance * Self::incident_aiv(v, sun.direction);
+                l += f * sun.irradiance * visibility(sun.direction);
             }
         }
         let env = &lights.environment;
@@ -344,8 +357,7 @@ impl<'a> LodScene<'a> {
                     if f.max_element() > 0.0 {
                         acc += f
                             * ls.radiance
-                            * (Self::incident_aiv(v, ls.wi) * power_heuristic(ls.pdf, pdf_b)
-                                / ls.pdf);
+                            * (visibility(ls.wi) * power_heuristic(ls.pdf, pdf_b) / ls.pdf);
                     }
                 }
             }
@@ -356,7 +368,7 @@ impl<'a> LodScene<'a> {
                     let pdf_l = env.pdf(bs.wi);
                     acc += bs.value
                         * le
-                        * (Self::incident_aiv(v, bs.wi) * power_heuristic(bs.pdf, pdf_l) / bs.pdf);
+                        * (visibility(bs.wi) * power_heuristic(bs.pdf, pdf_l) / bs.pdf);
                 }
             }
         }

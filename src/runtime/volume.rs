@@ -19,7 +19,6 @@ use glam::Vec3;
 use super::{ConeResult, LodScene, Voxel};
 use crate::bake::voxelize::morton3;
 use crate::math::rng::Pcg32;
-use crate::math::sampling::power_heuristic;
 use crate::render::lights::Lights;
 use crate::trace::Ray;
 
@@ -81,49 +80,6 @@ impl<'a> LodScene<'a> {
         (-tau).exp()
     }
 
-    /// Single-scattered radiance towards `wo` at `p` inside a voxel: f̂ with exponential shadowing.
-    fn shade_volume(
-        &self,
-        li: usize,
-        v: &Voxel,
-        p: Vec3,
-        wo: Vec3,
-        lights: &Lights,
-        nee: u32,
-        rng: &mut Pcg32,
-    ) -> Vec3 {
-        let mut l = Vec3::ZERO;
-        if let Some(sun) = &lights.sun {
-            let f = v.absdf.eval(sun.direction, wo);
-            if f.max_element() > 0.0 {
-                l += f * sun.irradiance * self.volume_transmittance(li, p, sun.direction);
-            }
-        }
-        let env = &lights.environment;
-        let m = nee.max(1);
-        let mut acc = Vec3::ZERO;
-        for _ in 0..m {
-            if let Some(ls) = env.sample(rng.next_2d()) {
-                if ls.pdf > 0.0 && ls.radiance.max_element() > 0.0 {
-                    let (f, pdf_b) = v.absdf.eval_pdf(ls.wi, wo);
-                    if f.max_element() > 0.0 {
-                        let tr = self.volume_transmittance(li, p, ls.wi);
-                        acc += f * ls.radiance * (tr * power_heuristic(ls.pdf, pdf_b) / ls.pdf);
-                    }
-                }
-            }
-            let u_lobe = rng.next_f32();
-            if let Some(bs) = v.absdf.sample(wo, u_lobe, rng.next_2d()) {
-                let le = env.eval(bs.wi);
-                if le.max_element() > 0.0 {
-                    let tr = self.volume_transmittance(li, p, bs.wi);
-                    acc += bs.value * le * (tr * power_heuristic(bs.pdf, env.pdf(bs.wi)) / bs.pdf);
-                }
-            }
-        }
-        l + acc / m as f32
-    }
-
     /// Traces a ray through level `li` read as an exponential-transmittance volume (the
     /// baseline above). `transmittance` is the background's Beer–Lambert weight.
     pub fn trace_volume(
@@ -158,7 +114,9 @@ impl<'a> LodScene<'a> {
                 let u = rng.next_f32();
                 let dt = (-(1.0 - u * absorbed).ln() / sigma).clamp(0.0, len);
                 let p = ray.at(t0 + dt);
-                let ls = self.shade_volume(li, v, p, wo, lights, nee, rng);
+                let ls = Self::shade_with(v, wo, lights, nee, rng, |w| {
+                    self.volume_transmittance(li, p, w)
+                });
                 let add = ls * (tr * absorbed);
                 if add.is_finite() {
                     sum += add;
