@@ -64,6 +64,10 @@ impl std::hash::Hasher for KeyHasher {
 
 type FastMap<V> = HashMap<u64, V, BuildHasherDefault<KeyHasher>>;
 
+/// Outgoing AIV below which a voxel's contribution is shaded only with probability
+/// V̂(ω_o) / RR_VISIBILITY (and weighted up when it is).
+const RR_VISIBILITY: f32 = 0.05;
+
 /// What stands for a voxel's geometry.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum PrimitiveKind {
@@ -301,7 +305,13 @@ impl<'a> LodScene<'a> {
     /// distance `t` (Algorithm 1, line 7: ⌊log2(tan(θ/2)·t / s)⌋, clamped).
     #[inline]
     pub fn level_for(&self, aperture: f32, t: f32) -> usize {
-        let x = (0.5 * aperture).tan() * t / self.base;
+        self.level_for_tan((0.5 * aperture).tan(), t)
+    }
+
+    /// [`Self::level_for`] with tan(θ/2) precomputed.
+    #[inline]
+    fn level_for_tan(&self, tan_half: f32, t: f32) -> usize {
+        let x = tan_half * t / self.base;
         if !(x >= 2.0) {
             return 0;
         }
@@ -435,10 +445,11 @@ impl<'a> LodScene<'a> {
         if !(tmin <= tmax) {
             return miss;
         }
+        let tan_half = (0.5 * aperture).tan();
         let pick = |t: f32| -> usize {
             settings
                 .level
-                .unwrap_or_else(|| self.level_for(aperture, t))
+                .unwrap_or_else(|| self.level_for_tan(tan_half, t))
                 .min(self.levels.len() - 1)
         };
         let mut li = pick(tmin);
@@ -493,19 +504,31 @@ impl<'a> LodScene<'a> {
                 };
                 if hit {
                     hits += 1;
+                    let vo = vox.vref.aiv(wo).clamp(0.0, 1.0);
+                    // Voxels hidden from the viewer add little: Russian roulette below
+                    // V̂(ω_o) = RR_VISIBILITY keeps the sum unbiased and skips most of the
+                    // shading deep inside dense aggregates.
+                    let keep = if vo >= RR_VISIBILITY {
+                        1.0
+                    } else if vo > 0.0 && rng.next_f32() * RR_VISIBILITY < vo {
+                        vo / RR_VISIBILITY
+                    } else {
+                        0.0
+                    };
                     let area_b = match (settings.primitive, &vox.prim) {
+                        _ if keep == 0.0 => 0.0,
                         (PrimitiveKind::TruncatedEllipsoid, Some(p)) => p.projected_area(d),
                         _ => area_b,
                     };
                     if area_b > 0.0 {
                         let a_w = vox.area * Self::mean_cosine(vox, d);
                         let lo = self.shade(vox, wo, lights, settings.nee, rng);
-                        let vo = vox.vref.aiv(wo).clamp(0.0, 1.0);
                         let c = a_w / area_b;
-                        let add = lo * vo * c;
+                        let w = vo * c / keep;
+                        let add = lo * w;
                         if add.is_finite() {
                             result += add;
-                            coverage += vo * c;
+                            coverage += w;
                         }
                     }
                 }
