@@ -116,6 +116,30 @@ pub struct ConeResult {
     pub coverage: f32,
 }
 
+impl ConeResult {
+    /// The surfaces' radiance plus the background through `transmittance`; zero radiance if
+    /// anything non-finite slipped through, so that no NaN or infinity leaves the runtime.
+    fn compose(
+        surfaces: Vec3,
+        background: Vec3,
+        transmittance: f32,
+        primitives: u32,
+        coverage: f32,
+    ) -> ConeResult {
+        let radiance = surfaces + background * transmittance;
+        ConeResult {
+            radiance: if radiance.is_finite() {
+                radiance
+            } else {
+                Vec3::ZERO
+            },
+            transmittance,
+            primitives,
+            coverage,
+        }
+    }
+}
+
 /// A voxel ready for shading.
 struct Voxel<'a> {
     absdf: Absdf<'static>,
@@ -562,17 +586,7 @@ impl<'a> LodScene<'a> {
             }
         }
         let vb = if hits > 0 { vb.unwrap_or(1.0) } else { 1.0 };
-        let radiance = result + background * vb;
-        ConeResult {
-            radiance: if radiance.is_finite() {
-                radiance
-            } else {
-                Vec3::ZERO
-            },
-            transmittance: vb,
-            primitives: hits,
-            coverage,
-        }
+        ConeResult::compose(result, background, vb, hits, coverage)
     }
 
     /// The bounds of the finest level's cube, for framing views.

@@ -125,16 +125,6 @@ impl<'a> LodScene<'a> {
             }
             tr > 1e-4
         });
-        let radiance = sum + background * tr;
-        ConeResult {
-            radiance: if radiance.is_finite() {
-                radiance
-            } else {
-                Vec3::ZERO
-            },
-            transmittance: tr,
-            primitives: touched,
-            coverage: 1.0 - tr,
-        }
+        ConeResult::compose(sum, background, tr, touched, 1.0 - tr)
     }
 }
