@@ -15,15 +15,11 @@ use aggtool::math::sampling::{square_to_triangle, square_to_uniform_sphere};
 use aggtool::trace::{offset_origin, Accel, Ray};
 use rayon::prelude::*;
 
+mod common;
+
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let get = |flag: &str, default: u32| -> u32 {
-        args.iter()
-            .position(|a| a == flag)
-            .and_then(|i| args.get(i + 1))
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(default)
-    };
+    let get = |flag: &str, default: u32| common::flag_u32(&args, flag, default);
     let max_res = get("--max-res", 64);
     let n_rays = get("--rays", 1_000_000) as usize;
     let default = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))

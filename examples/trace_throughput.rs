@@ -22,15 +22,11 @@ use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
 use rayon::prelude::*;
 
+mod common;
+
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let get = |flag: &str, default: u32| -> u32 {
-        args.iter()
-            .position(|a| a == flag)
-            .and_then(|i| args.get(i + 1))
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(default)
-    };
+    let get = |flag: &str, default: u32| common::flag_u32(&args, flag, default);
     let size = get("--size", 512);
     let spp = get("--spp", 16);
     let asset = args
