@@ -21,16 +21,17 @@ fn appearance(name: &str) -> VoxelAppearance {
 
 /// Relative RMSE (RMSE over direction pairs / RMS of the ground truth) per case, on a 6×6
 /// equal-area grid of both directions with 2048 samples. The bounds are regression guards 25%
-/// above the values measured when the factorization landed (flat 0.022, curved 0.644, foliage
-/// 0.181, anisotropic 0.106, orientation-color 0.254, mixed-roughness 0.371, metal-dielectric
-/// 0.272); they are not goals. The curved voxel (normals uniform over a 60° cap) is the known
+/// above the values measured (flat 0.022, curved 0.644, foliage 0.094, anisotropic 0.106,
+/// orientation-color 0.186, mixed-roughness 0.371, metal-dielectric 0.149; with Eq. 14's SG
+/// diffuse term foliage was 0.174, orientation-color 0.248 and metal-dielectric 0.212); they
+/// are not goals. The curved voxel (normals uniform over a 60° cap) is the known
 /// weak case: a mixture of GGX-shaped lobes cannot take a flat-topped, sharp-edged normal
 /// distribution. `cargo test --release --test absdf -- --ignored --nocapture` prints the
 /// full-size figures.
 #[test]
 fn factored_absdf_tracks_ground_truth() {
     let t = Tables::embedded();
-    let guard = [0.03, 0.81, 0.23, 0.14, 0.32, 0.47, 0.35];
+    let guard = [0.03, 0.81, 0.12, 0.14, 0.24, 0.47, 0.19];
     for (&name, &g) in CASES.iter().zip(&guard) {
         let (r, _) = compare_case(name, t, 2048, 6).unwrap();
         let rel = r.rmse / r.gt_rms;
@@ -107,6 +108,61 @@ fn energy() {
             }
             let e = acc / n as f64 * 4.0 * std::f64::consts::PI;
             assert!(e <= 1.1, "{name} ω_o={wo}: ∫f̂ = {e}");
+        }
+    }
+}
+
+/// A diffuse-only voxel reflects exactly its albedo: ∫ f̂ dω_i over the sphere (a 256² equal-area
+/// quadrature), for a flat Lambertian voxel at views from 0° to 85° (all of it from the upper
+/// hemisphere: nothing through the sheet) and for foliage-like normals spread over the sphere.
+/// With Eq. 14's clamped-cosine SGs the flat voxel gave 0.81, 0.90, 0.83, 0.63 of the albedo
+/// from above at 0°, 30°, 60°, 80° and passed 0.05 to 0.25 through from below.
+#[test]
+fn flat_lambertian_voxel_reflects_its_albedo() {
+    let t = Tables::embedded();
+    let albedo = 0.6;
+    let lambert = |normal: Vec3| SurfaceSample {
+        normal,
+        params: SurfaceParams {
+            base_color: Vec3::splat(albedo),
+            metallic: 0.0,
+            alpha: 1.0,
+            specular: 0.0,
+            f90: 0.0,
+        },
+        weight: 1.0,
+    };
+    let flat: Vec<SurfaceSample> = (0..256).map(|_| lambert(Vec3::Z)).collect();
+    let spread: Vec<SurfaceSample> = case_samples("foliage", 2048)
+        .unwrap()
+        .iter()
+        .map(|s| lambert(s.normal))
+        .collect();
+    let dirs = sphere_grid(256);
+    let dw = 4.0 * std::f32::consts::PI / dirs.len() as f32;
+    for (name, samples) in [("flat", flat), ("spread", spread)] {
+        let a = Absdf::new(&estimate(&samples, &EstimateSettings::default()).unwrap(), t);
+        for deg in [0.0f32, 30.0, 60.0, 80.0, 85.0] {
+            let th = deg.to_radians();
+            let wo = Vec3::new(th.sin(), 0.0, th.cos());
+            let (mut up, mut down) = (0f64, 0f64);
+            for &wi in &dirs {
+                let f = a.eval(wi, wo).x as f64 * dw as f64;
+                if wi.z > 0.0 {
+                    up += f;
+                } else {
+                    down += f;
+                }
+            }
+            let total = (up + down) / albedo as f64;
+            eprintln!("{name} {deg}°: above {:.4} below {:.4}", up / albedo as f64, down / albedo as f64);
+            // The flat voxel is exact; spread normals gain ~2% where the lobe integral's
+            // approximation would go negative and is clamped to 0 (see `diffuse_numerator`).
+            let tol = if name == "flat" { 0.01 } else { 0.03 };
+            assert!((total - 1.0).abs() < tol, "{name} at {deg}°: ∫f̂ = {total} of the albedo");
+            if name == "flat" {
+                assert!(down < 1e-3 * albedo as f64, "{name} at {deg}°: {down} through the sheet");
+            }
         }
     }
 }

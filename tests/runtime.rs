@@ -160,6 +160,9 @@ fn white_plane() -> Scene {
     data.to_scene()
 }
 
+/// A white Lambertian plane under a constant sky, seen from above: radiance albedo × sky. Measured
+/// 0.954 of it (4.6% low, from the primitives' coverage); with Eq. 14's SG diffuse term the
+/// plane was about 15% dark and this test allowed 20%.
 #[test]
 fn flat_lambertian_plane_gives_albedo_times_sky() {
     let scene = white_plane();
@@ -196,7 +199,7 @@ fn flat_lambertian_plane_gives_albedo_times_sky() {
     let mean = sum / n as f32;
     let want = 0.6 * 2.0;
     assert!(
-        (mean - Vec3::splat(want)).abs().max_element() < 0.20 * want,
+        (mean - Vec3::splat(want)).abs().max_element() < 0.07 * want,
         "mean {mean} vs {want}"
     );
 }

@@ -289,8 +289,130 @@ pub fn symmetric_eigen(m: Mat3) -> (Vec3, Mat3) {
     (vals, Mat3::from_cols(x, y, z))
 }
 
+/// Shape statistics of the unit lobe `S = diag(αx², αy², 1)` (σ(z) = 1), which is the normal
+/// distribution of the ellipsoid with semi-axes (1/αx, 1/αy, 1): its `mass` ∫D(n) dn (the
+/// ellipsoid's area over its projected area along z: 2 for a flat lobe, 4 for a sphere, and
+/// 2·M5(α) for an isotropic lobe) and the diagonal of its normalised second moment
+/// E[n nᵀ] (entries sum to 1). They give the diffuse term of the ABSDF in closed form (see
+/// `absdf::Absdf::diffuse_numerator`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LobeShape {
+    pub mass: f32,
+    pub second: Vec3,
+}
+
+/// [`LobeShape`] by quadrature over the ellipsoid: x = A u on the unit sphere with
+/// A = diag(1/αx, 1/αy, 1) has normal ∝ B u and area element det(A)·|B u| dΩ_u, B = A⁻¹; so
+/// mass = (1/π) ∫ |Bu| dΩ and E[n nᵀ] = ∫ (Bu)(Bu)ᵀ/|Bu| dΩ / ∫ |Bu| dΩ. Midpoint rule over
+/// one octant (z uniform, φ uniform: equal-area cells), `n × n/4` cells.
+pub fn lobe_shape_exact(alpha: Vec2, n: usize) -> LobeShape {
+    let (ax, ay) = (alpha.x.clamp(0.0, 1.0) as f64, alpha.y.clamp(0.0, 1.0) as f64);
+    let nz = n.max(4);
+    let nphi = (n / 4).max(4);
+    let (mut m0, mut mx, mut my, mut mz) = (0f64, 0f64, 0f64, 0f64);
+    for i in 0..nz {
+        let z = (i as f64 + 0.5) / nz as f64;
+        let r = (1.0 - z * z).max(0.0).sqrt();
+        for j in 0..nphi {
+            let phi = (j as f64 + 0.5) / nphi as f64 * std::f64::consts::FRAC_PI_2;
+            let (bx, by, bz) = (ax * r * phi.cos(), ay * r * phi.sin(), z);
+            let l = (bx * bx + by * by + bz * bz).sqrt();
+            m0 += l;
+            if l > 0.0 {
+                mx += bx * bx / l;
+                my += by * by / l;
+                mz += bz * bz / l;
+            }
+        }
+    }
+    // Each cell has solid angle (1/nz)·(π/2/nphi); eight octants.
+    let cell = std::f64::consts::FRAC_PI_2 / (nz * nphi) as f64;
+    let mass = 8.0 * m0 * cell / std::f64::consts::PI;
+    let second = if m0 > 0.0 {
+        Vec3::new((mx / m0) as f32, (my / m0) as f32, (mz / m0) as f32)
+    } else {
+        Vec3::Z
+    };
+    LobeShape {
+        mass: mass as f32,
+        second,
+    }
+}
+
+/// Table resolution of [`lobe_shape`] per roughness axis (α from 0 to 1).
+const SHAPE_RES: usize = 33;
+
+/// [`LobeShape`] of a unit lobe, bilinear in a table over (αx, αy) built on first use (within
+/// 2·10⁻⁴ of [`lobe_shape_exact`]; tested).
+pub fn lobe_shape(alpha: Vec2) -> LobeShape {
+    static TABLE: std::sync::OnceLock<Vec<LobeShape>> = std::sync::OnceLock::new();
+    let t = TABLE.get_or_init(|| {
+        let mut v = Vec::with_capacity(SHAPE_RES * SHAPE_RES);
+        for j in 0..SHAPE_RES {
+            for i in 0..SHAPE_RES {
+                let a = Vec2::new(i as f32, j as f32) / (SHAPE_RES - 1) as f32;
+                v.push(lobe_shape_exact(a, 256));
+            }
+        }
+        v
+    });
+    let a = alpha.clamp(Vec2::ZERO, Vec2::ONE);
+    if !a.is_finite() {
+        return t[SHAPE_RES * SHAPE_RES - 1];
+    }
+    let x = a * (SHAPE_RES - 1) as f32;
+    let (i, j) = (
+        (x.x as usize).min(SHAPE_RES - 2),
+        (x.y as usize).min(SHAPE_RES - 2),
+    );
+    let (fx, fy) = (x.x - i as f32, x.y - j as f32);
+    let at = |i: usize, j: usize| t[j * SHAPE_RES + i];
+    let lerp = |a: LobeShape, b: LobeShape, f: f32| LobeShape {
+        mass: a.mass + (b.mass - a.mass) * f,
+        second: a.second + (b.second - a.second) * f,
+    };
+    lerp(
+        lerp(at(i, j), at(i + 1, j), fx),
+        lerp(at(i, j + 1), at(i + 1, j + 1), fx),
+        fy,
+    )
+}
+
 #[cfg(test)]
 mod tests {
+
+    /// The lobe statistics: the sphere (mass 4, E[nnᵀ] = I/3), the flat limit (2, zz), the
+    /// isotropic mass against the closed form 2·M5(α), symmetry in the two axes, and the table
+    /// against the quadrature.
+    #[test]
+    fn lobe_shape_known_answers() {
+        let s = lobe_shape_exact(Vec2::ONE, 512);
+        assert!((s.mass - 4.0).abs() < 1e-4, "{s:?}");
+        assert!((s.second - Vec3::splat(1.0 / 3.0)).abs().max_element() < 1e-4, "{s:?}");
+        let f = lobe_shape_exact(Vec2::ZERO, 512);
+        assert!((f.mass - 2.0).abs() < 1e-4, "{f:?}");
+        assert!((f.second - Vec3::Z).abs().max_element() < 1e-4, "{f:?}");
+        for a in [0.05f32, 0.2, 0.5, 0.8] {
+            let s = lobe_shape_exact(Vec2::splat(a), 512);
+            let want = 2.0 * crate::tables::fit::m5_exact(a);
+            assert!((s.mass - want).abs() < 2e-3 * want, "α {a}: {} vs {want}", s.mass);
+            assert!((s.second.x - s.second.y).abs() < 1e-5);
+            assert!((s.second.element_sum() - 1.0).abs() < 1e-5);
+        }
+        let mut rng = crate::math::rng::Pcg32::new(5, 5);
+        for _ in 0..200 {
+            let a = rng.next_2d();
+            let (t, e) = (lobe_shape(a), lobe_shape_exact(a, 512));
+            assert!((t.mass - e.mass).abs() < 2e-3, "{a}: {t:?} vs {e:?}");
+            assert!((t.second - e.second).abs().max_element() < 2e-3, "{a}: {t:?} vs {e:?}");
+            let sw = lobe_shape(Vec2::new(a.y, a.x));
+            assert!((sw.second.x - t.second.y).abs() < 1e-5 && (sw.mass - t.mass).abs() < 1e-5);
+        }
+        for bad in [Vec2::NAN, Vec2::splat(-1.0), Vec2::splat(5.0)] {
+            let s = lobe_shape(bad);
+            assert!(s.mass.is_finite() && s.second.is_finite());
+        }
+    }
     use super::*;
     use crate::math::microfacet::ggx_d;
     use crate::math::rng::Pcg32;
