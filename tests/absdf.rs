@@ -141,7 +141,10 @@ fn flat_lambertian_voxel_reflects_its_albedo() {
     let dirs = sphere_grid(256);
     let dw = 4.0 * std::f32::consts::PI / dirs.len() as f32;
     for (name, samples) in [("flat", flat), ("spread", spread)] {
-        let a = Absdf::new(&estimate(&samples, &EstimateSettings::default()).unwrap(), t);
+        let a = Absdf::new(
+            &estimate(&samples, &EstimateSettings::default()).unwrap(),
+            t,
+        );
         for deg in [0.0f32, 30.0, 60.0, 80.0, 85.0] {
             let th = deg.to_radians();
             let wo = Vec3::new(th.sin(), 0.0, th.cos());
@@ -155,13 +158,23 @@ fn flat_lambertian_voxel_reflects_its_albedo() {
                 }
             }
             let total = (up + down) / albedo as f64;
-            eprintln!("{name} {deg}°: above {:.4} below {:.4}", up / albedo as f64, down / albedo as f64);
+            eprintln!(
+                "{name} {deg}°: above {:.4} below {:.4}",
+                up / albedo as f64,
+                down / albedo as f64
+            );
             // The flat voxel is exact; spread normals gain ~2% where the lobe integral's
             // approximation would go negative and is clamped to 0 (see `diffuse_numerator`).
             let tol = if name == "flat" { 0.01 } else { 0.03 };
-            assert!((total - 1.0).abs() < tol, "{name} at {deg}°: ∫f̂ = {total} of the albedo");
+            assert!(
+                (total - 1.0).abs() < tol,
+                "{name} at {deg}°: ∫f̂ = {total} of the albedo"
+            );
             if name == "flat" {
-                assert!(down < 1e-3 * albedo as f64, "{name} at {deg}°: {down} through the sheet");
+                assert!(
+                    down < 1e-3 * albedo as f64,
+                    "{name} at {deg}°: {down} through the sheet"
+                );
             }
         }
     }

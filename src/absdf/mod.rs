@@ -199,7 +199,8 @@ pub struct AbsdfSample {
 /// The factorized ABSDF of one voxel, with every ω-independent table lookup done once.
 #[derive(Clone, Debug)]
 pub struct Absdf<'t> {
-    tables: &'t Tables,
+    /// The tables are read while building; the lifetime keeps the API of a table-backed ABSDF.
+    _tables: std::marker::PhantomData<&'t Tables>,
     lobes: Vec<NdfLobe>,
     unit: Vec<Sggx>,
     /// Per lobe, for the diffuse term: 1 / mass and (mass/4)·E[n nᵀ] in world space.
@@ -360,7 +361,7 @@ impl<'t> Absdf<'t> {
         let spec_total = spec_sampling.iter().map(|x| x.0).sum();
         let diffuse_total = diffuse_sampling.iter().map(|x| x.0).sum();
         Absdf {
-            tables,
+            _tables: std::marker::PhantomData,
             lobes,
             unit,
             diffuse_terms,

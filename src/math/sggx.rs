@@ -306,7 +306,10 @@ pub struct LobeShape {
 /// mass = (1/π) ∫ |Bu| dΩ and E[n nᵀ] = ∫ (Bu)(Bu)ᵀ/|Bu| dΩ / ∫ |Bu| dΩ. Midpoint rule over
 /// one octant (z uniform, φ uniform: equal-area cells), `n × n/4` cells.
 pub fn lobe_shape_exact(alpha: Vec2, n: usize) -> LobeShape {
-    let (ax, ay) = (alpha.x.clamp(0.0, 1.0) as f64, alpha.y.clamp(0.0, 1.0) as f64);
+    let (ax, ay) = (
+        alpha.x.clamp(0.0, 1.0) as f64,
+        alpha.y.clamp(0.0, 1.0) as f64,
+    );
     let nz = n.max(4);
     let nphi = (n / 4).max(4);
     let (mut m0, mut mx, mut my, mut mz) = (0f64, 0f64, 0f64, 0f64);
@@ -388,14 +391,21 @@ mod tests {
     fn lobe_shape_known_answers() {
         let s = lobe_shape_exact(Vec2::ONE, 512);
         assert!((s.mass - 4.0).abs() < 1e-4, "{s:?}");
-        assert!((s.second - Vec3::splat(1.0 / 3.0)).abs().max_element() < 1e-4, "{s:?}");
+        assert!(
+            (s.second - Vec3::splat(1.0 / 3.0)).abs().max_element() < 1e-4,
+            "{s:?}"
+        );
         let f = lobe_shape_exact(Vec2::ZERO, 512);
         assert!((f.mass - 2.0).abs() < 1e-4, "{f:?}");
         assert!((f.second - Vec3::Z).abs().max_element() < 1e-4, "{f:?}");
         for a in [0.05f32, 0.2, 0.5, 0.8] {
             let s = lobe_shape_exact(Vec2::splat(a), 512);
             let want = 2.0 * crate::tables::fit::m5_exact(a);
-            assert!((s.mass - want).abs() < 2e-3 * want, "α {a}: {} vs {want}", s.mass);
+            assert!(
+                (s.mass - want).abs() < 2e-3 * want,
+                "α {a}: {} vs {want}",
+                s.mass
+            );
             assert!((s.second.x - s.second.y).abs() < 1e-5);
             assert!((s.second.element_sum() - 1.0).abs() < 1e-5);
         }
@@ -404,7 +414,10 @@ mod tests {
             let a = rng.next_2d();
             let (t, e) = (lobe_shape(a), lobe_shape_exact(a, 512));
             assert!((t.mass - e.mass).abs() < 2e-3, "{a}: {t:?} vs {e:?}");
-            assert!((t.second - e.second).abs().max_element() < 2e-3, "{a}: {t:?} vs {e:?}");
+            assert!(
+                (t.second - e.second).abs().max_element() < 2e-3,
+                "{a}: {t:?} vs {e:?}"
+            );
             let sw = lobe_shape(Vec2::new(a.y, a.x));
             assert!((sw.second.x - t.second.y).abs() < 1e-5 && (sw.mass - t.mass).abs() < 1e-5);
         }

@@ -4,7 +4,7 @@
 //!
 //! | table | maps | resolution | used by |
 //! |---|---|---|---|
-//! | M1 | SGGX (αx, αy) ⊛ SG of sharpness κ → (α+x, α+y, scale) | 20×20×20 | diffuse, Eq. 14 |
+//! | M1 | SGGX (αx, αy) ⊛ SG of sharpness κ → (α+x, α+y, scale) | 20×20×20 | diffuse sampling (§7.3; Eq. 14) |
 //! | M2 | roughness beta (mean μ, ν = σ²/(μ(1−μ))) → two GGX lobes (m1, α1, α2) | 32×32 | Eq. 19 |
 //! | M3 | SGGX (αx, αy) ⊛ GGX of roughness α → (α+x, α+y, scale) | 50×50×50 | Eq. 20 |
 //! | M4 | GGX roughness α → inverse LTC scale (1D) | 256 | S, Eq. 21 |
