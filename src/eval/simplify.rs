@@ -83,7 +83,12 @@ pub fn simplify_mesh(m: &Mesh, target: usize) -> Mesh {
         None,
     );
     if out.len() > target * 3 * 3 / 2 {
-        out = meshopt::simplify_sloppy(&indices, &adapter, target * 3, 1.0, None);
+        // Sloppy clustering can erase thin parts entirely (a lattice's rods collapse into
+        // degenerate triangles): keep it only where it leaves at least half the target.
+        let sloppy = meshopt::simplify_sloppy(&indices, &adapter, target * 3, 1.0, None);
+        if sloppy.len() >= target * 3 / 2 {
+            out = sloppy;
+        }
     }
     compact(m, &out)
 }
@@ -148,9 +153,13 @@ pub fn simplify_to_budget(scene: &Scene, budget: usize) -> Simplified {
             .map(|m| simplify_mesh(m, (m.triangles.len() as f64 * ratio).round() as usize))
             .collect();
         let b = scene_bytes(&s);
+        // An empty mesh is no simplification: it wins only if nothing else was found.
         let better = match &best {
             None => true,
-            Some((_, bb)) => (b as f64 - budget as f64).abs() < (*bb as f64 - budget as f64).abs(),
+            Some((_, 0)) => b > 0,
+            Some((_, bb)) => {
+                b > 0 && (b as f64 - budget as f64).abs() < (*bb as f64 - budget as f64).abs()
+            }
         };
         if better {
             best = Some((s, b));
@@ -219,6 +228,25 @@ mod tests {
 
     /// A triangle soup (no shared vertices, as many assets are) is welded and simplified by
     /// edge collapse, not pruned to nothing or left untouched.
+    /// Thin separate parts (a lattice of rods) are simplified, not erased: the result keeps
+    /// triangles even where sloppy clustering would collapse every rod.
+    #[test]
+    fn thin_parts_are_not_erased() {
+        let scene = crate::gen::generate(
+            "lattice",
+            &crate::gen::GenSettings {
+                triangles: 6000,
+                ..Default::default()
+            },
+        )
+        .unwrap()
+        .to_scene();
+        let before = scene_bytes(&scene);
+        let s = simplify_to_budget(&scene, before / 3);
+        assert!(s.triangles_after > 0, "the lattice was erased");
+        assert!(s.bytes_after < before, "nothing was simplified");
+    }
+
     #[test]
     fn triangle_soups_simplify() {
         let g = grid_mesh(40);
