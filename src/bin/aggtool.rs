@@ -1201,6 +1201,7 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
                 "abv_res": s.abv_res(), "abv_rays": s.abv_rays(), "ndf_lobes": s.ndf_lobes(),
                 "moment_res": s.moment_res(), "keep": s.keep(), "energy": s.energy(),
                 "keep_all_effects": s.keep_all_effects(), "denoise": s.denoise(),
+                "aiv_weighting": s.aiv_weighting().variant_name().unwrap_or("unknown"),
             },
             "levels": level_info,
             "effects": effects,
@@ -1230,8 +1231,9 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
         }
     );
     println!(
-        "settings: max-res {} min-res {} samples {} (max {}) aiv {}² × {} rays/sample, abv {}² × {} rays/cell, ndf-lobes {}, moment-res {}, keep {} energy {}{}",
+        "settings: max-res {} min-res {} samples {} (max {}) aiv {}² × {} rays/sample ({}-weighted), abv {}² × {} rays/cell, ndf-lobes {}, moment-res {}, keep {} energy {}{}",
         s.max_res(), s.min_res(), s.samples(), s.max_samples(), s.aiv_res(), s.aiv_rays(),
+        if s.aiv_weighting() == aggtool::format::fb::AivWeighting::ProjectedArea { "projected-area" } else { "area" },
         s.abv_res(), s.abv_rays(), s.ndf_lobes(), s.moment_res(), s.keep(), s.energy(),
         if s.keep_all_effects() { ", keep-all-effects" } else { "" }
     );

@@ -137,6 +137,95 @@ impl<'a> ::flatbuffers::Verifiable for VoxelFlags {
 }
 
 impl ::flatbuffers::SimpleToVerifyInSlice for VoxelFlags {}
+#[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
+pub const ENUM_MIN_AIV_WEIGHTING: u8 = 0;
+#[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
+pub const ENUM_MAX_AIV_WEIGHTING: u8 = 1;
+#[deprecated(since = "2.0.0", note = "Use associated constants instead. This will no longer be generated in 2021.")]
+#[allow(non_camel_case_types)]
+pub const ENUM_VALUES_AIV_WEIGHTING: [AivWeighting; 2] = [
+  AivWeighting::Area,
+  AivWeighting::ProjectedArea,
+];
+
+/// The bake settings that produced the file.
+/// What the AIV (Eq. 25) averages visibility over.
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+#[repr(transparent)]
+pub struct AivWeighting(pub u8);
+#[allow(non_upper_case_globals)]
+impl AivWeighting {
+  /// Surface area, as Eq. 25 is written (files of format 1.0 and 1.1).
+  pub const Area: Self = Self(0);
+  /// Projected area |n·ω| dA towards the direction (1.2): V̂(ω)·|A|·E|n·ω| is then the
+  /// visible projected area, so Eq. 30's coverage stays right for bumpy closed surfaces.
+  pub const ProjectedArea: Self = Self(1);
+
+  pub const ENUM_MIN: u8 = 0;
+  pub const ENUM_MAX: u8 = 1;
+  pub const ENUM_VALUES: &'static [Self] = &[
+    Self::Area,
+    Self::ProjectedArea,
+  ];
+  /// Returns the variant's name or "" if unknown.
+  pub fn variant_name(self) -> Option<&'static str> {
+    match self {
+      Self::Area => Some("Area"),
+      Self::ProjectedArea => Some("ProjectedArea"),
+      _ => None,
+    }
+  }
+}
+impl ::core::fmt::Debug for AivWeighting {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    if let Some(name) = self.variant_name() {
+      f.write_str(name)
+    } else {
+      f.write_fmt(format_args!("<UNKNOWN {:?}>", self.0))
+    }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for AivWeighting {
+  type Inner = Self;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    let b = unsafe { ::flatbuffers::read_scalar_at::<u8>(buf, loc) };
+    Self(b)
+  }
+}
+
+impl ::flatbuffers::Push for AivWeighting {
+    type Output = AivWeighting;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        unsafe { ::flatbuffers::emplace_scalar::<u8>(dst, self.0) };
+    }
+}
+
+impl ::flatbuffers::EndianScalar for AivWeighting {
+  type Scalar = u8;
+  #[inline]
+  fn to_little_endian(self) -> u8 {
+    self.0.to_le()
+  }
+  #[inline]
+  #[allow(clippy::wrong_self_convention)]
+  fn from_little_endian(v: u8) -> Self {
+    let b = u8::from_le(v);
+    Self(b)
+  }
+}
+
+impl<'a> ::flatbuffers::Verifiable for AivWeighting {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    u8::run_verifier(v, pos)
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for AivWeighting {}
 // struct Vec3f, aligned to 4
 #[repr(transparent)]
 #[derive(Clone, Copy, PartialEq)]
@@ -2224,7 +2313,6 @@ impl<'a> Face {
 pub enum BakeSettingsOffset {}
 #[derive(Copy, Clone, PartialEq)]
 
-/// The bake settings that produced the file.
 pub struct BakeSettings<'a> {
   pub _tab: ::flatbuffers::Table<'a>,
 }
@@ -2252,6 +2340,7 @@ impl<'a> BakeSettings<'a> {
   pub const VT_KEEP_ALL_EFFECTS: ::flatbuffers::VOffsetT = 26;
   pub const VT_MIN_RES: ::flatbuffers::VOffsetT = 28;
   pub const VT_DENOISE: ::flatbuffers::VOffsetT = 30;
+  pub const VT_AIV_WEIGHTING: ::flatbuffers::VOffsetT = 32;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -2275,6 +2364,7 @@ impl<'a> BakeSettings<'a> {
     builder.add_max_samples(args.max_samples);
     builder.add_samples(args.samples);
     builder.add_max_res(args.max_res);
+    builder.add_aiv_weighting(args.aiv_weighting);
     builder.add_denoise(args.denoise);
     builder.add_keep_all_effects(args.keep_all_effects);
     builder.finish()
@@ -2383,6 +2473,14 @@ impl<'a> BakeSettings<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<bool>(BakeSettings::VT_DENOISE, Some(false)).unwrap()}
   }
+  /// Added in 1.2; absent (Area) in older files.
+  #[inline]
+  pub fn aiv_weighting(&self) -> AivWeighting {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<AivWeighting>(BakeSettings::VT_AIV_WEIGHTING, Some(AivWeighting::Area)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for BakeSettings<'_> {
@@ -2405,6 +2503,7 @@ impl ::flatbuffers::Verifiable for BakeSettings<'_> {
      .visit_field::<bool>("keep_all_effects", Self::VT_KEEP_ALL_EFFECTS, false)?
      .visit_field::<u32>("min_res", Self::VT_MIN_RES, false)?
      .visit_field::<bool>("denoise", Self::VT_DENOISE, false)?
+     .visit_field::<AivWeighting>("aiv_weighting", Self::VT_AIV_WEIGHTING, false)?
      .finish();
     Ok(())
   }
@@ -2424,6 +2523,7 @@ pub struct BakeSettingsArgs {
     pub keep_all_effects: bool,
     pub min_res: u32,
     pub denoise: bool,
+    pub aiv_weighting: AivWeighting,
 }
 impl<'a> Default for BakeSettingsArgs {
   #[inline]
@@ -2443,6 +2543,7 @@ impl<'a> Default for BakeSettingsArgs {
       keep_all_effects: false,
       min_res: 0,
       denoise: false,
+      aiv_weighting: AivWeighting::Area,
     }
   }
 }
@@ -2509,6 +2610,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> BakeSettingsBuilder<'a, 'b, A
     self.fbb_.push_slot::<bool>(BakeSettings::VT_DENOISE, denoise, false);
   }
   #[inline]
+  pub fn add_aiv_weighting(&mut self, aiv_weighting: AivWeighting) {
+    self.fbb_.push_slot::<AivWeighting>(BakeSettings::VT_AIV_WEIGHTING, aiv_weighting, AivWeighting::Area);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> BakeSettingsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     BakeSettingsBuilder {
@@ -2540,6 +2645,7 @@ impl ::core::fmt::Debug for BakeSettings<'_> {
       ds.field("keep_all_effects", &self.keep_all_effects());
       ds.field("min_res", &self.min_res());
       ds.field("denoise", &self.denoise());
+      ds.field("aiv_weighting", &self.aiv_weighting());
       ds.finish()
   }
 }

@@ -404,6 +404,7 @@ pub fn index(e: &IndexEntry) -> Vec<u8> {
             keep_all_effects: s.keep_all_effects,
             min_res: s.min_res,
             denoise: s.denoise,
+            aiv_weighting: fb::AivWeighting::ProjectedArea,
         },
     );
     let mut total = Counts::default();

@@ -6,7 +6,6 @@ import flatbuffers
 from flatbuffers.compat import import_numpy
 np = import_numpy()
 
-# The bake settings that produced the file.
 class BakeSettings(object):
     __slots__ = ['_tab']
 
@@ -131,8 +130,16 @@ class BakeSettings(object):
             return bool(self._tab.Get(flatbuffers.number_types.BoolFlags, o + self._tab.Pos))
         return False
 
+    # Added in 1.2; absent (Area) in older files.
+    # BakeSettings
+    def AivWeighting(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(32))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint8Flags, o + self._tab.Pos)
+        return 0
+
 def BakeSettingsStart(builder):
-    builder.StartObject(14)
+    builder.StartObject(15)
 
 def Start(builder):
     BakeSettingsStart(builder)
@@ -220,6 +227,12 @@ def BakeSettingsAddDenoise(builder, denoise):
 
 def AddDenoise(builder, denoise):
     BakeSettingsAddDenoise(builder, denoise)
+
+def BakeSettingsAddAivWeighting(builder, aivWeighting):
+    builder.PrependUint8Slot(14, aivWeighting, 0)
+
+def AddAivWeighting(builder, aivWeighting):
+    BakeSettingsAddAivWeighting(builder, aivWeighting)
 
 def BakeSettingsEnd(builder):
     return builder.EndObject()
