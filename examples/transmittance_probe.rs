@@ -4,7 +4,8 @@
 //! that escape the real geometry. A bias here is a bias in every render of partial coverage.
 //!
 //!   cargo run --release --example transmittance_probe -- [SCENE] [RES]
-//! SCENE: a hard-case name (default lattice) or an asset path; RES: the level to probe (32).
+//! SCENE: a hard-case name (default lattice) or an asset path; RES: the level to probe (32);
+//! BAKE: the bake's finest resolution (RES), to probe a level that is not the finest.
 
 use aggtool::bake::{bake_to_file, BakeSettings};
 use aggtool::format::Aggregate;
@@ -17,6 +18,12 @@ fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let name = args.get(1).map(String::as_str).unwrap_or("lattice");
     let res: u32 = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(32);
+    let bake_res: u32 = args
+        .get(3)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(res)
+        .max(res);
+    let level = (bake_res / res).max(1).trailing_zeros() as usize;
     let scene = match aggtool::gen::generate(
         name,
         &aggtool::gen::GenSettings {
@@ -30,7 +37,7 @@ fn main() -> anyhow::Result<()> {
     let dir = tempfile::tempdir()?;
     let path = dir.path().join("p.agg");
     let bake = BakeSettings {
-        max_res: res,
+        max_res: bake_res,
         ..Default::default()
     };
     bake_to_file(&scene, name, &bake, &path, true)?;
@@ -57,7 +64,7 @@ fn main() -> anyhow::Result<()> {
                     cam.pixel_angle(),
                     &lights,
                     &TraceSettings {
-                        level: Some(0),
+                        level: Some(level),
                         ..Default::default()
                     },
                     &mut rng,
@@ -67,7 +74,7 @@ fn main() -> anyhow::Result<()> {
                     cam.pixel_angle(),
                     &lights,
                     &TraceSettings {
-                        level: Some(0),
+                        level: Some(level),
                         primitive: PrimitiveKind::Volume,
                         ..Default::default()
                     },
@@ -93,7 +100,7 @@ fn main() -> anyhow::Result<()> {
     }
     let n = n.max(1) as f64;
     println!(
-        "{name} {res}³: {n} rays meeting a primitive or the mesh; P+ {:.3}; background weight: mesh {:.4}, ours {:.4}, volume {:.4}",
+        "{name} {res}³ (level {level} of a {bake_res}³ bake): {n} rays meeting a primitive or the mesh; P+ {:.3}; background weight: mesh {:.4}, ours {:.4}, volume {:.4}",
         p_plus as f64 / n,
         t_mesh / n,
         t_ours / n,

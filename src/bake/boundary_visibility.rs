@@ -11,7 +11,9 @@ use super::primitive::Ellipsoid;
 use super::voxelize::{demorton3, Grid};
 use crate::math::frame::Frame;
 use crate::math::rng::Pcg32;
-use crate::math::sphere_maps::{concentric_square_to_hemisphere, grid_cell};
+use crate::math::sphere_maps::{
+    average_with_coarser_fill, concentric_square_to_hemisphere, grid_cell,
+};
 use crate::trace::{Accel, Ray};
 
 /// A truncated ellipsoid ready for ray tests: centre, inverse axes, and its voxel's box.
@@ -162,7 +164,7 @@ impl AbvMap {
 #[derive(Clone, Debug)]
 pub struct AbvMap {
     /// `res × res` concentric cells over the inward hemisphere, values in [0, 1]; cells where no
-    /// ray met a primitive hold the mean of the others.
+    /// ray met a primitive hold the average of the smallest enclosing block of cells that some did.
     pub values: Vec<f32>,
     /// Rays per cell that met a primitive (0 marks an undefined cell).
     pub hits: Vec<u32>,
@@ -224,19 +226,17 @@ pub fn abv_map(
             }
         }
     }
-    // Cells no P⁺ ray reached take the mean of the others (the runtime rarely reads them, and
-    // a constant fill adds no wavelet edges).
+    // Cells no P⁺ ray reached take the average of the smallest enclosing block of cells that
+    // some did (the runtime reads them only for rays that meet a primitive there; a local value
+    // is closer than the mean over the hemisphere, and a block constant adds no wavelet edges).
     let (h_sum, e_sum) = (hit.iter().sum::<u32>(), escape.iter().sum::<u32>());
     let fill = if h_sum > 0 {
         e_sum as f32 / h_sum as f32
     } else {
         1.0
     };
-    let values = hit
-        .iter()
-        .zip(&escape)
-        .map(|(&h, &e)| if h > 0 { e as f32 / h as f32 } else { fill })
-        .collect();
+    let as_f64 = |v: &[u32]| v.iter().map(|&x| x as f64).collect::<Vec<_>>();
+    let values = average_with_coarser_fill(&as_f64(&escape), &as_f64(&hit), res, fill);
     AbvMap {
         values,
         hits: hit,

@@ -42,15 +42,19 @@ use glam::Vec2;
 
 use super::sampling::PointSample;
 use crate::math::lowdiscrepancy::sobol_2d;
-use crate::math::sphere_maps::{equal_area_square_to_sphere, grid_cell};
+use crate::math::sphere_maps::{average_with_coarser_fill, equal_area_square_to_sphere, grid_cell};
 use crate::trace::{offset_origin, Accel, Ray};
 
 /// The smallest exposure stored: the incident AIV is never scaled up more than this allows.
 pub const MIN_EXPOSURE: f32 = 1.0 / 16.0;
 
 /// The AIV map of a voxel (row-major `res × res`, values in [0, 1]), the number of rays traced,
-/// and the exposure η in [MIN_EXPOSURE, 1] (see the module notes). Cells no ray reached take the voxel's
-/// mean visibility.
+/// and the exposure η in [MIN_EXPOSURE, 1] (see the module notes). Cells no ray reached take the
+/// average of the smallest enclosing block of cells that some ray reached: a finest-level voxel
+/// traces 16 samples × 16 rays = 256 rays over 32² cells, and filling the other 3/4 with the
+/// voxel's mean over the whole sphere pulled every outward-facing cell of a wall from 1 towards
+/// 1/2 (a 64³ level of the buildings hard case rendered at 0.91 coverage and 0.81 of the
+/// reference radiance, against 1.02 and 0.96 at 32³).
 pub fn aiv_map(
     accel: &Accel,
     samples: &[PointSample],
@@ -108,17 +112,7 @@ pub fn aiv_map(
     } else {
         1.0
     };
-    let map = vis
-        .iter()
-        .zip(&weight)
-        .map(|(v, w)| {
-            if *w > 0.0 {
-                (v / w) as f32
-            } else {
-                mean as f32
-            }
-        })
-        .collect();
+    let map = average_with_coarser_fill(&vis, &weight, res, mean as f32);
     (map, traced, exposure)
 }
 

@@ -88,6 +88,51 @@ pub fn grid_cell(p: Vec2, res: u32) -> u32 {
     y * res + x
 }
 
+/// Per-cell averages of a `res × res` map of Monte Carlo sums (`sum[i] / weight[i]`), where a
+/// cell that no sample reached takes the average of the smallest enclosing 2^k × 2^k block that
+/// some sample did reach, and `default` if none did.
+///
+/// The cells of both maps here nest: a block of 2×2 cells is one cell of the map at half the
+/// resolution, so this is the estimate the coarser map would give. A visibility map with fewer
+/// rays than cells (a finest-level voxel: 16 samples × 16 rays over 32² cells) then stays
+/// unbiased in every direction instead of falling back to the mean over the whole sphere.
+pub fn average_with_coarser_fill(sum: &[f64], weight: &[f64], res: u32, default: f32) -> Vec<f32> {
+    debug_assert_eq!(sum.len(), (res * res) as usize);
+    debug_assert_eq!(weight.len(), sum.len());
+    // The pyramid of (sum, weight) per block, level 0 being the map itself.
+    let mut pyramid: Vec<(u32, Vec<(f64, f64)>)> = vec![(
+        res,
+        sum.iter().copied().zip(weight.iter().copied()).collect(),
+    )];
+    while pyramid.last().is_some_and(|(r, _)| *r > 1) {
+        let (r, cells) = pyramid.last().expect("non-empty");
+        let (r, h) = (*r, (*r).div_ceil(2));
+        let mut next = vec![(0.0, 0.0); (h * h) as usize];
+        for y in 0..r {
+            for x in 0..r {
+                let (s, w) = cells[(y * r + x) as usize];
+                let c = &mut next[((y / 2) * h + x / 2) as usize];
+                c.0 += s;
+                c.1 += w;
+            }
+        }
+        pyramid.push((h, next));
+    }
+    (0..res * res)
+        .map(|i| {
+            let (mut x, mut y) = (i % res, i / res);
+            for (r, cells) in &pyramid {
+                let (s, w) = cells[(y * r + x) as usize];
+                if w > 0.0 {
+                    return (s / w) as f32;
+                }
+                (x, y) = (x / 2, y / 2);
+            }
+            default
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -148,5 +193,33 @@ mod tests {
         assert_eq!(grid_cell(Vec2::new(0.0, 0.0), 32), 0);
         assert_eq!(grid_cell(Vec2::new(1.0, 1.0), 32), 32 * 32 - 1);
         assert_eq!(grid_cell(Vec2::new(0.5, 0.0), 4), 2);
+    }
+    /// Empty cells take their nearest reached block's average, never the whole map's.
+    #[test]
+    fn coarser_fill_uses_the_enclosing_block() {
+        // 4×4 map: one sample of value 1 in cell (0,0), one of value 0 in cell (3,3).
+        let (mut sum, mut w) = (vec![0.0; 16], vec![0.0; 16]);
+        (sum[0], w[0]) = (1.0, 1.0);
+        (sum[15], w[15]) = (0.0, 2.0);
+        let m = average_with_coarser_fill(&sum, &w, 4, 0.5);
+        // The 2×2 block of (0,0) takes 1, the block of (3,3) takes 0, the other two blocks the
+        // whole map's weighted mean 1/3.
+        for (i, v) in m.iter().enumerate() {
+            let (x, y) = (i % 4, i / 4);
+            let want = match (x / 2, y / 2) {
+                (0, 0) => 1.0,
+                (1, 1) => 0.0,
+                _ => 1.0 / 3.0,
+            };
+            assert!((v - want).abs() < 1e-6, "cell ({x},{y}): {v} vs {want}");
+        }
+        assert_eq!(
+            average_with_coarser_fill(&[0.0; 4], &[0.0; 4], 2, 0.25),
+            vec![0.25; 4]
+        );
+        // Not a power of two: still fills every cell.
+        let (mut sum, mut w) = (vec![0.0; 9], vec![0.0; 9]);
+        (sum[8], w[8]) = (0.25, 1.0);
+        assert_eq!(average_with_coarser_fill(&sum, &w, 3, 0.7), vec![0.25; 9]);
     }
 }
