@@ -72,6 +72,7 @@ def describe(path):
         "max_res": s.MaxRes(),
         "aiv_res": s.AivRes(),
         "abv_res": s.AbvRes(),
+        "abv_full_res": s.AbvFullRes(),
         "effects_kept": ix.EffectsKept(),
         "tables_version": ix.TablesVersion(),
         "levels": levels,

@@ -29,8 +29,9 @@ pub struct LevelSettings {
     pub aiv_rays: u32,
     pub aiv_res: u32,
     pub abv_res: u32,
-    /// Boundary-visibility rays per direction cell.
+    /// Boundary-visibility rays per block of `abv_stride²` direction cells.
     pub abv_rays: u32,
+    pub abv_stride: u32,
     /// Fraction of wavelet coefficients kept at most, and detail energy to keep.
     pub keep: f32,
     pub energy: f32,
@@ -47,6 +48,7 @@ impl Default for LevelSettings {
             aiv_res: 32,
             abv_res: 64,
             abv_rays: 1,
+            abv_stride: 1,
             keep: 0.10,
             energy: 0.95,
             denoise: true,
@@ -95,7 +97,11 @@ fn compress(map: &[f32], res: u32, rays_per_cell: f32, s: &LevelSettings) -> Spa
     let (c, mut d) = forward(map, res as usize);
     if s.denoise {
         let mean = (map.iter().map(|&v| v as f64).sum::<f64>() / map.len().max(1) as f64) as f32;
-        let sigma = (mean * (1.0 - mean)).max(0.0).sqrt() / rays_per_cell.max(1.0).sqrt();
+        // Fewer rays than cells (an ABV whose blocks of cells share rays): the fill makes
+        // blocks of cells share one estimate, whose noise reaches the Haar details of the
+        // block's size with the amplitude of white noise of 1/rays_per_cell per cell, so σ
+        // grows past that of a single ray.
+        let sigma = (mean * (1.0 - mean)).max(0.0).sqrt() / rays_per_cell.max(1.0 / 1024.0).sqrt();
         shrink(&mut d, sigma, res as usize);
     }
     truncate(c, &mut d, s.keep, s.energy);
@@ -131,7 +137,11 @@ pub fn bake_voxel(
     };
     let t1 = std::time::Instant::now();
     let (map, rays, exposure) = aiv_map(accel, &samples, s.aiv_res, s.aiv_rays, seed);
-    let per_cell = (samples.len() as f32 * s.aiv_rays as f32) / (s.aiv_res * s.aiv_res) as f32;
+    // A finest-level voxel traces fewer rays than its map has cells (16 × 16 over 32²), but
+    // its noise is taken as a ray's per cell at least: with the true 1/4 the chandelier's 64³
+    // level lost 3.3 of its 11 MiB and rendered 6% worse (RMSE 0.0297 against 0.0279).
+    let per_cell =
+        ((samples.len() as f32 * s.aiv_rays as f32) / (s.aiv_res * s.aiv_res) as f32).max(1.0);
     let aiv = compress(&map, s.aiv_res, per_cell, s);
     let cpu = [(t1 - t0).as_secs_f64(), t1.elapsed().as_secs_f64()];
     (
@@ -165,11 +175,19 @@ pub fn bake_face(
 ) -> (FaceData, u64) {
     let key = super::voxelize::morton3(glam::UVec3::new(face.voxel.0, face.voxel.1, face.voxel.2));
     let seed = (key as u32).wrapping_mul(6) ^ face.dir as u32 ^ ((key >> 32) as u32).rotate_left(7);
-    let m = abv_map(level, accel, face, s.abv_res, s.abv_rays, seed);
+    let m = abv_map(
+        level,
+        accel,
+        face,
+        s.abv_res,
+        s.abv_rays,
+        s.abv_stride,
+        seed,
+    );
     (
         FaceData {
             face,
-            abv: compress(&m.values, s.abv_res, m.rays_per_cell(), s),
+            abv: compress(&m.values, s.abv_res, m.rays_per_cell, s),
         },
         m.traced,
     )

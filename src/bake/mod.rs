@@ -36,6 +36,11 @@ pub struct BakeSettings {
     /// Boundary visibility: map resolution and rays per direction cell.
     pub abv_res: u32,
     pub abv_rays: u32,
+    /// Levels up to this resolution trace `abv_rays` per direction cell of each boundary face;
+    /// a finer level of resolution r traces them per block of (r / abv_full_res)² cells, so
+    /// that every level from here on costs about the same number of ABV rays (four times the
+    /// faces, a quarter of the rays per face), as the surface samples do (paper §7.1).
+    pub abv_full_res: u32,
     /// Most SGGX lobes per voxel.
     pub ndf_lobes: u32,
     /// Directional-moment grid resolution (Eq. 23).
@@ -62,6 +67,7 @@ impl Default for BakeSettings {
             aiv_rays: 16,
             abv_res: 64,
             abv_rays: 1,
+            abv_full_res: 64,
             ndf_lobes: 4,
             moment_res: 3,
             keep: 0.10,
@@ -88,6 +94,7 @@ impl BakeSettings {
         pow2("--min-res", self.min_res, 1, self.max_res)?;
         pow2("--aiv-res", self.aiv_res, 2, 256)?;
         pow2("--abv-res", self.abv_res, 2, 256)?;
+        pow2("--abv-full-res", self.abv_full_res, 1, 4096)?;
         if self.samples == 0 || self.max_samples == 0 || self.aiv_rays == 0 || self.abv_rays == 0 {
             return Err(
                 "--samples, --max-samples, --aiv-rays and --abv-rays must be positive".into(),
@@ -131,6 +138,11 @@ impl BakeSettings {
         ((self.samples as f64 * k).round() as u64).clamp(1, self.max_samples as u64) as u32
     }
 
+    /// The side of the block of ABV direction cells that shares `abv_rays` at resolution `res`.
+    pub fn abv_stride_at(&self, res: u32) -> u32 {
+        (res / self.abv_full_res.max(1)).clamp(1, self.abv_res)
+    }
+
     /// The settings of one level.
     pub fn level(&self, res: u32) -> LevelSettings {
         LevelSettings {
@@ -139,6 +151,7 @@ impl BakeSettings {
             aiv_res: self.aiv_res,
             abv_res: self.abv_res,
             abv_rays: self.abv_rays,
+            abv_stride: self.abv_stride_at(res),
             keep: self.keep,
             energy: self.energy,
             denoise: self.denoise,
@@ -149,5 +162,60 @@ impl BakeSettings {
                 ..Default::default()
             },
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A ray per ABV cell up to --abv-full-res, then blocks of (res / full)² cells per ray
+    /// (never larger than the map), so every level from there on traces about as many.
+    #[test]
+    fn abv_budget_per_level() {
+        let s = BakeSettings {
+            max_res: 1024,
+            abv_full_res: 64,
+            abv_res: 64,
+            ..Default::default()
+        };
+        let strides: Vec<(u32, u32)> = s
+            .resolutions()
+            .into_iter()
+            .map(|r| (r, s.level(r).abv_stride))
+            .collect();
+        assert_eq!(
+            strides,
+            [
+                (1024, 16),
+                (512, 8),
+                (256, 4),
+                (128, 2),
+                (64, 1),
+                (32, 1),
+                (16, 1),
+                (8, 1),
+                (4, 1)
+            ]
+        );
+        let tiny_map = BakeSettings {
+            abv_res: 8,
+            ..s.clone()
+        };
+        assert_eq!(tiny_map.abv_stride_at(4096), 8);
+        let paper = BakeSettings {
+            abv_full_res: 1024,
+            ..s.clone()
+        };
+        assert!(paper
+            .resolutions()
+            .iter()
+            .all(|&r| paper.abv_stride_at(r) == 1));
+        assert!(BakeSettings {
+            abv_full_res: 48,
+            ..s
+        }
+        .validate()
+        .is_err());
     }
 }

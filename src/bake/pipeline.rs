@@ -43,6 +43,8 @@ pub struct LevelReport {
     /// Non-empty voxels over res³.
     pub occupancy: f64,
     pub samples_per_voxel: u32,
+    /// Boundary-visibility rays traced from each face (fewer above `abv_full_res`).
+    pub abv_rays_per_face: u32,
     pub seconds: StageSeconds,
     /// CPU seconds (summed over threads) of sampling + statistics and of the AIV rays.
     pub cpu_statistics: f64,
@@ -245,6 +247,7 @@ pub fn bake_to_file(
             faces: counts.faces,
             occupancy: counts.voxels as f64 / (res as f64).powi(3),
             samples_per_voxel: ls.samples_per_voxel,
+            abv_rays_per_face: ls.abv_rays * (ls.abv_res / ls.abv_stride).pow(2),
             seconds: sec,
             cpu_statistics: cpu_stats.load(Ordering::Relaxed) as f64 * 1e-9,
             cpu_aiv: cpu_aiv.load(Ordering::Relaxed) as f64 * 1e-9,

@@ -191,6 +191,11 @@ enum Command {
         /// Boundary-visibility rays per direction cell.
         #[arg(long, default_value_t = 1)]
         abv_rays: u32,
+        /// Levels finer than this share each face's boundary-visibility rays among blocks of
+        /// (res / N)² direction cells, so that each finer level costs about as many ABV rays as
+        /// this one; set it to --max-res for a ray per cell on every level (the paper's budget).
+        #[arg(long, default_value_t = 64)]
+        abv_full_res: u32,
         /// Most SGGX lobes per voxel (1 to 4).
         #[arg(long, default_value_t = 4)]
         ndf_lobes: u32,
@@ -962,6 +967,7 @@ fn run(cli: Cli) -> Result<()> {
             aiv_rays,
             abv_res,
             abv_rays,
+            abv_full_res,
             ndf_lobes,
             moment_res,
             keep,
@@ -981,6 +987,7 @@ fn run(cli: Cli) -> Result<()> {
                 aiv_rays,
                 abv_res,
                 abv_rays,
+                abv_full_res,
                 ndf_lobes,
                 moment_res,
                 keep,
@@ -1070,12 +1077,13 @@ fn convert(
     println!("output: {} ({})", out.display(), mib(r.bytes));
     for l in &r.levels {
         println!(
-            "stats: level {:>4}³: {:>8} voxels ({:.3}% occupied), {:>8} faces, {:>5} samples/voxel, {}; voxelize {:.2} s, voxels {:.2} s (cpu: statistics {:.1} s, AIV {:.1} s), faces {:.2} s; rays {} AIV + {} ABV",
+            "stats: level {:>4}³: {:>8} voxels ({:.3}% occupied), {:>8} faces, {:>5} samples/voxel, {:>4} ABV rays/face, {}; voxelize {:.2} s, voxels {:.2} s (cpu: statistics {:.1} s, AIV {:.1} s), faces {:.2} s; rays {} AIV + {} ABV",
             l.res,
             l.voxels,
             100.0 * l.occupancy,
             l.faces,
             l.samples_per_voxel,
+            l.abv_rays_per_face,
             mib(l.bytes),
             l.seconds.voxelize,
             l.seconds.voxels,
@@ -1198,7 +1206,7 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
             "settings": {
                 "max_res": s.max_res(), "min_res": s.min_res(), "samples": s.samples(),
                 "max_samples": s.max_samples(), "aiv_res": s.aiv_res(), "aiv_rays": s.aiv_rays(),
-                "abv_res": s.abv_res(), "abv_rays": s.abv_rays(), "ndf_lobes": s.ndf_lobes(),
+                "abv_res": s.abv_res(), "abv_rays": s.abv_rays(), "abv_full_res": s.abv_full_res(), "ndf_lobes": s.ndf_lobes(),
                 "moment_res": s.moment_res(), "keep": s.keep(), "energy": s.energy(),
                 "keep_all_effects": s.keep_all_effects(), "denoise": s.denoise(),
                 "aiv_weighting": s.aiv_weighting().variant_name().unwrap_or("unknown"),
@@ -1231,10 +1239,15 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
         }
     );
     println!(
-        "settings: max-res {} min-res {} samples {} (max {}) aiv {}² × {} rays/sample ({}-weighted), abv {}² × {} rays/cell, ndf-lobes {}, moment-res {}, keep {} energy {}{}",
+        "settings: max-res {} min-res {} samples {} (max {}) aiv {}² × {} rays/sample ({}-weighted), abv {}² × {} rays/cell{}, ndf-lobes {}, moment-res {}, keep {} energy {}{}",
         s.max_res(), s.min_res(), s.samples(), s.max_samples(), s.aiv_res(), s.aiv_rays(),
         if s.aiv_weighting() == aggtool::format::fb::AivWeighting::ProjectedArea { "projected-area" } else { "area" },
-        s.abv_res(), s.abv_rays(), s.ndf_lobes(), s.moment_res(), s.keep(), s.energy(),
+        s.abv_res(), s.abv_rays(),
+        match s.abv_full_res() {
+            0 => String::new(),
+            n => format!(" up to {n}³ (per block of (res/{n})² cells above)"),
+        },
+        s.ndf_lobes(), s.moment_res(), s.keep(), s.energy(),
         if s.keep_all_effects() { ", keep-all-effects" } else { "" }
     );
     println!(

@@ -2341,6 +2341,7 @@ impl<'a> BakeSettings<'a> {
   pub const VT_MIN_RES: ::flatbuffers::VOffsetT = 28;
   pub const VT_DENOISE: ::flatbuffers::VOffsetT = 30;
   pub const VT_AIV_WEIGHTING: ::flatbuffers::VOffsetT = 32;
+  pub const VT_ABV_FULL_RES: ::flatbuffers::VOffsetT = 34;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -2352,6 +2353,7 @@ impl<'a> BakeSettings<'a> {
     args: &'args BakeSettingsArgs
   ) -> ::flatbuffers::WIPOffset<BakeSettings<'bldr>> {
     let mut builder = BakeSettingsBuilder::new(_fbb);
+    builder.add_abv_full_res(args.abv_full_res);
     builder.add_min_res(args.min_res);
     builder.add_energy(args.energy);
     builder.add_keep(args.keep);
@@ -2481,6 +2483,16 @@ impl<'a> BakeSettings<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<AivWeighting>(BakeSettings::VT_AIV_WEIGHTING, Some(AivWeighting::Area)).unwrap()}
   }
+  /// Added in 1.3: levels finer than this trace `abv_rays` per block of
+  /// (res / abv_full_res)² direction cells instead of per cell; 0 (absent in older files):
+  /// every level traces `abv_rays` per cell.
+  #[inline]
+  pub fn abv_full_res(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(BakeSettings::VT_ABV_FULL_RES, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for BakeSettings<'_> {
@@ -2504,6 +2516,7 @@ impl ::flatbuffers::Verifiable for BakeSettings<'_> {
      .visit_field::<u32>("min_res", Self::VT_MIN_RES, false)?
      .visit_field::<bool>("denoise", Self::VT_DENOISE, false)?
      .visit_field::<AivWeighting>("aiv_weighting", Self::VT_AIV_WEIGHTING, false)?
+     .visit_field::<u32>("abv_full_res", Self::VT_ABV_FULL_RES, false)?
      .finish();
     Ok(())
   }
@@ -2524,6 +2537,7 @@ pub struct BakeSettingsArgs {
     pub min_res: u32,
     pub denoise: bool,
     pub aiv_weighting: AivWeighting,
+    pub abv_full_res: u32,
 }
 impl<'a> Default for BakeSettingsArgs {
   #[inline]
@@ -2544,6 +2558,7 @@ impl<'a> Default for BakeSettingsArgs {
       min_res: 0,
       denoise: false,
       aiv_weighting: AivWeighting::Area,
+      abv_full_res: 0,
     }
   }
 }
@@ -2614,6 +2629,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> BakeSettingsBuilder<'a, 'b, A
     self.fbb_.push_slot::<AivWeighting>(BakeSettings::VT_AIV_WEIGHTING, aiv_weighting, AivWeighting::Area);
   }
   #[inline]
+  pub fn add_abv_full_res(&mut self, abv_full_res: u32) {
+    self.fbb_.push_slot::<u32>(BakeSettings::VT_ABV_FULL_RES, abv_full_res, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> BakeSettingsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     BakeSettingsBuilder {
@@ -2646,6 +2665,7 @@ impl ::core::fmt::Debug for BakeSettings<'_> {
       ds.field("min_res", &self.min_res());
       ds.field("denoise", &self.denoise());
       ds.field("aiv_weighting", &self.aiv_weighting());
+      ds.field("abv_full_res", &self.abv_full_res());
       ds.finish()
   }
 }

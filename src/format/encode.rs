@@ -405,6 +405,7 @@ pub fn index(e: &IndexEntry) -> Vec<u8> {
             min_res: s.min_res,
             denoise: s.denoise,
             aiv_weighting: fb::AivWeighting::ProjectedArea,
+            abv_full_res: s.abv_full_res,
         },
     );
     let mut total = Counts::default();

@@ -37,7 +37,7 @@ use std::path::{Path, PathBuf};
 pub const MAGIC: [u8; 8] = [0x89, b'A', b'G', b'G', b'\r', b'\n', 0x1a, b'\n'];
 /// The format version this build writes. Readers accept any minor of their major.
 pub const MAJOR: u16 = 1;
-pub const MINOR: u16 = 2;
+pub const MINOR: u16 = 3;
 pub const HEADER_SIZE: usize = 64;
 /// Alignment of every blob.
 pub const ALIGN: u64 = 64;

@@ -25,7 +25,7 @@ def test_python_reader_matches_inspect():
         tmp = Path(d)
         run("gen", "foliage", "-o", tmp, "--triangles", 800, cwd=tmp)
         run("convert", tmp / "foliage.glb", "--max-res", 8, "--min-res", 2, "--samples", 8,
-            "--aiv-res", 8, "--aiv-rays", 4, "--abv-res", 8, cwd=tmp)
+            "--aiv-res", 8, "--aiv-rays", 4, "--abv-res", 8, "--abv-full-res", 4, cwd=tmp)
         agg = tmp / "foliage.agg"
         assert agg.exists()
         ours = json.loads(run("inspect", agg, "--json", cwd=tmp))
@@ -35,6 +35,7 @@ def test_python_reader_matches_inspect():
         assert theirs["format"] == ours["format"]
         assert theirs["bytes"] == ours["bytes"] == agg.stat().st_size
         assert theirs["source"] == ours["source"] == "foliage.glb"
+        assert theirs["abv_full_res"] == ours["settings"]["abv_full_res"] == 4
         assert [(l["res"], l["voxels"], l["faces"], l["bytes"]) for l in theirs["levels"]] == \
                [(l["res"], l["voxels"], l["faces"], l["bytes"]) for l in ours["levels"]]
         assert [l["res"] for l in theirs["levels"]] == [8, 4, 2]

@@ -138,8 +138,18 @@ class BakeSettings(object):
             return self._tab.Get(flatbuffers.number_types.Uint8Flags, o + self._tab.Pos)
         return 0
 
+    # Added in 1.3: levels finer than this trace `abv_rays` per block of
+    # (res / abv_full_res)² direction cells instead of per cell; 0 (absent in older files):
+    # every level traces `abv_rays` per cell.
+    # BakeSettings
+    def AbvFullRes(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(34))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
+        return 0
+
 def BakeSettingsStart(builder):
-    builder.StartObject(15)
+    builder.StartObject(16)
 
 def Start(builder):
     BakeSettingsStart(builder)
@@ -233,6 +243,12 @@ def BakeSettingsAddAivWeighting(builder, aivWeighting):
 
 def AddAivWeighting(builder, aivWeighting):
     BakeSettingsAddAivWeighting(builder, aivWeighting)
+
+def BakeSettingsAddAbvFullRes(builder, abvFullRes):
+    builder.PrependUint32Slot(15, abvFullRes, 0)
+
+def AddAbvFullRes(builder, abvFullRes):
+    BakeSettingsAddAbvFullRes(builder, abvFullRes)
 
 def BakeSettingsEnd(builder):
     return builder.EndObject()
