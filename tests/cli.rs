@@ -176,3 +176,20 @@ fn bad_inputs_fail_cleanly() {
     );
     assert!(!p.join("x.exr").exists(), "no output after a failure");
 }
+
+/// A reader that goes away (`aggtool ... | head`) stops the command quietly: no panic.
+#[test]
+fn closed_stdout_is_not_a_panic() {
+    let d = tempfile::tempdir().unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_aggtool"))
+        .args(["gen", "all", "-o", ".", "--triangles", "2000"])
+        .current_dir(d.path())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("run aggtool");
+    drop(child.stdout.take());
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+}

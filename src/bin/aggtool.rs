@@ -1266,6 +1266,13 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
 }
 
 fn main() -> ExitCode {
+    // A closed pipe (`aggtool inspect F.agg | head`) ends the process quietly, as it does
+    // other Unix tools, instead of a panic in println!.
+    #[cfg(unix)]
+    // SAFETY: restores the default action of one signal before any thread is started.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let cli = Cli::parse();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
