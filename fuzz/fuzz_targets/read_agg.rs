@@ -5,6 +5,7 @@
 //! ```text
 //! cargo install cargo-fuzz
 //! cargo +nightly fuzz run read_agg fuzz/corpus/read_agg -- -max_total_time=300
+//! RUSTC_BOOTSTRAP=1 cargo fuzz run read_agg fuzz/corpus/read_agg   # a stable toolchain
 //! ```
 //! (seed the corpus with small bakes, e.g. `aggtool convert x.glb --max-res 8 -o fuzz/corpus/read_agg/x.agg`).
 #![no_main]

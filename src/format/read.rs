@@ -396,7 +396,7 @@ fn verify(data: &[u8], h: &Header, checksums: bool) -> Result<(), FormatError> {
     if checksums && crc32fast::hash(index_bytes) != h.index_crc32 {
         return Err(corrupt("index checksum mismatch"));
     }
-    if !flatbuffers::buffer_has_identifier(index_bytes, INDEX_ID, false) {
+    if !has_identifier(index_bytes, INDEX_ID) {
         return Err(corrupt("index has the wrong identifier"));
     }
     let opts = verifier_options();
@@ -490,6 +490,13 @@ fn check_range(
     Ok(())
 }
 
+/// Whether a FlatBuffer blob carries this file identifier; false for one too short to hold an
+/// identifier (flatbuffers asserts on those).
+fn has_identifier(b: &[u8], id: &str) -> bool {
+    b.len() >= flatbuffers::SIZE_UOFFSET + flatbuffers::FILE_IDENTIFIER_LENGTH
+        && flatbuffers::buffer_has_identifier(b, id, false)
+}
+
 fn check_blob<'a>(
     data: &'a [u8],
     h: &Header,
@@ -506,7 +513,7 @@ fn check_blob<'a>(
             r.offset()
         )));
     }
-    if !flatbuffers::buffer_has_identifier(b, BLOCK_ID, false) {
+    if !has_identifier(b, BLOCK_ID) {
         return Err(corrupt(format!(
             "block at {}: wrong identifier",
             r.offset()
