@@ -191,9 +191,9 @@ pub fn abv_map(
     let mut traced = 0u64;
     let blocks = (res / stride.clamp(1, res)).max(1);
     let total = blocks * blocks * rays;
-    // Directions are stratified by cell (every cell gets its rays); the jitter inside a cell
-    // and the origins on the face come from a PCG stream, far cheaper than a scrambled Sobol
-    // point and as good here, one or a few rays per cell.
+    // Directions are stratified by block of cells (every block gets its rays); the jitter
+    // inside a block and the origins on the face come from a PCG stream, far cheaper than a
+    // scrambled Sobol point and as good here, one or a few rays per block.
     let mut rng = Pcg32::new(seed as u64, 0xab5);
     for k in 0..total {
         let block = k / rays;
