@@ -18,6 +18,43 @@ const fn sobol_dim1() -> [u32; 32] {
 }
 const DIM1: [u32; 32] = sobol_dim1();
 
+/// `DIM1_BYTES[b][v]`: the XOR of the direction numbers of the set bits of byte value `v` at
+/// byte `b` of the index, so that the second dimension takes four lookups instead of a loop
+/// over the index's bits (after scrambling, about 16 unpredictable branches per point: 5% of a
+/// maple bake).
+const fn sobol_dim1_bytes() -> [[u32; 256]; 4] {
+    let mut t = [[0u32; 256]; 4];
+    let mut b = 0;
+    while b < 4 {
+        let mut v = 0;
+        while v < 256 {
+            let mut y = 0u32;
+            let mut k = 0;
+            while k < 8 {
+                if v & (1 << k) != 0 {
+                    y ^= DIM1[8 * b + k];
+                }
+                k += 1;
+            }
+            t[b][v] = y;
+            v += 1;
+        }
+        b += 1;
+    }
+    t
+}
+static DIM1_BYTES: [[u32; 256]; 4] = sobol_dim1_bytes();
+
+/// Sobol's second dimension of index `i`: the XOR of the direction numbers of its set bits.
+#[inline]
+fn sobol_dim1_of(i: u32) -> u32 {
+    let t = &DIM1_BYTES;
+    t[0][(i & 0xff) as usize]
+        ^ t[1][((i >> 8) & 0xff) as usize]
+        ^ t[2][((i >> 16) & 0xff) as usize]
+        ^ t[3][(i >> 24) as usize]
+}
+
 /// Laine–Karras style hash permutation: bit k of the output depends only on bits ≤ k.
 #[inline]
 fn lk_permutation(mut x: u32, seed: u32) -> u32 {
@@ -46,16 +83,7 @@ pub fn sobol_2d(index: u32, seed: u32) -> Vec2 {
     // Shuffle the order (so that prefixes of different seeds differ), then generate.
     let i = owen_scramble(index, hash(seed, 0));
     let x = i.reverse_bits();
-    let mut y = 0u32;
-    let mut bits = i;
-    let mut k = 0;
-    while bits != 0 {
-        if bits & 1 != 0 {
-            y ^= DIM1[k];
-        }
-        bits >>= 1;
-        k += 1;
-    }
+    let y = sobol_dim1_of(i);
     let x = owen_scramble(x, hash(seed, 1));
     let y = owen_scramble(y, hash(seed, 2));
     Vec2::new(
@@ -67,6 +95,23 @@ pub fn sobol_2d(index: u32, seed: u32) -> Vec2 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The byte tables give the bit-by-bit XOR of the direction numbers.
+    #[test]
+    fn dim1_tables_match_the_bit_loop() {
+        let by_bits = |i: u32| {
+            (0..32)
+                .filter(|k| i >> k & 1 != 0)
+                .fold(0u32, |y, k| y ^ DIM1[k])
+        };
+        let mut rng = crate::math::rng::Pcg32::new(5, 1);
+        for i in (0..4096)
+            .chain((0..4096).map(|_| rng.next_u32()))
+            .chain([u32::MAX])
+        {
+            assert_eq!(sobol_dim1_of(i), by_bits(i), "index {i:#x}");
+        }
+    }
 
     #[test]
     fn nets_are_stratified_for_every_seed() {
