@@ -266,8 +266,8 @@ mod tests {
         for p in cases() {
             let b = BaseBsdf::new(p);
             for _ in 0..200 {
-                let wo = dir(rng.next_f32() * 1.5, rng.next_f32() * 6.28);
-                let wi = dir(rng.next_f32() * 1.5, rng.next_f32() * 6.28);
+                let wo = dir(rng.next_f32() * 1.5, rng.next_f32() * std::f32::consts::TAU);
+                let wi = dir(rng.next_f32() * 1.5, rng.next_f32() * std::f32::consts::TAU);
                 let (f, pdf) = b.eval_pdf(wo, wi);
                 assert_eq!(f, b.eval(wo, wi));
                 assert_eq!(pdf, b.pdf(wo, wi));

@@ -238,7 +238,8 @@ mod tests {
                 // plane45: normal (±sin45°, 0, ±cos45°).
                 assert!(
                     (s.surface.normal.y).abs() < 1e-4
-                        && (s.surface.normal.x.abs() - 0.7071).abs() < 1e-3
+                        && (s.surface.normal.x.abs() - std::f32::consts::FRAC_1_SQRT_2).abs()
+                            < 1e-3
                 );
             }
         }
