@@ -4,6 +4,7 @@
 use aggtool::absdf::cases::{case_samples, sphere_grid, CASES};
 use aggtool::absdf::estimate::{estimate, EstimateSettings};
 use aggtool::absdf::Absdf;
+use aggtool::bsdf::Bsdf;
 use aggtool::tables::Tables;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use glam::Vec2;

@@ -3,11 +3,11 @@
 //! block of instanced buildings. `cargo bench --bench trace`.
 
 use aggtool::gen::{generate, GenSettings};
+use aggtool::lights::{Environment, Lights, Sun};
 use aggtool::math::rng::Pcg32;
-use aggtool::render::lights::{Environment, Lights, Sun};
 use aggtool::render::reference::radiance;
-use aggtool::render::{Camera, View};
-use aggtool::trace::Accel;
+use aggtool::render::View;
+use aggtool::trace::{Accel, Ray};
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use glam::{Vec2, Vec3};
 
@@ -25,9 +25,12 @@ fn bench(c: &mut Criterion) {
         let accel = Accel::build(&scene);
         let (center, r) = scene.bounding_sphere();
         let view = View::framing(center, r, 128, 128, 1);
-        let cam = Camera::new(&view.camera);
-        let rays: Vec<_> = (0..128 * 128)
-            .map(|i| cam.ray(Vec2::new((i % 128) as f32 + 0.5, (i / 128) as f32 + 0.5)))
+        let cam = view.camera();
+        let rays: Vec<Ray> = (0..128 * 128)
+            .map(|i| {
+                let (o, d) = cam.ray(Vec2::new((i % 128) as f32 + 0.5, (i / 128) as f32 + 0.5));
+                Ray::new(o, d)
+            })
             .collect();
         let mut g = c.benchmark_group(name);
         g.throughput(Throughput::Elements(rays.len() as u64));

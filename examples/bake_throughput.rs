@@ -70,7 +70,13 @@ fn main() -> anyhow::Result<()> {
         max_res,
         ..Default::default()
     };
-    let r = bake_to_file(&scene, "probe", &settings, &out, true)?;
+    let r = bake_to_file(
+        &scene,
+        "probe",
+        &settings,
+        &out,
+        &aggtool::util::no_progress,
+    )?;
     println!(
         "bake: {:.1} s, {} bytes, {} visibility rays at {:.2} Mrays/s over the voxel and face stages = {:.2} of raw",
         r.total_seconds,

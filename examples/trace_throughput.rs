@@ -11,9 +11,9 @@
 
 use std::time::{Duration, Instant};
 
-use aggtool::render::lights::{Environment, Lights, Sun};
+use aggtool::lights::{Environment, Lights, Sun};
 use aggtool::render::reference::{render, ReferenceSettings};
-use aggtool::render::{Camera, View};
+use aggtool::render::View;
 use aggtool::trace::{Accel, Ray};
 use glam::{Vec2, Vec3};
 use obvhs::cwbvh::builder::build_cwbvh_from_tris;
@@ -54,11 +54,14 @@ fn main() -> anyhow::Result<()> {
     println!("input: {}: {}", path.display(), scene.summary());
     let (c, r) = scene.bounding_sphere();
     let view = View::framing(c, r, size, size, spp);
-    let camera = Camera::new(&view.camera);
+    let camera = view.camera();
 
     // The same camera rays for both traversals: one per pixel centre.
     let rays: Vec<Ray> = (0..size * size)
-        .map(|i| camera.ray(Vec2::new((i % size) as f32 + 0.5, (i / size) as f32 + 0.5)))
+        .map(|i| {
+            let (o, d) = camera.ray(Vec2::new((i % size) as f32 + 0.5, (i / size) as f32 + 0.5));
+            Ray::new(o, d)
+        })
         .collect();
 
     // Raw obvhs: every instance's triangles in world space, one CwBvh.
@@ -140,16 +143,13 @@ fn main() -> anyhow::Result<()> {
         &accel,
         &camera,
         &lights,
-        ReferenceSettings {
-            spp,
-            seed: 0,
-            progress: false,
-        },
+        ReferenceSettings { spp, seed: 0 },
+        &aggtool::util::no_progress,
     );
     println!(
         "reference renderer:          {:8.2} Mrays/s ({:.2} of raw; {} rays incl. shadow and BSDF rays, {:.2} s at {size}x{size}, {spp} spp)",
-        stats.rays_per_second / 1e6,
-        stats.rays_per_second / raw,
+        stats.rays_per_second() / 1e6,
+        stats.rays_per_second() / raw,
         stats.rays,
         stats.seconds
     );

@@ -10,7 +10,6 @@
 use aggtool::bake::{bake_to_file, BakeSettings};
 use aggtool::format::Aggregate;
 use aggtool::math::rng::Pcg32;
-use aggtool::render::lights::Lights;
 use aggtool::runtime::{LodScene, PrimitiveKind, TraceSettings};
 use aggtool::trace::Accel;
 
@@ -40,13 +39,12 @@ fn main() -> anyhow::Result<()> {
         max_res: bake_res,
         ..Default::default()
     };
-    bake_to_file(&scene, name, &bake, &path, true)?;
-    let agg = Aggregate::open(&path)?;
-    let lod = LodScene::new(&agg);
+    bake_to_file(&scene, name, &bake, &path, &aggtool::util::no_progress)?;
+    let lod = LodScene::new(Aggregate::open(&path)?);
     let accel = Accel::build(&scene);
     let view = aggtool::eval::study_view(&scene, res, 1);
-    let lights = Lights::from_view(&view)?;
-    let cam = aggtool::render::Camera::new(&view.camera);
+    let lights = view.lights()?;
+    let cam = view.camera();
     let mut rng = Pcg32::new(9, 9);
     let (mut t_mesh, mut t_ours, mut t_vol, mut n, mut p_plus) =
         (0.0f64, 0.0f64, 0.0f64, 0u64, 0u64);
@@ -58,10 +56,11 @@ fn main() -> anyhow::Result<()> {
         for x in 0..res {
             for _ in 0..16 {
                 let p = glam::Vec2::new(x as f32, y as f32) + rng.next_2d();
-                let ray = cam.ray(p);
+                let (o, d) = cam.ray(p);
+                let ray = aggtool::trace::Ray::new(o, d);
+                let cone = aggtool::runtime::Cone::new(o, d, cam.pixel_angle());
                 let ours = lod.trace(
-                    &ray,
-                    cam.pixel_angle(),
+                    &cone,
                     &lights,
                     &TraceSettings {
                         level: Some(level),
@@ -70,8 +69,7 @@ fn main() -> anyhow::Result<()> {
                     &mut rng,
                 );
                 let vol = lod.trace(
-                    &ray,
-                    cam.pixel_angle(),
+                    &cone,
                     &lights,
                     &TraceSettings {
                         level: Some(level),

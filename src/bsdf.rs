@@ -14,6 +14,10 @@
 //!
 //! Every function returns finite values for any input, including grazing and opposite
 //! directions and roughness 0 (clamped to [`crate::math::microfacet::ALPHA_MIN`]).
+//!
+//! [`Bsdf`] is the one BSDF interface of the project, with one argument order (ω_i, ω_o) as
+//! the paper writes f(x, ω_i, ω_o): the base material here (in its local shading frame) and
+//! the aggregated BSDF of a voxel ([`crate::absdf::Absdf`], in world space) both implement it.
 
 use std::f32::consts::FRAC_1_PI;
 
@@ -27,16 +31,37 @@ use crate::math::sampling::{cosine_hemisphere_pdf, square_to_cosine_hemisphere};
 use crate::math::{finite_or_zero, finite_vec_or_zero};
 use crate::scene::SurfaceParams;
 
-/// A direction sampled from the BSDF.
+/// A direction sampled from a BSDF.
 #[derive(Clone, Copy, Debug)]
 pub struct BsdfSample {
-    /// Local incident direction.
+    /// The sampled incident direction ω_i (in the BSDF's frame).
     pub wi: Vec3,
-    /// BSDF value f(ω_o, ω_i) (without the cosine).
-    pub f: Vec3,
+    /// The BSDF's value f(ω_i, ω_o) for it (with whatever cosines the BSDF includes).
+    pub value: Vec3,
     /// Solid-angle density of `wi`.
     pub pdf: f32,
 }
+
+/// The one BSDF interface: evaluation, density, both at once, and importance sampling, all
+/// with the argument order (ω_i, ω_o) and unit directions pointing away from the surface.
+/// Finite for every input.
+pub trait Bsdf {
+    /// f(ω_i, ω_o).
+    fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3;
+    /// Solid-angle density with which [`Bsdf::sample`] produces ω_i for ω_o.
+    fn pdf(&self, wi: Vec3, wo: Vec3) -> f32;
+    /// (f, pdf) together (implementations may share work).
+    fn eval_pdf(&self, wi: Vec3, wo: Vec3) -> (Vec3, f32) {
+        (self.eval(wi, wo), self.pdf(wi, wo))
+    }
+    /// Samples ω_i for ω_o: `u_lobe` picks the component and lobe, `u` the direction. `None`
+    /// when the sample is invalid (its probability is the density's missing mass).
+    fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample>;
+}
+
+/// Cosines at or below this count as below the horizon: a direction within 1e-7 of the
+/// tangent plane (and no unit vector's cosine product underflows f32 in the specular term).
+const MIN_COS: f32 = 1e-7;
 
 /// Eq. 11 at one surface point, in the local shading frame (normal = +z).
 #[derive(Clone, Copy, Debug)]
@@ -46,7 +71,20 @@ pub struct BaseBsdf {
 }
 
 impl BaseBsdf {
+    /// The BSDF of these parameters; NaN or out-of-range parameters are clamped to valid ones
+    /// (non-finite or negative base colour and NaN metallic to 0, NaN specular to 0.04 and F90
+    /// to 1, roughness into [ALPHA_MIN, 1]).
     pub fn new(params: SurfaceParams) -> Self {
+        let unit = |x: f32, nan: f32| if x.is_nan() { nan } else { x.clamp(0.0, 1.0) };
+        let pos = |x: f32| if x.is_finite() { x.max(0.0) } else { 0.0 };
+        let c = params.base_color;
+        let params = SurfaceParams {
+            base_color: Vec3::new(pos(c.x), pos(c.y), pos(c.z)),
+            metallic: unit(params.metallic, 0.0),
+            alpha: params.alpha,
+            specular: unit(params.specular, 0.04),
+            f90: unit(params.f90, 1.0),
+        };
         BaseBsdf {
             alpha: clamp_alpha(params.alpha),
             params,
@@ -81,10 +119,12 @@ impl BaseBsdf {
             (ws / (ws + wd)).clamp(0.05, 0.95)
         }
     }
+}
 
-    /// f(ω_o, ω_i).
-    pub fn eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
-        if wo.z <= 0.0 || wi.z <= 0.0 {
+impl Bsdf for BaseBsdf {
+    /// f(ω_i, ω_o) in the local frame (normal +z); zero unless both are above the surface.
+    fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {
+        if !(wo.z > MIN_COS && wi.z > MIN_COS) || !(wo.is_finite() && wi.is_finite()) {
             return Vec3::ZERO;
         }
         let mut f = self.diffuse_albedo() * FRAC_1_PI;
@@ -98,9 +138,10 @@ impl BaseBsdf {
         finite_vec_or_zero(f)
     }
 
-    /// Solid-angle density of [`Self::sample`] producing ω_i.
-    pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
-        if wo.z <= 0.0 || wi.z <= 0.0 {
+    /// Density of [`Bsdf::sample`] producing ω_i: the specular lobe's visible normals and
+    /// the cosine-weighted hemisphere, mixed by the lobe probability.
+    fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {
+        if !(wo.z > MIN_COS && wi.z > MIN_COS) || !(wo.is_finite() && wi.is_finite()) {
             return 0.0;
         }
         let ps = self.specular_probability(wo);
@@ -116,15 +157,10 @@ impl BaseBsdf {
         finite_or_zero(pdf)
     }
 
-    /// (f, pdf) together.
-    pub fn eval_pdf(&self, wo: Vec3, wi: Vec3) -> (Vec3, f32) {
-        (self.eval(wo, wi), self.pdf(wo, wi))
-    }
-
     /// Samples ω_i: `u_lobe` picks the lobe, `u` the direction. `None` when the sample falls
     /// below the horizon (its probability is the pdf's missing mass).
-    pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
-        if wo.z <= 0.0 {
+    fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
+        if !(wo.z > MIN_COS) || !wo.is_finite() {
             return None;
         }
         let ps = self.specular_probability(wo);
@@ -135,16 +171,16 @@ impl BaseBsdf {
         } else {
             square_to_cosine_hemisphere(u)
         };
-        if !(wi.z > 0.0) || !wi.is_finite() {
+        if !(wi.z > MIN_COS) || !wi.is_finite() {
             return None;
         }
-        let pdf = self.pdf(wo, wi);
+        let pdf = self.pdf(wi, wo);
         if !(pdf > 0.0) {
             return None;
         }
         Some(BsdfSample {
             wi,
-            f: self.eval(wo, wi),
+            value: self.eval(wi, wo),
             pdf,
         })
     }
@@ -184,10 +220,10 @@ mod tests {
     #[test]
     fn lambertian_is_albedo_over_pi() {
         let b = BaseBsdf::new(SurfaceParams::lambertian(Vec3::splat(0.5)));
-        let f = b.eval(dir(0.3, 0.1), dir(1.0, 2.0));
+        let f = b.eval(dir(1.0, 2.0), dir(0.3, 0.1));
         assert!((f - Vec3::splat(0.5 / std::f32::consts::PI)).length() < 1e-6);
         assert!(
-            (b.pdf(dir(0.3, 0.1), dir(1.0, 2.0)) - 1.0f32.cos() / std::f32::consts::PI).abs()
+            (b.pdf(dir(1.0, 2.0), dir(0.3, 0.1)) - 1.0f32.cos() / std::f32::consts::PI).abs()
                 < 1e-6
         );
     }
@@ -207,7 +243,7 @@ mod tests {
                         ..Chi2Settings::default()
                     },
                     |u| b.sample(wo, rng.next_f32(), u).map(|s| s.wi),
-                    |wi| b.pdf(wo, wi),
+                    |wi| b.pdf(wi, wo),
                 );
                 assert!(r.passed(0.01), "{p:?} θo={theta}: {r:?}");
             }
@@ -222,7 +258,7 @@ mod tests {
         let mut sum = Vec3::ZERO;
         for _ in 0..n {
             if let Some(s) = b.sample(wo, rng.next_f32(), rng.next_2d()) {
-                sum += s.f * s.wi.z / s.pdf;
+                sum += s.value * s.wi.z / s.pdf;
             }
         }
         sum / n as f32
@@ -268,12 +304,12 @@ mod tests {
             for _ in 0..200 {
                 let wo = dir(rng.next_f32() * 1.5, rng.next_f32() * std::f32::consts::TAU);
                 let wi = dir(rng.next_f32() * 1.5, rng.next_f32() * std::f32::consts::TAU);
-                let (f, pdf) = b.eval_pdf(wo, wi);
-                assert_eq!(f, b.eval(wo, wi));
-                assert_eq!(pdf, b.pdf(wo, wi));
+                let (f, pdf) = b.eval_pdf(wi, wo);
+                assert_eq!(f, b.eval(wi, wo));
+                assert_eq!(pdf, b.pdf(wi, wo));
                 // Reciprocity holds exactly for this model except through the Fresnel term,
                 // which depends on |h·o| = |h·i|: symmetric too.
-                let g = b.eval(wi, wo);
+                let g = b.eval(wo, wi);
                 assert!((f - g).length() <= 1e-4 * f.length().max(1.0), "{f} {g}");
             }
         }
@@ -293,13 +329,13 @@ mod tests {
             let b = BaseBsdf::new(p);
             for &wo in &dirs {
                 for &wi in &dirs {
-                    assert!(b.eval(wo, wi).is_finite());
-                    assert!(b.pdf(wo, wi).is_finite());
+                    assert!(b.eval(wi, wo).is_finite());
+                    assert!(b.pdf(wi, wo).is_finite());
                 }
                 for k in 0..16 {
                     let u = Vec2::new(k as f32 / 16.0, 0.999_999);
                     if let Some(s) = b.sample(wo, 0.5, u) {
-                        assert!(s.f.is_finite() && s.pdf.is_finite() && s.wi.is_finite());
+                        assert!(s.value.is_finite() && s.pdf.is_finite() && s.wi.is_finite());
                     }
                 }
             }

@@ -4,6 +4,7 @@
 use aggtool::absdf::cases::{case_samples, compare_case, sphere_grid, CASES};
 use aggtool::absdf::estimate::{estimate, EstimateSettings, SurfaceSample};
 use aggtool::absdf::{Absdf, MaterialMoments, Moments, NdfLobe, VoxelAppearance};
+use aggtool::bsdf::Bsdf;
 use aggtool::math::rng::Pcg32;
 use aggtool::math::sampling::square_to_uniform_sphere;
 use aggtool::scene::SurfaceParams;

@@ -7,11 +7,12 @@ use std::path::Path;
 
 use aggtool::absdf::Absdf;
 use aggtool::bake::level::bake_level;
-use aggtool::bake::voxelize::Grid;
 use aggtool::bake::{bake_to_file, BakeSettings};
+use aggtool::bsdf::Bsdf;
 use aggtool::format::{Aggregate, FormatError, Header, HEADER_SIZE, MAJOR, MINOR};
 use aggtool::gen::{generate, GenSettings};
 use aggtool::scene::Scene;
+use aggtool::spatial::Grid;
 use aggtool::trace::Accel;
 use glam::Vec3;
 
@@ -50,7 +51,7 @@ fn bake(
     name: &str,
 ) -> (Vec<u8>, aggtool::bake::BakeReport) {
     let path = dir.join(name);
-    let r = bake_to_file(scene, "test.glb", s, &path, false).unwrap();
+    let r = bake_to_file(scene, "test.glb", s, &path, &aggtool::util::no_progress).unwrap();
     (std::fs::read(&path).unwrap(), r)
 }
 
@@ -341,7 +342,9 @@ fn writer_is_atomic() {
         max_res: 12,
         ..small()
     };
-    let e = bake_to_file(&sc, "s", &bad, &dest, false).err().unwrap();
+    let e = bake_to_file(&sc, "s", &bad, &dest, &aggtool::util::no_progress)
+        .err()
+        .unwrap();
     assert!(e.to_string().contains("--max-res"), "{e}");
     assert_eq!(std::fs::read(&dest).unwrap(), b"previous");
 }

@@ -6,12 +6,12 @@ use std::f32::consts::PI;
 
 use aggtool::gen::glb::{MaterialData, NodeData, SceneData};
 use aggtool::gen::shapes;
-use aggtool::render::lights::{Environment, Lights, Sun};
+use aggtool::lights::{Environment, Lights, Sun};
 use aggtool::render::reference::{render, ReferenceSettings};
-use aggtool::render::view::CameraDesc;
 use aggtool::render::{Camera, Image};
 use aggtool::scene::Scene;
 use aggtool::trace::Accel;
+use aggtool::util::no_progress;
 use glam::{Mat4, Vec3};
 
 fn lambert(rgb: [f32; 3]) -> MaterialData {
@@ -25,22 +25,11 @@ fn one_mesh(mesh: aggtool::gen::glb::MeshData, mat: MaterialData) -> Scene {
 }
 
 fn camera(eye: Vec3, target: Vec3, size: u32, fov: f32) -> Camera {
-    Camera::new(&CameraDesc {
-        eye: eye.to_array(),
-        target: target.to_array(),
-        up: [0.0, 1.0, 0.0],
-        fov_y_deg: fov,
-        width: size,
-        height: size,
-    })
+    Camera::look_at(eye, target, Vec3::Y, fov, size, size)
 }
 
 fn settings(spp: u32) -> ReferenceSettings {
-    ReferenceSettings {
-        spp,
-        seed: 3,
-        progress: false,
-    }
+    ReferenceSettings { spp, seed: 3 }
 }
 
 /// A Lambertian plane of albedo ρ under a constant environment L has radiance ρL (it sees the
@@ -60,7 +49,7 @@ fn lambertian_plane_under_constant_sky() {
     };
     // Looking down at the plane, which fills the image.
     let cam = camera(Vec3::new(0.0, 1.0, 0.01), Vec3::ZERO, 32, 40.0);
-    let (img, stats) = render(&accel, &cam, &lights, settings(64));
+    let (img, stats) = render(&accel, &cam, &lights, settings(64), &no_progress);
     let expect = Vec3::from(rho) * Vec3::new(2.0, 1.0, 0.5);
     let mean = img.mean();
     assert!(
@@ -91,7 +80,7 @@ fn white_furnace() {
         sun: None,
     };
     let cam = camera(Vec3::new(0.0, 0.0, 2.0), Vec3::ZERO, 32, 35.0);
-    let (img, _) = render(&accel, &cam, &lights, settings(64));
+    let (img, _) = render(&accel, &cam, &lights, settings(64), &no_progress);
     let mean = img.mean();
     assert!((mean - Vec3::ONE).abs().max_element() < 0.01, "{mean}");
     for p in &img.pixels {
@@ -118,7 +107,7 @@ fn sun_on_a_plane_is_exact() {
         }),
     };
     let cam = camera(Vec3::new(0.0, 1.0, 0.01), Vec3::ZERO, 16, 40.0);
-    let (img, _) = render(&accel, &cam, &lights, settings(4));
+    let (img, _) = render(&accel, &cam, &lights, settings(4), &no_progress);
     let expect = rho / PI * 3.0 * theta.cos();
     for p in &img.pixels {
         assert!(
@@ -163,7 +152,7 @@ fn shadows_block_the_sun() {
     };
     // Look at the ground's centre from below the blocker, at a grazing angle.
     let cam = camera(Vec3::new(0.0, 0.3, 0.9), Vec3::new(0.0, 0.0, 0.0), 8, 10.0);
-    let (img, _) = render(&accel, &cam, &lights, settings(1));
+    let (img, _) = render(&accel, &cam, &lights, settings(1), &no_progress);
     assert_eq!(img.get(4, 4), Vec3::ZERO);
 }
 
@@ -182,7 +171,7 @@ fn foliage_render(threads: usize) -> Image {
         .num_threads(threads)
         .build()
         .unwrap();
-    pool.install(|| render(&accel, &cam, &lights, settings(8)).0)
+    pool.install(|| render(&accel, &cam, &lights, settings(8), &no_progress).0)
 }
 
 #[test]

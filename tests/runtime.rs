@@ -1,18 +1,20 @@
 //! The LoD runtime: known answers (misses return the environment exactly, an empty aggregate
 //! is transparent, a flat Lambertian plane under a constant sky gives albedo × sky), finite
-//! pixels on every hard case, and the truncated ellipsoid beating the cube primitive on the
-//! Fig. 6 plane.
+//! values with no NaN counted on every hard case, the truncated ellipsoid beating the cube
+//! primitive on the Fig. 6 plane, the traversal layer agreeing with the shading layer,
+//! reservoir shading unbiased against shading every voxel, and lazy opening.
 
 use aggtool::bake::{bake_to_file, BakeSettings};
 use aggtool::format::Aggregate;
 use aggtool::gen::glb::{MaterialData, SceneData};
 use aggtool::gen::{generate, GenSettings};
+use aggtool::lights::{Environment, Lights};
+use aggtool::math::numerics::{counting, non_finite_count};
 use aggtool::math::rng::Pcg32;
-use aggtool::render::lights::{Environment, Lights};
-use aggtool::render::{Camera, View};
-use aggtool::runtime::{LodScene, PrimitiveKind, TraceSettings};
+use aggtool::render::View;
+use aggtool::runtime::{Cone, LodScene, PrimitiveKind, Shading, TraceSettings};
 use aggtool::scene::Scene;
-use aggtool::trace::Ray;
+use aggtool::util::no_progress;
 use glam::Vec3;
 
 fn small(max_res: u32) -> BakeSettings {
@@ -29,11 +31,20 @@ fn small(max_res: u32) -> BakeSettings {
     }
 }
 
-fn baked(scene: &Scene, s: &BakeSettings) -> Aggregate {
+fn baked_bytes(scene: &Scene, s: &BakeSettings) -> Vec<u8> {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("t.agg");
-    bake_to_file(scene, "t", s, &p, false).unwrap();
-    Aggregate::from_bytes(std::fs::read(&p).unwrap()).unwrap()
+    bake_to_file(scene, "t", s, &p, &no_progress).unwrap();
+    std::fs::read(&p).unwrap()
+}
+
+fn baked(scene: &Scene, s: &BakeSettings) -> LodScene {
+    LodScene::new(Aggregate::from_bytes(baked_bytes(scene, s)).unwrap())
+}
+
+/// A cone along `o + t d` of aperture `a`.
+fn cone(o: Vec3, d: Vec3, a: f32) -> Cone {
+    Cone::new(o, d, a)
 }
 
 fn sky(l: f32) -> Lights {
@@ -53,7 +64,7 @@ fn gradient() -> Lights {
             .collect(),
     };
     Lights {
-        environment: Environment::Map(aggtool::render::lights::EnvMap::new(&img, 1.0, 0.0)),
+        environment: Environment::Map(aggtool::lights::EnvMap::from_image(&img, 1.0, 0.0)),
         sun: None,
     }
 }
@@ -69,8 +80,7 @@ fn misses_return_the_environment_exactly() {
     )
     .unwrap()
     .to_scene();
-    let agg = baked(&scene, &small(8));
-    let lod = LodScene::new(&agg);
+    let lod = baked(&scene, &small(8));
     let lights = gradient();
     let mut rng = Pcg32::new(1, 1);
     let (lo, hi) = lod.bounds().unwrap();
@@ -80,16 +90,11 @@ fn misses_return_the_environment_exactly() {
         // From outside the cube, aimed past it or away from it.
         let o = 0.5 * (lo + hi) - d * 10.0 * (hi - lo).length()
             + Vec3::new(0.0, (i % 3) as f32 * 100.0, 0.0);
-        let r = lod.trace(
-            &Ray::new(o, d),
-            1e-3,
-            &lights,
-            &TraceSettings::default(),
-            &mut rng,
-        );
+        let c = cone(o, d, 1e-3);
+        let r = lod.trace(&c, &lights, &TraceSettings::default(), &mut rng);
         if r.primitives == 0 {
             misses += 1;
-            assert_eq!(r.radiance, lights.environment.eval(d));
+            assert_eq!(r.radiance, lights.environment.eval(c.dir));
             assert_eq!(r.transmittance, 1.0);
         }
     }
@@ -101,7 +106,7 @@ fn empty_aggregate_is_transparent() {
     use aggtool::format::encode::{index, Counts, IndexEntry, LevelEntry};
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("empty.agg");
-    let settings = BakeSettings::default();
+    let settings = BakeSettings::default().recorded();
     let levels = [LevelEntry {
         res: 8,
         origin: Vec3::ZERO,
@@ -123,20 +128,14 @@ fn empty_aggregate_is_transparent() {
         .unwrap()
         .finish(&ix)
         .unwrap();
-    let agg = Aggregate::open(&p).unwrap();
-    let lod = LodScene::new(&agg);
+    let lod = LodScene::open(&p).unwrap();
     let lights = gradient();
     let mut rng = Pcg32::new(2, 2);
     for _ in 0..100 {
         let d = aggtool::math::sampling::square_to_uniform_sphere(rng.next_2d());
-        let r = lod.trace(
-            &Ray::new(Vec3::splat(0.5) - d, d),
-            0.01,
-            &lights,
-            &TraceSettings::default(),
-            &mut rng,
-        );
-        assert_eq!(r.radiance, lights.environment.eval(d));
+        let c = cone(Vec3::splat(0.5) - d, d, 0.01);
+        let r = lod.trace(&c, &lights, &TraceSettings::default(), &mut rng);
+        assert_eq!(r.radiance, lights.environment.eval(c.dir));
         assert_eq!(r.primitives, 0);
     }
 }
@@ -166,8 +165,7 @@ fn white_plane() -> Scene {
 #[test]
 fn flat_lambertian_plane_gives_albedo_times_sky() {
     let scene = white_plane();
-    let agg = baked(&scene, &small(16));
-    let lod = LodScene::new(&agg);
+    let lod = baked(&scene, &small(16));
     let lights = sky(2.0);
     let mut rng = Pcg32::new(3, 3);
     let mut sum = Vec3::ZERO;
@@ -176,10 +174,8 @@ fn flat_lambertian_plane_gives_albedo_times_sky() {
     for i in 0..n {
         let x = (i % 20) as f32 / 20.0 - 0.5;
         let z = (i / 20) as f32 / 20.0 - 0.5;
-        let ray = Ray::new(Vec3::new(x, 3.0, z), Vec3::NEG_Y);
         let r = lod.trace(
-            &ray,
-            1e-3,
+            &cone(Vec3::new(x, 3.0, z), Vec3::NEG_Y, 1e-3),
             &lights,
             &TraceSettings {
                 nee: 4,
@@ -209,8 +205,7 @@ fn flat_lambertian_plane_gives_albedo_times_sky() {
 /// (σ_t = area·|n·ω| / s³ = 1/s), the correlation failure of paper Fig. 7 that the ABV avoids.
 #[test]
 fn volume_baseline_leaks_through_a_plane_as_beer_lambert_says() {
-    let agg = baked(&white_plane(), &small(16));
-    let lod = LodScene::new(&agg);
+    let lod = baked(&white_plane(), &small(16));
     let lights = sky(2.0);
     let mut rng = Pcg32::new(5, 5);
     let s = TraceSettings {
@@ -224,8 +219,7 @@ fn volume_baseline_leaks_through_a_plane_as_beer_lambert_says() {
         let x = (i % 10) as f32 / 10.0 - 0.45;
         let z = (i / 10) as f32 / 10.0 - 0.45;
         let r = lod.trace(
-            &Ray::new(Vec3::new(x, 3.0, z), Vec3::NEG_Y),
-            1e-3,
+            &cone(Vec3::new(x, 3.0, z), Vec3::NEG_Y, 1e-3),
             &lights,
             &s,
             &mut rng,
@@ -254,6 +248,23 @@ fn view_of(scene: &Scene, size: u32, spp: u32) -> View {
     v
 }
 
+/// What a finite render must show: every raw cone value finite and non-negative, and no
+/// non-finite value replaced on the way (the count of [`aggtool::math::numerics`]).
+fn check_finite(values: &[Vec3], replaced: u64) -> Result<(), String> {
+    if let Some(v) = values
+        .iter()
+        .find(|v| !(v.is_finite() && v.min_element() >= 0.0))
+    {
+        return Err(format!("raw value {v}"));
+    }
+    if replaced > 0 {
+        return Err(format!("{replaced} non-finite values replaced"));
+    }
+    Ok(())
+}
+
+/// Every hard case, every primitive: each cone's raw radiance is finite and non-negative, and
+/// no non-finite value was replaced along the way.
 #[test]
 fn hard_cases_render_finite() {
     for name in aggtool::gen::NAMES {
@@ -266,11 +277,10 @@ fn hard_cases_render_finite() {
         )
         .unwrap()
         .to_scene();
-        let agg = baked(&scene, &small(8));
-        let lod = LodScene::new(&agg);
+        let lod = baked(&scene, &small(8));
         let view = view_of(&scene, 16, 2);
-        let lights = Lights::from_view(&view).unwrap();
-        let cam = Camera::new(&view.camera);
+        let lights = view.lights().unwrap();
+        let cam = view.camera();
         for prim in [
             PrimitiveKind::TruncatedEllipsoid,
             PrimitiveKind::Cube,
@@ -280,15 +290,38 @@ fn hard_cases_render_finite() {
                 primitive: prim,
                 ..Default::default()
             };
-            let (img, _) = aggtool::runtime::render(&lod, &cam, &lights, 2, 1, &s, false);
-            assert!(
-                img.pixels
-                    .iter()
-                    .all(|p| p.is_finite() && p.min_element() >= 0.0),
+            let before = non_finite_count();
+            let mut rng = Pcg32::new(1, 1);
+            let mut values = Vec::new();
+            for y in 0..16 {
+                for x in 0..16 {
+                    let (o, d) = cam.ray(glam::Vec2::new(x as f32, y as f32) + rng.next_2d());
+                    let r = lod.trace(&cone(o, d, cam.pixel_angle()), &lights, &s, &mut rng);
+                    values.push(r.radiance);
+                    values.push(Vec3::new(r.transmittance, r.coverage, 0.0));
+                }
+            }
+            check_finite(&values, non_finite_count() - before)
+                .unwrap_or_else(|e| panic!("{name} {prim:?}: {e}"));
+            let (img, stats) =
+                aggtool::runtime::render(&lod, &cam, &lights, 2, 1, &s, &no_progress);
+            assert_eq!(
+                (stats.invalid_samples, stats.non_finite),
+                (0, 0),
                 "{name} {prim:?}"
             );
+            assert!(img.pixels.iter().all(|p| p.is_finite()));
         }
     }
+}
+
+/// The check above fails on an injected NaN, raw or replaced: it is a test that can fail.
+#[test]
+fn an_injected_nan_fails_the_finite_check() {
+    assert!(check_finite(&[Vec3::ONE, Vec3::new(f32::NAN, 0.0, 0.0)], 0).is_err());
+    let (_, replaced) = counting(|| aggtool::math::finite_vec_or_zero(Vec3::splat(f32::NAN)));
+    assert!(check_finite(&[Vec3::ONE], replaced).is_err());
+    assert!(check_finite(&[Vec3::ONE], 0).is_ok());
 }
 
 /// Paper Fig. 6: a plane at 45° through a voxel grid. Cube primitives bloat the silhouette and
@@ -306,21 +339,17 @@ fn plane45_ellipsoids_beat_cubes() {
     .unwrap();
     data.make_lambertian();
     let scene = data.to_scene();
-    let agg = baked(&scene, &small(16));
-    let lod = LodScene::new(&agg);
+    let lod = baked(&scene, &small(16));
     let view = view_of(&scene, 32, 16);
-    let lights = Lights::from_view(&view).unwrap();
-    let cam = Camera::new(&view.camera);
+    let lights = view.lights().unwrap();
+    let cam = view.camera();
     let accel = aggtool::trace::Accel::build(&scene);
     let (reference, _) = aggtool::render::reference::render(
         &accel,
         &cam,
         &lights,
-        aggtool::render::reference::ReferenceSettings {
-            spp: 64,
-            seed: 1,
-            progress: false,
-        },
+        aggtool::render::reference::ReferenceSettings { spp: 64, seed: 1 },
+        &no_progress,
     );
     let rmse = |prim| {
         let s = TraceSettings {
@@ -328,7 +357,7 @@ fn plane45_ellipsoids_beat_cubes() {
             nee: 2,
             ..Default::default()
         };
-        let (img, _) = aggtool::runtime::render(&lod, &cam, &lights, 16, 1, &s, false);
+        let (img, _) = aggtool::runtime::render(&lod, &cam, &lights, 16, 1, &s, &no_progress);
         aggtool::render::compare::compare(&img, &reference)
             .unwrap()
             .rmse
@@ -363,13 +392,13 @@ fn dropped_effects_do_not_change_renders() {
             ..small(8)
         },
     );
-    assert!(full.bytes().len() > lean.bytes().len());
+    assert!(full.aggregate().bytes().len() > lean.aggregate().bytes().len());
     let view = view_of(&scene, 24, 4);
-    let lights = Lights::from_view(&view).unwrap();
-    let cam = Camera::new(&view.camera);
+    let lights = view.lights().unwrap();
+    let cam = view.camera();
     let s = TraceSettings::default();
-    let (a, _) = aggtool::runtime::render(&LodScene::new(&lean), &cam, &lights, 4, 7, &s, false);
-    let (b, _) = aggtool::runtime::render(&LodScene::new(&full), &cam, &lights, 4, 7, &s, false);
+    let (a, _) = aggtool::runtime::render(&lean, &cam, &lights, 4, 7, &s, &no_progress);
+    let (b, _) = aggtool::runtime::render(&full, &cam, &lights, 4, 7, &s, &no_progress);
     let c = aggtool::render::compare::compare(&a, &b).unwrap();
     let mean = b.pixels.iter().map(|p| p.x as f64).sum::<f64>() / b.pixels.len() as f64;
     assert!(
@@ -392,11 +421,10 @@ fn level_selection_follows_the_footprint() {
     )
     .unwrap()
     .to_scene();
-    let agg = baked(&scene, &small(16));
-    let lod = LodScene::new(&agg);
+    let lod = baked(&scene, &small(16));
     let n = lod.level_count();
     assert_eq!(n, 4);
-    let base = agg.grid(0).voxel_size();
+    let base = lod.grid(0).voxel_size();
     let aperture = 0.01f32;
     let at = |footprint_voxels: f32| {
         lod.level_for(aperture, footprint_voxels * base / (0.5 * aperture).tan())
@@ -407,14 +435,14 @@ fn level_selection_follows_the_footprint() {
     assert_eq!(at(4.1), 2);
     assert_eq!(at(1e6), n - 1);
     let view = view_of(&scene, 12, 1);
-    let lights = Lights::from_view(&view).unwrap();
-    let cam = Camera::new(&view.camera);
+    let lights = view.lights().unwrap();
+    let cam = view.camera();
     for l in 0..n {
         let s = TraceSettings {
             level: Some(l),
             ..Default::default()
         };
-        let (img, _) = aggtool::runtime::render(&lod, &cam, &lights, 1, 1, &s, false);
+        let (img, _) = aggtool::runtime::render(&lod, &cam, &lights, 1, 1, &s, &no_progress);
         assert!(img.pixels.iter().all(|p| p.is_finite()));
     }
 }
@@ -439,22 +467,21 @@ fn closed_geometry_keeps_its_brightness() {
         min_res: 16,
         ..small(16)
     };
-    let agg = baked(&scene, &s);
-    let lod = LodScene::new(&agg);
+    let lod = baked(&scene, &s);
     let accel = aggtool::trace::Accel::build(&scene);
     let view = view_of(&scene, 16, 1);
-    let lights = Lights::from_view(&view).unwrap();
-    let cam = Camera::new(&view.camera);
+    let lights = view.lights().unwrap();
+    let cam = view.camera();
     let mut rng = Pcg32::new(11, 11);
     let (mut ours, mut reference, mut n) = (0.0f64, 0.0f64, 0u32);
     let mut rays = 0u64;
     for y in 0..16 {
         for x in 0..16 {
             for _ in 0..32 {
-                let ray = cam.ray(glam::Vec2::new(x as f32, y as f32) + rng.next_2d());
+                let (o, d) = cam.ray(glam::Vec2::new(x as f32, y as f32) + rng.next_2d());
+                let ray = aggtool::trace::Ray::new(o, d);
                 let r = lod.trace(
-                    &ray,
-                    cam.pixel_angle(),
+                    &cone(o, d, cam.pixel_angle()),
                     &lights,
                     &TraceSettings::default(),
                     &mut rng,
@@ -477,4 +504,166 @@ fn closed_geometry_keeps_its_brightness() {
         (0.85..1.15).contains(&ratio),
         "LoD / reference mean radiance {ratio}"
     );
+}
+
+/// The two layers agree: summing the traversal's hits shaded with `shade` (the host's way) is
+/// what `trace` computes with every voxel shaded, value for value with the same random
+/// numbers; and the coverage is the sum of the hits' weights.
+#[test]
+fn hits_and_trace_agree() {
+    let scene = generate(
+        "foliage",
+        &GenSettings {
+            triangles: 4000,
+            ..Default::default()
+        },
+    )
+    .unwrap()
+    .to_scene();
+    let lod = baked(&scene, &small(16));
+    let view = view_of(&scene, 16, 1);
+    let lights = view.lights().unwrap();
+    let cam = view.camera();
+    let every = TraceSettings {
+        shading: Shading::Every,
+        ..Default::default()
+    };
+    let mut met = 0;
+    for y in 0..16 {
+        for x in 0..16 {
+            let (o, d) = cam.ray(glam::Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
+            let c = cone(o, d, cam.pixel_angle());
+            let mut r1 = Pcg32::new(x, y);
+            let want = lod.trace(&c, &lights, &every, &mut r1);
+            let mut r2 = Pcg32::new(x, y);
+            let mut hits = lod.hits(&c, &every);
+            let (mut sum, mut cov) = (Vec3::ZERO, 0.0f32);
+            for h in &mut hits {
+                assert!(h.weight > 0.0 && h.t >= 0.0);
+                sum += aggtool::runtime::shade(&h.voxel, -d, &lights, 1, &mut r2) * h.weight;
+                cov += h.weight;
+            }
+            let got = sum + lights.environment.eval(d) * hits.transmittance();
+            assert!(
+                (got - want.radiance).length() <= 1e-5 * (1.0 + got.length()),
+                "{got} {}",
+                want.radiance
+            );
+            assert!((cov - want.coverage).abs() <= 1e-5 * (1.0 + cov));
+            assert_eq!(hits.transmittance(), want.transmittance);
+            assert_eq!(lod.transmittance(&c, &every), want.transmittance);
+            met += (want.primitives > 0) as u32;
+        }
+    }
+    assert!(met > 30, "{met}");
+}
+
+/// Reservoir shading is an unbiased estimate of shading every voxel: over many cones through
+/// the same pixels the means agree within their Monte Carlo error.
+#[test]
+fn reservoir_shading_is_unbiased() {
+    let scene = generate(
+        "foliage",
+        &GenSettings {
+            triangles: 4000,
+            ..Default::default()
+        },
+    )
+    .unwrap()
+    .to_scene();
+    let lod = baked(&scene, &small(16));
+    let view = view_of(&scene, 8, 1);
+    let lights = view.lights().unwrap();
+    let cam = view.camera();
+    let mean = |shading: Shading, seed: u64| {
+        let s = TraceSettings {
+            shading,
+            ..Default::default()
+        };
+        let mut rng = Pcg32::new(seed, 0);
+        let (mut sum, mut sq, mut n) = (0.0f64, 0.0f64, 0u32);
+        for _ in 0..64 {
+            for y in 0..8 {
+                for x in 0..8 {
+                    let (o, d) = cam.ray(glam::Vec2::new(x as f32, y as f32) + rng.next_2d());
+                    let v = lod
+                        .trace(&cone(o, d, cam.pixel_angle()), &lights, &s, &mut rng)
+                        .radiance
+                        .element_sum() as f64;
+                    sum += v;
+                    sq += v * v;
+                    n += 1;
+                }
+            }
+        }
+        let m = sum / n as f64;
+        (m, ((sq / n as f64 - m * m).max(0.0) / n as f64).sqrt())
+    };
+    let (a, ea) = mean(Shading::Every, 1);
+    let (b, eb) = mean(Shading::Reservoir { picks: 1 }, 2);
+    let (c, ec) = mean(Shading::Reservoir { picks: 3 }, 3);
+    let tol = |e1: f64, e2: f64| 4.0 * (e1 * e1 + e2 * e2).sqrt();
+    assert!(
+        (a - b).abs() < tol(ea, eb),
+        "every {a} ± {ea}, reservoir {b} ± {eb}"
+    );
+    assert!(
+        (a - c).abs() < tol(ea, ec),
+        "every {a} ± {ea}, 3 picks {c} ± {ec}"
+    );
+}
+
+/// Opening is lazy: nothing is prepared on open; a distant view prepares only coarse levels;
+/// a damaged block is found when a cone first needs its level, reported, and never read.
+#[test]
+fn opening_is_lazy_and_damage_is_reported() {
+    let scene = generate(
+        "lattice",
+        &GenSettings {
+            triangles: 2000,
+            ..Default::default()
+        },
+    )
+    .unwrap()
+    .to_scene();
+    let bytes = baked_bytes(&scene, &small(16));
+    let lod = LodScene::new(Aggregate::from_bytes_lazy(bytes.clone()).unwrap());
+    assert!(lod.prepared().iter().all(|p| !p));
+    let lights = sky(1.0);
+    let (lo, hi) = lod.bounds().unwrap();
+    let c = 0.5 * (lo + hi);
+    let far = Vec3::new(0.0, 0.0, 1000.0) * (hi - lo).length();
+    let mut rng = Pcg32::new(1, 1);
+    let r = lod.trace(
+        &cone(c + far, -far.normalize(), 1e-3),
+        &lights,
+        &TraceSettings::default(),
+        &mut rng,
+    );
+    assert!(r.primitives > 0);
+    let p = lod.prepared();
+    assert!(!p[0] && p[p.len() - 1], "{p:?}");
+    assert!(lod.first_error().is_none());
+    // Damage a byte inside the finest level's first voxel block: the lazy open succeeds, the
+    // level fails to prepare with an error naming it, the render carries on without it.
+    let agg = Aggregate::from_bytes(bytes.clone()).unwrap();
+    let (vb, _) = agg.level_bytes(0);
+    assert!(vb > 0);
+    // The first blob (at byte 64) is the finest level's first voxel block.
+    let mut bad = bytes.clone();
+    bad[64 + 200] ^= 0x40;
+    assert!(Aggregate::from_bytes(bad.clone()).is_err());
+    let lod = LodScene::new(Aggregate::from_bytes_lazy(bad).unwrap());
+    for l in 0..lod.level_count() {
+        let _ = lod.prepare(l);
+    }
+    let e = lod.first_error().expect("the damage is found").to_string();
+    assert!(e.contains("level"), "{e}");
+    let r = lod.trace(
+        &cone(c + far, -far.normalize(), 1e-3),
+        &lights,
+        &TraceSettings::default(),
+        &mut rng,
+    );
+    assert!(r.radiance.is_finite());
 }

@@ -10,6 +10,7 @@ use glam::{Vec2, Vec3};
 
 use super::estimate::{estimate, EstimateSettings, SurfaceSample};
 use super::{ground_truth, Absdf, VoxelAppearance};
+use crate::bsdf::Bsdf;
 use crate::math::lowdiscrepancy::sobol_2d;
 use crate::math::sphere_maps::equal_area_square_to_sphere;
 use crate::scene::SurfaceParams;

@@ -50,7 +50,7 @@ impl Default for EstimateSettings {
 /// Normalising mass ∫D of a unit SGGX lobe, approximated by the isotropic closed form at the
 /// geometric mean roughness (used only to compare likelihoods between mixtures).
 fn lobe_mass(alpha: Vec2) -> f32 {
-    2.0 * crate::tables::fit::m5_exact((alpha.x * alpha.y).sqrt())
+    2.0 * crate::math::microfacet::m5_exact((alpha.x * alpha.y).sqrt())
 }
 
 /// k-means on double-sided normals (distance 1 − (n·c)²), centres by the principal axis of each

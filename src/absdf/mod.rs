@@ -187,14 +187,8 @@ struct SpecLobe {
     inv_s: f32,
 }
 
-/// A sample of the ABSDF.
-#[derive(Clone, Copy, Debug)]
-pub struct AbsdfSample {
-    pub wi: Vec3,
-    /// f̂(ω_i, ω_o).
-    pub value: Vec3,
-    pub pdf: f32,
-}
+use crate::bsdf::Bsdf;
+pub use crate::bsdf::BsdfSample;
 
 /// The factorized ABSDF of one voxel, with every ω-independent table lookup done once.
 #[derive(Clone, Debug)]
@@ -414,8 +408,46 @@ impl<'t> Absdf<'t> {
         acc
     }
 
+    /// Probability of sampling the specular component.
+    fn specular_probability(&self) -> f32 {
+        let (dm, sm) = self.mean_moments;
+        let wd = crate::math::color::luminance(dm.diffuse());
+        let ws = crate::math::color::luminance(sm.reflectance()).max(0.0) + 0.1 * sm.grazing();
+        if self.spec.is_empty() || ws <= 0.0 {
+            0.0
+        } else if wd <= 0.0 {
+            1.0
+        } else {
+            0.5
+        }
+    }
+
+    /// Density of ω_h under a visible-normal mixture and the reflection Jacobian.
+    fn mixture_pdf(lobes: &[(f32, Sggx)], total: f32, wi: Vec3, wo: Vec3) -> f32 {
+        let h = wi + wo;
+        let hl = h.length();
+        if !(hl > 1e-6) || total <= 0.0 {
+            return 0.0;
+        }
+        let wh = h / hl;
+        let oh = wo.dot(wh);
+        if oh <= 0.0 {
+            return 0.0;
+        }
+        let mut p = 0.0;
+        for (w, s) in lobes {
+            p += w / total * s.visible_pdf(wo, wh);
+        }
+        finite_or_zero(p / (4.0 * oh))
+    }
+}
+
+impl Bsdf for Absdf<'_> {
     /// f̂(ω_i, ω_o) without visibility (Eq. 7 through Eq. 23). Finite for every input.
-    pub fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {
+    fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {
+        if !(wi.is_finite() && wo.is_finite()) {
+            return Vec3::ZERO;
+        }
         let (wi, wo) = (wi.normalize_or_zero(), wo.normalize_or_zero());
         if wi == Vec3::ZERO || wo == Vec3::ZERO {
             return Vec3::ZERO;
@@ -464,41 +496,11 @@ impl<'t> Absdf<'t> {
         finite_vec_or_zero(f / sigma_o)
     }
 
-    /// Probability of sampling the specular component.
-    fn specular_probability(&self) -> f32 {
-        let (dm, sm) = self.mean_moments;
-        let wd = crate::math::color::luminance(dm.diffuse());
-        let ws = crate::math::color::luminance(sm.reflectance()).max(0.0) + 0.1 * sm.grazing();
-        if self.spec.is_empty() || ws <= 0.0 {
-            0.0
-        } else if wd <= 0.0 {
-            1.0
-        } else {
-            0.5
-        }
-    }
-
-    /// Density of ω_h under a visible-normal mixture and the reflection Jacobian.
-    fn mixture_pdf(lobes: &[(f32, Sggx)], total: f32, wi: Vec3, wo: Vec3) -> f32 {
-        let h = wi + wo;
-        let hl = h.length();
-        if !(hl > 1e-6) || total <= 0.0 {
+    /// Solid-angle density of [`Bsdf::sample`].
+    fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {
+        if !(wi.is_finite() && wo.is_finite()) {
             return 0.0;
         }
-        let wh = h / hl;
-        let oh = wo.dot(wh);
-        if oh <= 0.0 {
-            return 0.0;
-        }
-        let mut p = 0.0;
-        for (w, s) in lobes {
-            p += w / total * s.visible_pdf(wo, wh);
-        }
-        finite_or_zero(p / (4.0 * oh))
-    }
-
-    /// Solid-angle density of [`Self::sample`].
-    pub fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {
         let (wi, wo) = (wi.normalize_or_zero(), wo.normalize_or_zero());
         let ps = self.specular_probability();
         let mut p = 0.0;
@@ -511,15 +513,13 @@ impl<'t> Absdf<'t> {
         finite_or_zero(p)
     }
 
-    /// (f̂, pdf) together.
-    pub fn eval_pdf(&self, wi: Vec3, wo: Vec3) -> (Vec3, f32) {
-        (self.eval(wi, wo), self.pdf(wi, wo))
-    }
-
     /// Samples ω_i (§7.3): pick the specular or diffuse component, a lobe by weight, a visible
     /// normal of that lobe for ω_o, and reflect ω_o about it. `u` = (component and lobe,
     /// direction 2D).
-    pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<AbsdfSample> {
+    fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
+        if !wo.is_finite() {
+            return None;
+        }
         let wo = wo.normalize_or_zero();
         if wo == Vec3::ZERO {
             return None;
@@ -556,7 +556,7 @@ impl<'t> Absdf<'t> {
         if !(pdf > 0.0) || wi == Vec3::ZERO {
             return None;
         }
-        Some(AbsdfSample {
+        Some(BsdfSample {
             wi,
             value: self.eval(wi, wo),
             pdf,
@@ -586,7 +586,7 @@ pub fn ground_truth(
         let n = if co < 0.0 { -n } else { n };
         let frame = crate::math::frame::Frame::from_z(n);
         let b = crate::bsdf::BaseBsdf::new(*p);
-        let f = b.eval(frame.to_local(wo), frame.to_local(wi));
+        let f = b.eval(frame.to_local(wi), frame.to_local(wo));
         num += f * (w * ci.abs() * co.abs());
     }
     if den > 0.0 {

@@ -4,33 +4,7 @@
 
 use std::collections::{BTreeSet, VecDeque};
 
-use glam::UVec3;
-
-/// A voxel face: the voxel and the axis direction (0..6: −x, +x, −y, +y, −z, +z) it faces.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
-pub struct Face {
-    pub voxel: UVec3Key,
-    pub dir: u8,
-}
-
-/// A UVec3 usable as an ordered key.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
-pub struct UVec3Key(pub u32, pub u32, pub u32);
-
-impl From<UVec3> for UVec3Key {
-    fn from(v: UVec3) -> Self {
-        UVec3Key(v.x, v.y, v.z)
-    }
-}
-
-const DIRS: [(i32, i32, i32); 6] = [
-    (-1, 0, 0),
-    (1, 0, 0),
-    (0, -1, 0),
-    (0, 1, 0),
-    (0, 0, -1),
-    (0, 0, 1),
-];
+use crate::spatial::{Face, UVec3Key, FACE_DIRS};
 
 /// Boundary faces of the occupied set on a `res³` grid, in a deterministic order.
 pub fn boundary_faces(occupied: &BTreeSet<UVec3Key>, res: u32) -> Vec<Face> {
@@ -48,7 +22,7 @@ pub fn boundary_faces(occupied: &BTreeSet<UVec3Key>, res: u32) -> Vec<Face> {
     queue.push_back((-1, -1, -1));
     let lim = res as i32;
     while let Some((x, y, z)) = queue.pop_front() {
-        for (dx, dy, dz) in DIRS {
+        for (dx, dy, dz) in FACE_DIRS {
             let (nx, ny, nz) = (x + dx, y + dy, z + dz);
             if nx < -1 || ny < -1 || nz < -1 || nx > lim || ny > lim || nz > lim {
                 continue;
@@ -62,7 +36,7 @@ pub fn boundary_faces(occupied: &BTreeSet<UVec3Key>, res: u32) -> Vec<Face> {
     }
     let mut faces = Vec::new();
     for v in occupied {
-        for (d, (dx, dy, dz)) in DIRS.iter().enumerate() {
+        for (d, (dx, dy, dz)) in FACE_DIRS.iter().enumerate() {
             if outside[idx(v.0 as i32 + dx, v.1 as i32 + dy, v.2 as i32 + dz)] {
                 faces.push(Face {
                     voxel: *v,

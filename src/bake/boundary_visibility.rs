@@ -1,29 +1,19 @@
 //! Aggregated boundary visibility (paper Eq. 26): for a boundary face and each direction of its
 //! inward hemisphere (64×64 concentric map), among the rays from the face that hit some
 //! primitive of the level (the P⁺ of Eq. 26), the fraction that escapes the real geometry.
-//! Primitives are the voxels' truncated ellipsoids, found along a ray by a 3D DDA over the
-//! sparse level.
+//! Primitives are the voxels' truncated ellipsoids, tested by the same
+//! [`TruncatedEllipsoid::intersect`] the runtime counts hits with, found along a ray by a BVH
+//! over their boxes.
 
 use glam::{UVec3, Vec2, Vec3};
 
-use super::boundary::Face;
-use super::primitive::Ellipsoid;
-use super::voxelize::{demorton3, Grid};
 use crate::math::frame::Frame;
 use crate::math::rng::Pcg32;
 use crate::math::sphere_maps::{
     average_with_coarser_fill, concentric_square_to_hemisphere, grid_cell,
 };
+use crate::spatial::{demorton3, face_normal, Ellipsoid, Face, Grid, TruncatedEllipsoid};
 use crate::trace::{Accel, Ray};
-
-/// A truncated ellipsoid ready for ray tests: centre, inverse axes, and its voxel's box.
-#[derive(Clone, Copy, Debug)]
-struct Prepared {
-    center: Vec3,
-    inv: glam::Mat3,
-    lo: Vec3,
-    hi: Vec3,
-}
 
 /// The primitives of one level, in a BVH (obvhs) over the boxes of the truncated ellipsoids
 /// (each ellipsoid's bounding box clipped to its voxel): "does this ray meet any primitive"
@@ -32,70 +22,31 @@ struct Prepared {
 pub struct PrimitiveLevel {
     pub grid: Grid,
     /// In the BVH's primitive order.
-    prims: Vec<Prepared>,
+    prims: Vec<TruncatedEllipsoid>,
     bvh: Option<obvhs::cwbvh::CwBvh>,
-}
-
-/// Parameter interval where `o + t d` is inside the ellipsoid.
-#[inline]
-fn ellipsoid_interval(e: &Prepared, o: Vec3, d: Vec3) -> Option<(f32, f32)> {
-    super::primitive::ellipsoid_ray_interval(e.center, e.inv, o, d)
-}
-
-/// Entry parameter of the ray into the truncated ellipsoid within [tmin, tmax], if it meets it.
-#[inline]
-fn truncated_entry(
-    e: &Prepared,
-    o: Vec3,
-    d: Vec3,
-    inv_d: Vec3,
-    tmin: f32,
-    tmax: f32,
-) -> Option<f32> {
-    let (a, b) = ((e.lo - o) * inv_d, (e.hi - o) * inv_d);
-    let t0 = a.min(b).max_element().max(tmin);
-    let t1 = a.max(b).min_element().min(tmax);
-    if !(t0 <= t1) {
-        return None;
-    }
-    let (e0, e1) = ellipsoid_interval(e, o, d)?;
-    let (lo, hi) = (e0.max(t0), e1.min(t1));
-    (lo <= hi).then_some(lo)
 }
 
 impl PrimitiveLevel {
     /// The level of these (Morton key, ellipsoid) pairs; degenerate ellipsoids are left out.
     pub fn new(grid: Grid, prims: impl IntoIterator<Item = (u64, Ellipsoid)>) -> Self {
-        let list: Vec<Prepared> = prims
+        let list: Vec<(TruncatedEllipsoid, (Vec3, Vec3))> = prims
             .into_iter()
             .filter_map(|(k, e)| {
-                let inv = e.axes.inverse();
-                if !inv.is_finite() {
-                    return None;
-                }
                 let (vlo, vhi) = grid.voxel_bounds(demorton3(k));
-                // The ellipsoid's box: half extent along axis i is |row i of the axes|.
-                let m = e.axes.transpose();
-                let half = Vec3::new(m.x_axis.length(), m.y_axis.length(), m.z_axis.length());
-                let (lo, hi) = ((e.center - half).max(vlo), (e.center + half).min(vhi));
-                (lo.cmple(hi).all()).then_some(Prepared {
-                    center: e.center,
-                    inv,
-                    lo,
-                    hi,
-                })
+                let p = TruncatedEllipsoid::new(&e, vlo, vhi)?;
+                Some((p, p.bounds()?))
             })
             .collect();
         if list.is_empty() {
             return PrimitiveLevel {
                 grid,
-                prims: list,
+                prims: Vec::new(),
                 bvh: None,
             };
         }
         let aabbs: Vec<obvhs::aabb::Aabb> = list
             .iter()
-            .map(|p| obvhs::aabb::Aabb::new(p.lo.into(), p.hi.into()))
+            .map(|(_, (lo, hi))| obvhs::aabb::Aabb::new((*lo).into(), (*hi).into()))
             .collect();
         let bvh = obvhs::cwbvh::builder::build_cwbvh(
             &aabbs,
@@ -105,7 +56,7 @@ impl PrimitiveLevel {
         let prims = bvh
             .primitive_indices
             .iter()
-            .map(|&i| list[i as usize])
+            .map(|&i| list[i as usize].0)
             .collect();
         PrimitiveLevel {
             grid,
@@ -131,17 +82,11 @@ impl PrimitiveLevel {
         let inv_d = ray.dir.recip();
         let (o, d) = (ray.origin, ray.dir);
         !bvh.ray_traverse_miss(ray.to_bvh(), |r, id| {
-            truncated_entry(&self.prims[id], o, d, inv_d, r.tmin, r.tmax).unwrap_or(f32::INFINITY)
+            self.prims[id]
+                .intersect(o, d, inv_d, r.tmin, r.tmax)
+                .unwrap_or(f32::INFINITY)
         })
     }
-}
-
-/// The outward unit normal of a face direction (0..6: −x, +x, −y, +y, −z, +z).
-pub fn face_normal(dir: u8) -> Vec3 {
-    let axis = (dir / 2) as usize;
-    let mut n = Vec3::ZERO;
-    n[axis] = if dir % 2 == 0 { -1.0 } else { 1.0 };
-    n
 }
 
 /// The ABV map of one face.
@@ -253,12 +198,12 @@ pub fn abv_map(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bake::boundary::{boundary_faces, UVec3Key};
+    use crate::bake::boundary::boundary_faces;
     use crate::bake::primitive::fit_ellipsoid;
     use crate::bake::sampling::{pieces_by_voxel, sample_voxel};
-    use crate::bake::voxelize::morton3;
     use crate::gen::glb::{MaterialData, SceneData};
     use crate::gen::shapes;
+    use crate::spatial::{morton3, UVec3Key};
     use std::collections::BTreeSet;
     use std::collections::HashMap;
 
@@ -289,17 +234,17 @@ mod tests {
         let brute = |ray: &Ray| {
             prims.iter().any(|(k, e)| {
                 let (vlo, vhi) = grid.voxel_bounds(demorton3(*k));
+                // Brute force over every primitive with the plain slab and ellipsoid tests.
                 let inv = ray.dir.recip();
                 let (a, b) = ((vlo - ray.origin) * inv, (vhi - ray.origin) * inv);
                 let t0 = a.min(b).max_element().max(ray.tmin);
                 let t1 = a.max(b).min_element().min(ray.tmax);
-                let p = Prepared {
-                    center: e.center,
-                    inv: e.axes.inverse(),
-                    lo: vlo,
-                    hi: vhi,
-                };
-                match ellipsoid_interval(&p, ray.origin, ray.dir) {
+                match crate::spatial::ellipsoid_ray_interval(
+                    e.center,
+                    e.axes.inverse(),
+                    ray.origin,
+                    ray.dir,
+                ) {
                     Some((e0, e1)) => e0.max(t0) <= e1.min(t1),
                     None => false,
                 }

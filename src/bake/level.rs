@@ -8,16 +8,16 @@ use std::collections::BTreeSet;
 use glam::Vec3;
 use rayon::prelude::*;
 
-use super::boundary::{boundary_faces, Face, UVec3Key};
+use super::boundary::boundary_faces;
 use super::boundary_visibility::{abv_map, PrimitiveLevel};
-use super::primitive::{fit_ellipsoid_bounding, Ellipsoid};
+use super::primitive::fit_ellipsoid_bounding;
 use super::sampling::{pieces_by_voxel, sample_voxel};
 use super::visibility::aiv_map;
-use super::voxelize::{demorton3, Grid};
 use crate::absdf::estimate::{estimate, EstimateSettings};
-use crate::absdf::VoxelAppearance;
+use crate::format::level::{FaceData, LevelData, VoxelData};
 use crate::math::haar::{forward, shrink, truncate, SparseHaar};
 use crate::scene::Scene;
+use crate::spatial::{demorton3, morton3, Ellipsoid, Face, Grid, UVec3Key};
 use crate::trace::Accel;
 
 /// Settings of one level's bake.
@@ -55,40 +55,6 @@ impl Default for LevelSettings {
             estimate: EstimateSettings::default(),
         }
     }
-}
-
-/// A voxel's baked data.
-#[derive(Clone, Debug, PartialEq)]
-pub struct VoxelData {
-    pub key: u64,
-    /// Surface area inside the voxel (world units²).
-    pub area: f64,
-    /// Fraction of that area that exists after cut-outs.
-    pub coverage: f32,
-    pub appearance: VoxelAppearance,
-    pub ellipsoid: Ellipsoid,
-    pub aiv: SparseHaar,
-    /// Exposure η in [1/16, 1]: how much the visibility of the voxel's surfaces concentrates
-    /// on some of their sides ([`super::visibility`]); 1 for an open sheet, 1/2 for a solid.
-    pub exposure: f32,
-}
-
-/// A boundary face's baked data.
-#[derive(Clone, Debug, PartialEq)]
-pub struct FaceData {
-    pub face: Face,
-    pub abv: SparseHaar,
-}
-
-/// One baked level.
-#[derive(Clone, Debug, PartialEq)]
-pub struct LevelData {
-    pub grid: Grid,
-    /// Sorted by Morton key.
-    pub voxels: Vec<VoxelData>,
-    pub faces: Vec<FaceData>,
-    /// Rays traced for the interior and boundary visibility.
-    pub rays: u64,
 }
 
 /// Haar transform, shrinkage of the Monte Carlo noise (`rays_per_cell` rays estimated each
@@ -173,7 +139,7 @@ pub fn bake_face(
     face: Face,
     s: &LevelSettings,
 ) -> (FaceData, u64) {
-    let key = super::voxelize::morton3(glam::UVec3::new(face.voxel.0, face.voxel.1, face.voxel.2));
+    let key = morton3(glam::UVec3::new(face.voxel.0, face.voxel.1, face.voxel.2));
     let seed = (key as u32).wrapping_mul(6) ^ face.dir as u32 ^ ((key >> 32) as u32).rotate_left(7);
     let m = abv_map(
         level,
@@ -207,7 +173,7 @@ pub fn sorted_boundary_faces(keys: impl Iterator<Item = u64>, res: u32) -> Vec<F
     let mut faces = boundary_faces(&occupied, res);
     faces.sort_by_key(|f| {
         (
-            super::voxelize::morton3(glam::UVec3::new(f.voxel.0, f.voxel.1, f.voxel.2)),
+            morton3(glam::UVec3::new(f.voxel.0, f.voxel.1, f.voxel.2)),
             f.dir,
         )
     });

@@ -143,6 +143,28 @@ impl BakeSettings {
         (res / self.abv_full_res.max(1)).clamp(1, self.abv_res)
     }
 
+    /// The record of these settings a file keeps.
+    pub fn recorded(&self) -> crate::format::RecordedSettings {
+        crate::format::RecordedSettings {
+            max_res: self.max_res,
+            min_res: self.min_res,
+            samples: self.samples,
+            max_samples: self.max_samples,
+            aiv_res: self.aiv_res,
+            aiv_rays: self.aiv_rays,
+            abv_res: self.abv_res,
+            abv_rays: self.abv_rays,
+            abv_full_res: self.abv_full_res,
+            ndf_lobes: self.ndf_lobes,
+            moment_res: self.moment_res,
+            keep: self.keep,
+            energy: self.energy,
+            keep_all_effects: self.keep_all_effects,
+            denoise: self.denoise,
+            aiv_weighting: crate::format::AivWeighting::ProjectedArea,
+        }
+    }
+
     /// The settings of one level.
     pub fn level(&self, res: u32) -> LevelSettings {
         LevelSettings {

@@ -9,16 +9,16 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::level::{bake_face, bake_voxel, primitive_level, sorted_boundary_faces, VoxelData};
-use super::primitive::Ellipsoid;
+use super::level::{bake_face, bake_voxel, primitive_level, sorted_boundary_faces};
 use super::sampling::pieces_by_voxel;
-use super::voxelize::Grid;
 use super::BakeSettings;
 use crate::format::effects::{effect_lines, EffectLine};
 use crate::format::encode::{self, ComponentBytes, Counts, IndexEntry, LevelEntry};
-use crate::format::Writer;
+use crate::format::{VoxelData, Writer};
 use crate::scene::Scene;
+use crate::spatial::{Ellipsoid, Grid};
 use crate::trace::Accel;
+use crate::util::progress::{Progress, StageCounter};
 
 /// Voxels per block: a few MiB of records, lobes, moments and trees.
 pub const BLOCK_VOXELS: usize = 4096;
@@ -95,13 +95,13 @@ pub fn peak_memory() -> Option<u64> {
 }
 
 /// Bakes `scene` into `out` (written atomically). `source` is the asset's file name, recorded
-/// in the index; `progress` shows progress bars on a terminal.
+/// in the index; `progress` hears of every voxel and face done, stage by stage.
 pub fn bake_to_file(
     scene: &Scene,
     source: &str,
     settings: &BakeSettings,
     out: &Path,
-    progress: bool,
+    progress: Progress,
 ) -> Result<BakeReport, BakeError> {
     settings.validate().map_err(BakeError::Settings)?;
     if !(scene.world_area() > 0.0) {
@@ -132,11 +132,7 @@ pub fn bake_to_file(
             pieces_by_voxel(scene, &grid).into_iter().collect();
         sec.voxelize = t.elapsed().as_secs_f64();
         // Voxels, block by block.
-        let bar = crate::render::reference::progress_bar(
-            progress,
-            pieces.len() as u64,
-            &format!("{res}³ voxels"),
-        );
+        let bar = StageCounter::new(progress, format!("{res}³ voxels"), pieces.len() as u64);
         let cpu_stats = AtomicU64::new(0);
         let cpu_aiv = AtomicU64::new(0);
         let mut aiv_rays = 0u64;
@@ -150,7 +146,7 @@ pub fn bake_to_file(
                     let (v, r, cpu) = bake_voxel(scene, &accel, &grid, *key, p, &ls);
                     cpu_stats.fetch_add((cpu[0] * 1e9) as u64, Ordering::Relaxed);
                     cpu_aiv.fetch_add((cpu[1] * 1e9) as u64, Ordering::Relaxed);
-                    bar.inc(1);
+                    bar.add(1);
                     (v, r)
                 })
                 .collect();
@@ -186,17 +182,12 @@ pub fn bake_to_file(
             voxel_blocks.push(r);
             sec.write += t.elapsed().as_secs_f64();
         }
-        bar.finish_and_clear();
         drop(pieces);
         // Boundary faces, block by block.
         let t = Instant::now();
         let faces = sorted_boundary_faces(keys_prims.iter().map(|k| k.0), res);
         let prims = primitive_level(grid, keys_prims.into_iter());
-        let bar = crate::render::reference::progress_bar(
-            progress,
-            faces.len() as u64,
-            &format!("{res}³ faces"),
-        );
+        let bar = StageCounter::new(progress, format!("{res}³ faces"), faces.len() as u64);
         let mut abv_rays = 0u64;
         let mut face_blocks = Vec::new();
         for chunk in faces.chunks(BLOCK_FACES) {
@@ -205,7 +196,7 @@ pub fn bake_to_file(
                 .par_iter()
                 .map(|f| {
                     let r = bake_face(&prims, &accel, *f, &ls);
-                    bar.inc(1);
+                    bar.add(1);
                     r
                 })
                 .collect();
@@ -226,7 +217,6 @@ pub fn bake_to_file(
             face_blocks.push(r);
             sec.write += t.elapsed().as_secs_f64();
         }
-        bar.finish_and_clear();
         let _ = t;
         rays += aiv_rays + abv_rays;
         total.voxelize += sec.voxelize;
@@ -261,7 +251,7 @@ pub fn bake_to_file(
         generator: concat!("aggtool ", env!("CARGO_PKG_VERSION")),
         source,
         bounds: (lo, hi),
-        settings,
+        settings: &settings.recorded(),
         tables_version: crate::tables::TABLES_VERSION,
         tables_crc32: crc32fast::hash(crate::tables::EMBEDDED),
         levels: &entries,

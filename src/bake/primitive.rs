@@ -6,57 +6,7 @@
 use glam::{Mat3, Vec3};
 
 use crate::math::sggx::symmetric_eigen;
-
-/// An ellipsoid {c + M u : |u| ≤ 1}.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Ellipsoid {
-    pub center: Vec3,
-    /// Columns: the semi-axes.
-    pub axes: Mat3,
-}
-
-impl Ellipsoid {
-    /// Whether `p` is inside (with a relative tolerance).
-    pub fn contains(&self, p: Vec3, tol: f32) -> bool {
-        let inv = self.axes.inverse();
-        (inv * (p - self.center)).length() <= 1.0 + tol
-    }
-
-    /// Volume (4/3 π |det M|).
-    pub fn volume(&self) -> f32 {
-        4.0 / 3.0 * std::f32::consts::PI * self.axes.determinant().abs()
-    }
-}
-
-/// Parameter interval where `o + t d` lies inside the ellipsoid {c + M u : |u| ≤ 1}, given
-/// `inv` = M⁻¹. Numerically stable for thin ellipsoids far from the ray origin: the ray is
-/// first moved to its closest approach to the centre, and the discriminant is taken as the
-/// squared distance of the closest point in the ellipsoid's unit-ball space (the textbook
-/// b² − ac cancels catastrophically in f32 when the ellipsoid is a thousand times thinner
-/// than its distance to the origin).
-#[inline]
-pub fn ellipsoid_ray_interval(center: Vec3, inv: Mat3, o: Vec3, d: Vec3) -> Option<(f32, f32)> {
-    let dd = d.dot(d);
-    if !(dd > 0.0) {
-        return None;
-    }
-    let tc = (center - o).dot(d) / dd;
-    let p = inv * (o + tc * d - center);
-    let q = inv * d;
-    let a = q.dot(q);
-    if !(a > 0.0) || !a.is_finite() {
-        return None;
-    }
-    let k = p.dot(q) / a;
-    let m = p - q * k;
-    let h = 1.0 - m.dot(m);
-    if !(h >= 0.0) {
-        return None;
-    }
-    let s = (h / a).sqrt();
-    let t = tc - k;
-    Some((t - s, t + s))
-}
+use crate::spatial::Ellipsoid;
 
 /// Fits the ellipsoid of a voxel's sample positions. `min_extent` (a small fraction of the
 /// voxel size) keeps flat and fibre-like sets from giving a degenerate ellipsoid. `None`
@@ -123,34 +73,6 @@ pub fn fit_ellipsoid_bounding(
 mod tests {
     use super::*;
     use crate::math::rng::Pcg32;
-
-    /// A flat ellipsoid (1e-4 thick) three units from the ray origin: the interval is found,
-    /// and it is where the ray crosses the disk (the textbook quadratic loses it in f32).
-    #[test]
-    fn thin_ellipsoid_far_away() {
-        let c = Vec3::new(0.31, 0.0, 0.31);
-        let m = Mat3::from_diagonal(Vec3::new(0.09, 1.3e-4, 0.09));
-        let (t0, t1) =
-            ellipsoid_ray_interval(c, m.inverse(), Vec3::new(0.33, 3.0, 0.29), Vec3::NEG_Y)
-                .expect("hits");
-        assert!(
-            (t0 - (3.0 - 1.3e-4)).abs() < 2e-5 && (t1 - (3.0 + 1.3e-4)).abs() < 2e-5,
-            "{t0} {t1}"
-        );
-        assert!(
-            ellipsoid_ray_interval(c, m.inverse(), Vec3::new(0.5, 3.0, 0.31), Vec3::NEG_Y)
-                .is_none()
-        );
-        // Unit sphere from outside, oblique: exact chord.
-        let (a, b) = ellipsoid_ray_interval(
-            Vec3::ZERO,
-            Mat3::IDENTITY,
-            Vec3::new(0.6, 0.0, -5.0),
-            Vec3::Z,
-        )
-        .unwrap();
-        assert!((a - 4.2).abs() < 1e-5 && (b - 5.8).abs() < 1e-5);
-    }
 
     #[test]
     fn bounds_every_point() {

@@ -5,11 +5,11 @@
 
 use glam::{DVec3, UVec3, Vec2, Vec3};
 
-use super::voxelize::Grid;
 use crate::absdf::estimate::SurfaceSample;
 use crate::math::lowdiscrepancy::sobol_2d;
 use crate::math::sampling::square_to_triangle;
 use crate::scene::Scene;
+use crate::spatial::Grid;
 
 /// A piece of one triangle inside one voxel.
 #[derive(Clone, Debug)]
@@ -184,7 +184,7 @@ pub fn pieces_by_voxel(scene: &Scene, grid: &Grid) -> std::collections::BTreeMap
                 grid,
                 tri,
                 |v: UVec3, poly: &[DVec3], area: f64| {
-                    out.entry(super::voxelize::morton3(v))
+                    out.entry(crate::spatial::morton3(v))
                         .or_default()
                         .push(Piece {
                             instance: ii as u32,
@@ -222,7 +222,7 @@ mod tests {
         let pieces = pieces_by_voxel(&scene, &grid);
         assert!(!pieces.is_empty());
         for (key, list) in &pieces {
-            let v = super::super::voxelize::demorton3(*key);
+            let v = crate::spatial::demorton3(*key);
             let (blo, bhi) = grid.voxel_bounds(v);
             let samples = sample_voxel(&scene, list, 64, *key as u32);
             assert_eq!(samples.len(), 64);

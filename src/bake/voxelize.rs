@@ -11,36 +11,7 @@ use std::collections::BTreeMap;
 use glam::{DVec3, UVec3, Vec3};
 
 use crate::scene::Scene;
-
-/// Interleaves the low 21 bits of x, y and z (Morton / Z-order).
-#[inline]
-pub fn morton3(p: UVec3) -> u64 {
-    fn spread(v: u32) -> u64 {
-        let mut x = (v as u64) & 0x1f_ffff;
-        x = (x | x << 32) & 0x001f_0000_0000_ffff;
-        x = (x | x << 16) & 0x001f_0000_ff00_00ff;
-        x = (x | x << 8) & 0x100f_00f0_0f00_f00f;
-        x = (x | x << 4) & 0x10c3_0c30_c30c_30c3;
-        x = (x | x << 2) & 0x1249_2492_4924_9249;
-        x
-    }
-    spread(p.x) | spread(p.y) << 1 | spread(p.z) << 2
-}
-
-/// Inverse of [`morton3`].
-#[inline]
-pub fn demorton3(m: u64) -> UVec3 {
-    fn compact(mut x: u64) -> u32 {
-        x &= 0x1249_2492_4924_9249;
-        x = (x ^ (x >> 2)) & 0x10c3_0c30_c30c_30c3;
-        x = (x ^ (x >> 4)) & 0x100f_00f0_0f00_f00f;
-        x = (x ^ (x >> 8)) & 0x001f_0000_ff00_00ff;
-        x = (x ^ (x >> 16)) & 0x001f_0000_0000_ffff;
-        x = (x ^ (x >> 32)) & 0x1f_ffff;
-        x as u32
-    }
-    UVec3::new(compact(m), compact(m >> 1), compact(m >> 2))
-}
+use crate::spatial::{morton3, Grid};
 
 /// Clips a convex polygon (in place, f64) to the half-open slab `lo ≤ p[axis] < hi`. Half-open,
 /// so that a polygon lying exactly in a voxel boundary plane belongs to one voxel, not two.
@@ -88,39 +59,6 @@ fn polygon_area(poly: &[DVec3]) -> f64 {
         c += (poly[i] - poly[0]).cross(poly[i + 1] - poly[0]);
     }
     0.5 * c.length()
-}
-
-/// The grid of one level: `res³` cubic voxels over a cube.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Grid {
-    pub origin: Vec3,
-    /// Edge length of the whole cube.
-    pub size: f32,
-    pub res: u32,
-}
-
-impl Grid {
-    /// A cube around the scene's bounds (the largest extent, centred, padded by 0.1%).
-    pub fn around(lo: Vec3, hi: Vec3, res: u32) -> Grid {
-        let ext = (hi - lo).max_element().max(1e-6) * 1.001;
-        let c = 0.5 * (lo + hi);
-        Grid {
-            origin: c - Vec3::splat(0.5 * ext),
-            size: ext,
-            res,
-        }
-    }
-
-    pub fn voxel_size(&self) -> f32 {
-        self.size / self.res as f32
-    }
-
-    /// World-space bounds of voxel `v`.
-    pub fn voxel_bounds(&self, v: UVec3) -> (Vec3, Vec3) {
-        let s = self.voxel_size();
-        let lo = self.origin + v.as_vec3() * s;
-        (lo, lo + Vec3::splat(s))
-    }
 }
 
 /// Per-voxel surface area of a triangle: calls `emit(voxel, area)` for each voxel the triangle
@@ -194,19 +132,6 @@ pub fn occupancy(scene: &Scene, grid: &Grid) -> BTreeMap<u64, f64> {
 mod tests {
     use super::*;
     use crate::math::rng::Pcg32;
-
-    #[test]
-    fn morton_round_trip() {
-        for p in [
-            UVec3::ZERO,
-            UVec3::new(1, 2, 3),
-            UVec3::new(255, 0, 7),
-            UVec3::splat((1 << 21) - 1),
-        ] {
-            assert_eq!(demorton3(morton3(p)), p);
-        }
-        assert!(morton3(UVec3::new(1, 0, 0)) < morton3(UVec3::new(0, 1, 0)));
-    }
 
     /// Clipped areas add up to the triangle's area, for random triangles of every size.
     #[test]

@@ -11,9 +11,10 @@ use aggtool::gen::{self, GenSettings};
 use aggtool::import::{self, ImportOptions};
 use aggtool::render::compare::{compare, difference_image};
 use aggtool::render::reference::{self, ReferenceSettings};
-use aggtool::render::{Camera, Image, Lights, View};
+use aggtool::render::{Image, View};
 use aggtool::scene::Scene;
 use aggtool::trace::Accel;
+use aggtool::util::TerminalProgress;
 
 #[derive(Parser)]
 #[command(
@@ -315,19 +316,18 @@ fn tables_cmd(action: TablesAction) -> Result<()> {
             m1_res,
         } => {
             let t0 = std::time::Instant::now();
+            let bars = TerminalProgress::new();
             let t = fit::build(
                 fit::BuildSettings {
                     samples,
                     m3_res,
                     m1_res,
                 },
-                true,
+                &|s, d, n| bars.report(s, d, n),
             );
             let bytes = t.to_bytes();
-            aggtool::render::image::write_atomic(&output, |tmp| {
-                std::fs::write(tmp, &bytes).map_err(|e| e.to_string())
-            })
-            .map_err(anyhow::Error::msg)?;
+            aggtool::util::atomic::write_bytes_atomic(&output, &bytes)
+                .map_err(anyhow::Error::msg)?;
             println!(
                 "output: {} ({} bytes) in {:.1} s",
                 output.display(),
@@ -422,35 +422,30 @@ fn run_reference(
     view: &View,
     output: &Path,
     exposure: f32,
-    progress: bool,
-) -> Result<reference::RenderStats> {
-    let lights = Lights::from_view(view)?;
+) -> Result<aggtool::film::ImageStats> {
+    let lights = view.lights()?;
     let t0 = std::time::Instant::now();
     let accel = Accel::build(scene);
     let build = t0.elapsed().as_secs_f64();
-    let camera = Camera::new(&view.camera);
+    let bars = TerminalProgress::new();
     let (img, stats) = reference::render(
         &accel,
-        &camera,
+        &view.camera(),
         &lights,
         ReferenceSettings {
             spp: view.spp,
             seed: view.seed,
-            progress,
         },
+        &|s, d, n| bars.report(s, d, n),
     );
+    bars.finish();
     img.write_exr(output)?;
     img.write_png(&png_beside(output), exposure)?;
     println!(
-        "stats: bvh {:.2} s ({} BLAS, {} TLAS entries), render {:.2} s, {} rays, {:.2} Mrays/s, {} invalid samples",
-        build,
-        accel.stats.blas_count,
-        accel.stats.tlas_entries,
-        stats.seconds,
-        stats.rays,
-        stats.rays_per_second / 1e6,
-        stats.invalid_samples
+        "stats: bvh {:.2} s ({} BLAS, {} TLAS entries)",
+        build, accel.stats.blas_count, accel.stats.tlas_entries,
     );
+    println!("{}", stats.line("reference"));
     println!(
         "output: {} and {}",
         output.display(),
@@ -518,20 +513,18 @@ fn flatten(scene: &Scene, dir: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Renders an aggregate with the LoD runtime; returns (prepare seconds, render seconds).
+/// Renders an aggregate with the LoD runtime; returns (open seconds, render seconds).
 fn run_lod(
     agg_path: &Path,
     view: &View,
     output: &Path,
     exposure: f32,
     settings: &aggtool::runtime::TraceSettings,
-    progress: bool,
 ) -> Result<(f64, f64)> {
-    let lights = Lights::from_view(view)?;
+    let lights = view.lights()?;
     let t0 = std::time::Instant::now();
-    let agg = aggtool::format::Aggregate::open(agg_path)
+    let scene = aggtool::runtime::LodScene::open(agg_path)
         .with_context(|| format!("cannot read {}", agg_path.display()))?;
-    let scene = aggtool::runtime::LodScene::new(&agg);
     let prepare = t0.elapsed().as_secs_f64();
     if let Some(l) = settings.level {
         if l >= scene.level_count() {
@@ -542,20 +535,41 @@ fn run_lod(
         }
     }
     println!(
-        "input: {}: {} levels, {} bytes (opened and prepared in {prepare:.2} s)",
+        "input: {}: {} levels, {} bytes (opened in {:.1} ms)",
         agg_path.display(),
         scene.level_count(),
-        agg.header().file_size
+        scene.aggregate().header().file_size,
+        prepare * 1e3
     );
-    let camera = Camera::new(&view.camera);
-    let (img, seconds) = aggtool::runtime::render(
-        &scene, &camera, &lights, view.spp, view.seed, settings, progress,
+    let bars = TerminalProgress::new();
+    let (img, stats) = aggtool::runtime::render(
+        &scene,
+        &view.camera(),
+        &lights,
+        view.spp,
+        view.seed,
+        settings,
+        &|s, d, n| bars.report(s, d, n),
     );
+    bars.finish();
+    if let Some(e) = scene.first_error() {
+        bail!("{}: {e}", agg_path.display());
+    }
     img.write_exr(output)?;
     img.write_png(&png_beside(output), exposure)?;
+    let seconds = stats.seconds;
+    println!("{}", stats.line("LoD"));
     println!(
-        "stats: render {seconds:.2} s, {} cones/pixel, {} light samples per hit",
-        view.spp, settings.nee
+        "stats: {} cones/pixel, {} light samples per shaded voxel, levels used {:?}",
+        view.spp,
+        settings.nee,
+        scene
+            .prepared()
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| **p)
+            .map(|(l, _)| scene.grid(l).res)
+            .collect::<Vec<_>>()
     );
     println!(
         "output: {} and {}",
@@ -576,7 +590,7 @@ fn side_by_side(path: &Path, images: &[&[u8]], w: u32, h: u32) -> Result<()> {
             rgb[dst..dst + src.len()].copy_from_slice(src);
         }
     }
-    aggtool::render::image::write_rgb8_png(path, n * w, h, &rgb)?;
+    aggtool::film::image::write_rgb8_png(path, n * w, h, &rgb)?;
     Ok(())
 }
 
@@ -647,7 +661,16 @@ fn eval(
                 max_res: px.max(8),
                 ..Default::default()
             };
-            let r = eval::speed_scene(name, &scene, &bake, px, spp, reference_spp, output, true)?;
+            let r = eval::speed_scene(
+                name,
+                &scene,
+                &bake,
+                px,
+                spp,
+                reference_spp,
+                output,
+                &aggtool::util::no_progress,
+            )?;
             println!(
                 "| {} | {} | {}² | {} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2}× | {:.4} | {:.4} | {} ({:.2} s) | {:.4} |",
                 r.scene, r.triangles, r.res, r.spp, r.bake_seconds, r.agg_bytes as f64 / 1048576.0,
@@ -676,7 +699,7 @@ fn eval(
     for (name, load) in &scenes {
         let t = std::time::Instant::now();
         let scene = load()?;
-        let r = eval::study_scene(name, &scene, &settings, output, true)?;
+        let r = eval::study_scene(name, &scene, &settings, output, &aggtool::util::no_progress)?;
         for x in &r {
             let line: Vec<String> = x
                 .methods
@@ -726,7 +749,12 @@ fn demo(output: &Path) -> Result<()> {
     };
     let agg_path = output.join("foliage.agg");
     let t = std::time::Instant::now();
-    let report = aggtool::bake::bake_to_file(&scene, "foliage.glb", &bake, &agg_path, true)?;
+    let bars = TerminalProgress::new();
+    let report =
+        aggtool::bake::bake_to_file(&scene, "foliage.glb", &bake, &agg_path, &|s, d, n| {
+            bars.report(s, d, n)
+        })?;
+    bars.finish();
     let bake_s = t.elapsed().as_secs_f64();
     println!(
         "stats: bake {bake_s:.1} s, {} levels, {:.1} MiB",
@@ -748,7 +776,7 @@ fn demo(output: &Path) -> Result<()> {
         serde_json::to_string_pretty(&view)?,
     )?;
     let ref_path = output.join("reference.exr");
-    let ref_stats = run_reference(&scene, &view, &ref_path, 0.0, true)?;
+    let ref_stats = run_reference(&scene, &view, &ref_path, 0.0)?;
     let lod_path = output.join("lod.exr");
     let mut lod_view = view.clone();
     lod_view.spp = 16;
@@ -758,7 +786,6 @@ fn demo(output: &Path) -> Result<()> {
         &lod_path,
         0.0,
         &aggtool::runtime::TraceSettings::default(),
-        true,
     )?;
     let (a, b) = (Image::read_exr(&lod_path)?, Image::read_exr(&ref_path)?);
     let cmp = compare(&a, &b).map_err(anyhow::Error::msg)?;
@@ -859,7 +886,7 @@ fn run(cli: Cli) -> Result<()> {
                 std::fs::write(&p, serde_json::to_string_pretty(&view)?)
                     .with_context(|| format!("cannot write {}", p.display()))?;
             }
-            run_reference(&scene, &view, &output, exposure, true)?;
+            run_reference(&scene, &view, &output, exposure)?;
             Ok(())
         }
         Command::Compare { a, b, diff, json } => {
@@ -1028,6 +1055,7 @@ fn run(cli: Cli) -> Result<()> {
             let settings = aggtool::runtime::TraceSettings {
                 nee,
                 level,
+                shading: Default::default(),
                 primitive: if cube {
                     aggtool::runtime::PrimitiveKind::Cube
                 } else if volume {
@@ -1036,7 +1064,7 @@ fn run(cli: Cli) -> Result<()> {
                     aggtool::runtime::PrimitiveKind::TruncatedEllipsoid
                 },
             };
-            run_lod(&agg, &view, &output, exposure, &settings, true)?;
+            run_lod(&agg, &view, &output, exposure, &settings)?;
             Ok(())
         }
         Command::Flatten { asset, output } => {
@@ -1072,8 +1100,12 @@ fn convert(
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    let r = aggtool::bake::bake_to_file(&scene, &source, settings, &out, true)
-        .with_context(|| format!("baking {}", asset.display()))?;
+    let bars = TerminalProgress::new();
+    let r = aggtool::bake::bake_to_file(&scene, &source, settings, &out, &|s, d, n| {
+        bars.report(s, d, n)
+    })
+    .with_context(|| format!("baking {}", asset.display()))?;
+    bars.finish();
     println!("output: {} ({})", out.display(), mib(r.bytes));
     for l in &r.levels {
         println!(
@@ -1150,10 +1182,8 @@ fn convert(
     }
     if let Some(p) = report {
         let json = serde_json::to_string_pretty(&r)?;
-        aggtool::render::image::write_atomic(p, |tmp| {
-            std::fs::write(tmp, json.as_bytes()).map_err(|e| e.to_string())
-        })
-        .map_err(anyhow::Error::msg)?;
+        aggtool::util::atomic::write_bytes_atomic(p, json.as_bytes())
+            .map_err(anyhow::Error::msg)?;
         println!("output: {}", p.display());
     }
     Ok(())
@@ -1164,53 +1194,39 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
     let agg = aggtool::format::Aggregate::open(file)
         .with_context(|| format!("cannot read {}", file.display()))?;
     let h = agg.header();
-    let ix = agg.index();
-    let s = ix.settings().expect("verified");
+    let s = agg.settings();
     let levels: Vec<(u32, aggtool::format::encode::Counts)> = (0..agg.level_count())
         .map(|l| (agg.grid(l).res, agg.counts(l)))
         .collect();
-    let effects = effect_lines(&levels, s.keep_all_effects());
+    let effects = effect_lines(&levels, s.keep_all_effects);
     let level_info: Vec<serde_json::Value> = (0..agg.level_count())
         .map(|l| {
-            let lv = ix.levels().unwrap().get(l);
-            let bytes: u64 = lv
-                .voxel_blocks()
-                .into_iter()
-                .flatten()
-                .chain(lv.face_blocks().into_iter().flatten())
-                .map(|b| b.size())
-                .sum();
+            let (vb, fb) = agg.level_bytes(l);
+            let (nv, nf) = agg.block_counts(l);
             serde_json::json!({
-                "res": lv.res(),
+                "res": agg.grid(l).res,
                 "voxels": levels[l].1.voxels,
                 "faces": levels[l].1.faces,
-                "voxel_blocks": lv.voxel_blocks().map_or(0, |b| b.len()),
-                "face_blocks": lv.face_blocks().map_or(0, |b| b.len()),
-                "bytes": bytes,
+                "voxel_blocks": nv,
+                "face_blocks": nf,
+                "bytes": vb + fb,
                 "counts": levels[l].1,
             })
         })
         .collect();
-    let lo = ix.bounds_min().map(|v| [v.x(), v.y(), v.z()]);
-    let hi = ix.bounds_max().map(|v| [v.x(), v.y(), v.z()]);
+    let (lo, hi) = agg.bounds();
+    let (tables_version, tables_crc32) = agg.tables();
     if json {
         let v = serde_json::json!({
             "file": file.display().to_string(),
             "format": format!("{}.{}", h.major, h.minor),
             "bytes": h.file_size,
-            "generator": ix.generator(),
-            "source": ix.source(),
-            "bounds": [lo, hi],
-            "tables_version": ix.tables_version(),
-            "tables_crc32": ix.tables_crc32(),
-            "settings": {
-                "max_res": s.max_res(), "min_res": s.min_res(), "samples": s.samples(),
-                "max_samples": s.max_samples(), "aiv_res": s.aiv_res(), "aiv_rays": s.aiv_rays(),
-                "abv_res": s.abv_res(), "abv_rays": s.abv_rays(), "abv_full_res": s.abv_full_res(), "ndf_lobes": s.ndf_lobes(),
-                "moment_res": s.moment_res(), "keep": s.keep(), "energy": s.energy(),
-                "keep_all_effects": s.keep_all_effects(), "denoise": s.denoise(),
-                "aiv_weighting": s.aiv_weighting().variant_name().unwrap_or("unknown"),
-            },
+            "generator": agg.generator(),
+            "source": agg.source(),
+            "bounds": [lo.to_array(), hi.to_array()],
+            "tables_version": tables_version,
+            "tables_crc32": tables_crc32,
+            "settings": s,
             "levels": level_info,
             "effects": effects,
         });
@@ -1223,16 +1239,16 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
         h.major,
         h.minor,
         h.file_size,
-        ix.generator().unwrap_or("?")
+        agg.generator()
     );
     println!(
         "source: {}; bounds {:?} to {:?}; tables v{} (crc32 {:08x}{})",
-        ix.source().unwrap_or("?"),
-        lo.unwrap_or_default(),
-        hi.unwrap_or_default(),
-        ix.tables_version(),
-        ix.tables_crc32(),
-        if ix.tables_crc32() == crc32fast::hash(aggtool::tables::EMBEDDED) {
+        agg.source(),
+        lo.to_array(),
+        hi.to_array(),
+        tables_version,
+        tables_crc32,
+        if tables_crc32 == crc32fast::hash(aggtool::tables::EMBEDDED) {
             ", same as this build"
         } else {
             ", NOT the tables of this build"
@@ -1240,15 +1256,15 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
     );
     println!(
         "settings: max-res {} min-res {} samples {} (max {}) aiv {}² × {} rays/sample ({}-weighted), abv {}² × {} rays/cell{}, ndf-lobes {}, moment-res {}, keep {} energy {}{}",
-        s.max_res(), s.min_res(), s.samples(), s.max_samples(), s.aiv_res(), s.aiv_rays(),
-        if s.aiv_weighting() == aggtool::format::fb::AivWeighting::ProjectedArea { "projected-area" } else { "area" },
-        s.abv_res(), s.abv_rays(),
-        match s.abv_full_res() {
+        s.max_res, s.min_res, s.samples, s.max_samples, s.aiv_res, s.aiv_rays,
+        if s.aiv_weighting == aggtool::format::AivWeighting::ProjectedArea { "projected-area" } else { "area" },
+        s.abv_res, s.abv_rays,
+        match s.abv_full_res {
             0 => String::new(),
             n => format!(" up to {n}³ (per block of (res/{n})² cells above)"),
         },
-        s.ndf_lobes(), s.moment_res(), s.keep(), s.energy(),
-        if s.keep_all_effects() { ", keep-all-effects" } else { "" }
+        s.ndf_lobes, s.moment_res, s.keep, s.energy,
+        if s.keep_all_effects { ", keep-all-effects" } else { "" }
     );
     println!(
         "{:>6} {:>10} {:>10} {:>7} {:>7} {:>12}",

@@ -26,16 +26,16 @@ use anyhow::{Context, Result};
 use serde::Serialize;
 
 use crate::bake::{bake_to_file, BakeSettings};
+use crate::film::image::write_rgb8_png;
+use crate::film::Image;
 use crate::format::Aggregate;
-use crate::render::camera::Camera;
 use crate::render::compare::{compare, difference_image};
-use crate::render::image::{write_rgb8_png, Image};
-use crate::render::lights::Lights;
 use crate::render::reference::{self, ReferenceSettings};
 use crate::render::view::{EnvironmentDesc, Rgb, SunDesc, View};
 use crate::runtime::{LodScene, PrimitiveKind, TraceSettings};
 use crate::scene::Scene;
 use crate::trace::Accel;
+use crate::util::Progress;
 
 /// Settings of the quality study.
 #[derive(Clone, Debug)]
@@ -105,19 +105,7 @@ pub fn study_view(scene: &Scene, res: u32, spp: u32) -> View {
 /// Bytes of level `l` in an aggregate: its voxel blocks (records, AIV trees) and face blocks
 /// (ABV trees), all a renderer reads to draw that level.
 pub fn level_bytes(agg: &Aggregate, l: usize) -> u64 {
-    let lv = agg.index().levels().unwrap().get(l);
-    let v: u64 = lv
-        .voxel_blocks()
-        .into_iter()
-        .flatten()
-        .map(|r| r.size())
-        .sum();
-    let f: u64 = lv
-        .face_blocks()
-        .into_iter()
-        .flatten()
-        .map(|r| r.size())
-        .sum();
+    let (v, f) = agg.level_bytes(l);
     v + f
 }
 
@@ -127,17 +115,13 @@ pub fn volume_bytes(agg: &Aggregate, l: usize) -> u64 {
 }
 
 fn reference_render(accel: &Accel, view: &View, spp: u32, seed: u64) -> Result<(Image, f64)> {
-    let lights = Lights::from_view(view)?;
-    let camera = Camera::new(&view.camera);
+    let lights = view.lights()?;
     let (img, stats) = reference::render(
         accel,
-        &camera,
+        &view.camera(),
         &lights,
-        ReferenceSettings {
-            spp,
-            seed,
-            progress: false,
-        },
+        ReferenceSettings { spp, seed },
+        &crate::util::no_progress,
     );
     Ok((img, stats.seconds))
 }
@@ -149,11 +133,17 @@ fn lod_render(
     seed: u64,
     settings: &TraceSettings,
 ) -> Result<(Image, f64)> {
-    let lights = Lights::from_view(view)?;
-    let camera = Camera::new(&view.camera);
-    Ok(crate::runtime::render(
-        lod, &camera, &lights, spp, seed, settings, false,
-    ))
+    let lights = view.lights()?;
+    let (img, stats) = crate::runtime::render(
+        lod,
+        &view.camera(),
+        &lights,
+        spp,
+        seed,
+        settings,
+        &crate::util::no_progress,
+    );
+    Ok((img, stats.seconds))
 }
 
 /// Nearest-neighbour enlargement of an sRGB8 image by `k`.
@@ -199,7 +189,7 @@ pub fn study_scene(
     scene: &Scene,
     settings: &StudySettings,
     dir: &Path,
-    progress: bool,
+    progress: Progress,
 ) -> Result<Vec<SceneResult>> {
     std::fs::create_dir_all(dir)?;
     let max_res = settings.resolutions.iter().copied().max().unwrap_or(64);
@@ -212,8 +202,8 @@ pub fn study_scene(
     bake_to_file(scene, name, &bake, &agg_path, progress)
         .with_context(|| format!("baking {name}"))?;
     let bake_seconds = t.elapsed().as_secs_f64();
-    let agg = Aggregate::open(&agg_path)?;
-    let lod = LodScene::new(&agg);
+    let lod = LodScene::new(Aggregate::open(&agg_path)?);
+    let agg = lod.aggregate();
     let accel = Accel::build(scene);
     let full_bytes = simplify::scene_bytes(scene) as u64;
     let mut results = Vec::new();
@@ -246,9 +236,9 @@ pub fn study_scene(
             ("volume", PrimitiveKind::Volume, volume_bytes(&agg, l)),
         ] {
             let ts = TraceSettings {
-                nee: 1,
                 level: Some(l),
                 primitive: kind,
+                ..Default::default()
             };
             let (img, secs) = lod_render(&lod, &view, settings.spp, 1, &ts)?;
             push(method, img, bytes, secs, String::new());
@@ -324,7 +314,6 @@ pub fn study_scene(
         });
     }
     drop(lod);
-    drop(agg);
     std::fs::remove_file(&agg_path).ok();
     Ok(results)
 }
@@ -402,15 +391,14 @@ pub fn speed_scene(
     spp: u32,
     reference_spp: u32,
     dir: &Path,
-    progress: bool,
+    progress: Progress,
 ) -> Result<SpeedResult> {
     std::fs::create_dir_all(dir)?;
     let agg_path = dir.join(format!("{name}.agg"));
     let t = Instant::now();
     let report = bake_to_file(scene, name, bake, &agg_path, progress)?;
     let bake_seconds = t.elapsed().as_secs_f64();
-    let agg = Aggregate::open(&agg_path)?;
-    let lod = LodScene::new(&agg);
+    let lod = LodScene::new(Aggregate::open(&agg_path)?);
     let accel = Accel::build(scene);
     let view = study_view(scene, res, spp);
     let (truth, _) = reference_render(&accel, &view, reference_spp, 7)?;
@@ -460,7 +448,6 @@ pub fn speed_scene(
     let picture = dir.join(format!("{name}-speed.png"));
     tile_png(&picture, &[tiles], side, tile_h)?;
     drop(lod);
-    drop(agg);
     std::fs::remove_file(&agg_path).ok();
     Ok(SpeedResult {
         scene: name.to_string(),

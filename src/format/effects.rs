@@ -6,8 +6,11 @@ use super::encode::Counts;
 /// One effect's verdict.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct EffectLine {
+    /// The effect's name, as `inspect` prints it.
     pub name: &'static str,
+    /// Whether any voxel or face stores it.
     pub kept: bool,
+    /// Why it was kept or dropped.
     pub why: String,
     /// Per level (finest first): resolution, voxels or faces storing the effect, out of.
     pub per_level: Vec<(u32, u64, u64)>,

@@ -7,35 +7,49 @@ use flatbuffers::FlatBufferBuilder;
 use glam::Vec3;
 
 use super::fb;
+use super::level::{FaceData, VoxelData};
+use super::settings::RecordedSettings;
 use super::{BLOCK_ID, INDEX_ID};
 use crate::absdf::{MaterialMoments, Moments};
-use crate::bake::level::{FaceData, VoxelData};
-use crate::bake::voxelize::morton3;
-use crate::bake::BakeSettings;
 use crate::math::beta::MIN_VARIANCE;
 use crate::math::haar::Node;
+use crate::spatial::morton3;
 
 /// What a level stores, counted while encoding.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
 pub struct Counts {
+    /// Voxels.
     pub voxels: u64,
+    /// Boundary faces.
     pub faces: u64,
+    /// Voxels with directional moments (Eq. 23).
     pub directional_moments: u64,
+    /// Voxels with metallic moments.
     pub metallic: u64,
+    /// Voxels with a roughness variance (two microfacet lobes).
     pub roughness_variance: u64,
+    /// Voxels with more than one SGGX lobe.
     pub multi_lobe: u64,
+    /// Voxels with an AIV tree.
     pub aiv_trees: u64,
+    /// Voxels whose AIV is 1 everywhere.
     pub aiv_all_visible: u64,
+    /// Voxels whose AIV is 0 everywhere.
     pub aiv_all_occluded: u64,
+    /// Faces with an ABV tree.
     pub abv_trees: u64,
+    /// Voxels with cut-outs (coverage below one).
     pub cut_out: u64,
+    /// AIV tree nodes.
     pub aiv_nodes: u64,
+    /// ABV tree nodes.
     pub abv_nodes: u64,
     /// Voxels whose exposure is below one (format 1.1).
     pub exposure: u64,
 }
 
 impl Counts {
+    /// Adds another level's or block's counts.
     pub fn add(&mut self, o: &Counts) {
         self.voxels += o.voxels;
         self.faces += o.faces;
@@ -97,18 +111,28 @@ impl Counts {
 /// Bytes stored per component (FlatBuffer payloads, without per-vector headers and padding).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
 pub struct ComponentBytes {
+    /// Morton keys.
     pub keys: u64,
+    /// Voxel records.
     pub voxels: u64,
+    /// SGGX lobes.
     pub lobes: u64,
+    /// Full material moments.
     pub moments: u64,
+    /// Dielectric material moments.
     pub dielectric_moments: u64,
+    /// AIV tree nodes.
     pub aiv_nodes: u64,
+    /// Face records.
     pub faces: u64,
+    /// ABV tree nodes.
     pub abv_nodes: u64,
+    /// Exposures.
     pub exposure: u64,
 }
 
 impl ComponentBytes {
+    /// Adds another block's bytes.
     pub fn add(&mut self, o: &ComponentBytes) {
         self.keys += o.keys;
         self.voxels += o.voxels;
@@ -364,50 +388,42 @@ pub fn face_block(
 /// A level's entry in the index.
 #[derive(Clone, Debug)]
 pub struct LevelEntry {
+    /// Voxels per axis.
     pub res: u32,
+    /// The level cube's minimum corner.
     pub origin: Vec3,
+    /// The cube's edge length.
     pub size: f32,
+    /// Where its voxel blocks are.
     pub voxel_blocks: Vec<fb::BlobRef>,
+    /// Where its face blocks are.
     pub face_blocks: Vec<fb::BlobRef>,
+    /// What it stores.
     pub counts: Counts,
 }
 
 /// Everything the index records.
 pub struct IndexEntry<'a> {
+    /// The generator, e.g. "aggtool 0.1.0".
     pub generator: &'a str,
+    /// The source asset's file name.
     pub source: &'a str,
+    /// The source asset's bounds.
     pub bounds: (Vec3, Vec3),
-    pub settings: &'a BakeSettings,
+    /// The bake settings.
+    pub settings: &'a RecordedSettings,
+    /// Version of the M1–M5 tables.
     pub tables_version: u32,
+    /// CRC-32 of the tables.
     pub tables_crc32: u32,
+    /// The levels, finest first.
     pub levels: &'a [LevelEntry],
 }
 
 /// Encodes the index.
 pub fn index(e: &IndexEntry) -> Vec<u8> {
     let mut b = FlatBufferBuilder::with_capacity(4096);
-    let s = e.settings;
-    let settings = fb::BakeSettings::create(
-        &mut b,
-        &fb::BakeSettingsArgs {
-            max_res: s.max_res,
-            samples: s.samples,
-            max_samples: s.max_samples,
-            aiv_res: s.aiv_res,
-            aiv_rays: s.aiv_rays,
-            abv_res: s.abv_res,
-            abv_rays: s.abv_rays,
-            ndf_lobes: s.ndf_lobes,
-            moment_res: s.moment_res,
-            keep: s.keep,
-            energy: s.energy,
-            keep_all_effects: s.keep_all_effects,
-            min_res: s.min_res,
-            denoise: s.denoise,
-            aiv_weighting: fb::AivWeighting::ProjectedArea,
-            abv_full_res: s.abv_full_res,
-        },
-    );
+    let settings = fb::BakeSettings::create(&mut b, &e.settings.to_fb_args());
     let mut total = Counts::default();
     let mut levels = Vec::with_capacity(e.levels.len());
     for l in e.levels {

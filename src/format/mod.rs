@@ -19,15 +19,19 @@
 //! a bake holds one block at a time. [`Writer`] writes through a temporary file and renames
 //! it into place; [`Aggregate`] maps a file (memmap2), verifies it, and reads it zero-copy.
 
-#[allow(clippy::all, unused_imports, dead_code, non_snake_case, mismatched_lifetime_syntaxes)]
+#[allow(clippy::all, unused_imports, dead_code, non_snake_case, mismatched_lifetime_syntaxes, missing_docs)]
 #[rustfmt::skip]
 mod aggregate_generated;
 pub mod effects;
 pub mod encode;
+pub mod level;
 pub mod read;
+pub mod settings;
 
 pub use aggregate_generated::aggtool::format as fb;
+pub use level::{FaceData, LevelData, VoxelData};
 pub use read::{Aggregate, VoxelRef};
+pub use settings::{AivWeighting, RecordedSettings};
 
 use std::fs::File;
 use std::io::{BufWriter, Seek, SeekFrom, Write};
@@ -37,27 +41,49 @@ use std::path::{Path, PathBuf};
 pub const MAGIC: [u8; 8] = [0x89, b'A', b'G', b'G', b'\r', b'\n', 0x1a, b'\n'];
 /// The format version this build writes. Readers accept any minor of their major.
 pub const MAJOR: u16 = 1;
+/// The minor version this build writes.
 pub const MINOR: u16 = 3;
+/// Bytes of the fixed header.
 pub const HEADER_SIZE: usize = 64;
 /// Alignment of every blob.
 pub const ALIGN: u64 = 64;
 /// FlatBuffer identifiers of the index and of blocks.
 pub const INDEX_ID: &str = "AGGI";
+/// See [`INDEX_ID`].
 pub const BLOCK_ID: &str = "AGGB";
 
 /// Why a file could not be read.
 #[derive(Debug, thiserror::Error)]
 pub enum FormatError {
+    /// The file does not start with the `.agg` magic.
     #[error("not an .agg file (wrong identifier)")]
     NotAggregate,
     #[error("format version {found}.x is not supported (this build reads {MAJOR}.x); use a newer aggtool")]
-    UnsupportedMajor { found: u16 },
+    /// A major version this build does not read.
+    UnsupportedMajor {
+        /// The file's major version.
+        found: u16,
+    },
     #[error("truncated: the file should have {expected} bytes but has {actual}")]
-    Truncated { expected: u64, actual: u64 },
+    /// The file is shorter than its header says.
+    Truncated {
+        /// Bytes the file should have.
+        expected: u64,
+        /// Bytes it has.
+        actual: u64,
+    },
     #[error("{extra} bytes of trailing data after the end of the aggregate ({expected} bytes)")]
-    Trailing { expected: u64, extra: u64 },
+    /// Bytes follow the end the header records.
+    Trailing {
+        /// Bytes the aggregate has.
+        expected: u64,
+        /// Bytes after it.
+        extra: u64,
+    },
+    /// Damaged: a checksum, structure or invariant check failed (which one is said).
     #[error("corrupt: {0}")]
     Corrupt(String),
+    /// The file could not be read.
     #[error("{0}")]
     Io(#[from] std::io::Error),
 }
@@ -65,15 +91,22 @@ pub enum FormatError {
 /// The decoded fixed header.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Header {
+    /// Major version.
     pub major: u16,
+    /// Minor version.
     pub minor: u16,
+    /// Where the index blob starts.
     pub index_offset: u64,
+    /// Its length.
     pub index_size: u64,
+    /// The whole file's length.
     pub file_size: u64,
+    /// CRC-32 of the index.
     pub index_crc32: u32,
 }
 
 impl Header {
+    /// The header's 64 bytes (with its checksum).
     pub fn to_bytes(&self) -> [u8; HEADER_SIZE] {
         let mut b = [0u8; HEADER_SIZE];
         b[0..8].copy_from_slice(&MAGIC);
@@ -163,6 +196,7 @@ pub struct Writer {
 }
 
 impl Writer {
+    /// Starts writing `dest` (through a temporary file beside it).
     pub fn create(dest: &Path) -> std::io::Result<Writer> {
         let dir = dest
             .parent()

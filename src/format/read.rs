@@ -1,36 +1,79 @@
-//! Reading `.agg` files: map, verify everything once on open, then read zero-copy.
+//! Reading `.agg` files: map the file, verify the header and the index, and read zero-copy.
 //!
-//! Verification covers the header (identifier, major version, checksum, size: truncated and
-//! trailing data are told apart), every blob's range, alignment and CRC-32, the FlatBuffers
-//! verifier on the index and on every block, and the invariants the accessors rely on (sorted
-//! keys, ranges inside their arrays, well-shaped wavelet trees, finite numbers). After that,
-//! accessors index without further checks that could fail, and no user file can make them
-//! panic.
+//! Opening is cheap and lazy: [`Aggregate::open_lazy`] maps the file and checks the header
+//! (identifier, major version, checksum, size: truncated and trailing data are told apart) and
+//! the index (checksum, FlatBuffers structure, settings, levels, and that every blob it names
+//! is in range, aligned and overlaps no other). Each block is verified the first time it is
+//! read (its CRC-32, the FlatBuffers verifier, the invariants the accessors rely on: sorted
+//! keys, ranges inside their arrays, well-shaped wavelet trees, finite numbers, and zero padding
+//! up to the next blob), once, thread-safely; a block that fails is refused with an error and
+//! never read. [`Aggregate::open`] verifies every block up front, as tools and tests want. After
+//! verification accessors index without further checks that could fail, and no user file can
+//! make them panic.
 
 use std::fs::File;
+use std::ops::Range;
 use std::path::Path;
+use std::sync::OnceLock;
 
 use glam::{Mat3, UVec3, Vec2, Vec3};
 
 use super::encode::Counts;
+use super::level::{FaceData, LevelData, VoxelData};
+use super::settings::RecordedSettings;
 use super::{fb, FormatError, Header, ALIGN, BLOCK_ID, HEADER_SIZE, INDEX_ID};
 use crate::absdf::{MaterialMoments, Moments, NdfLobe, VoxelAppearance};
-use crate::bake::boundary::{Face, UVec3Key};
-use crate::bake::level::{FaceData, LevelData, VoxelData};
-use crate::bake::primitive::Ellipsoid;
-use crate::bake::voxelize::{demorton3, Grid};
+use crate::math::frame::Frame;
 use crate::math::haar::{eval_tree, validate_tree, Node, SparseHaar};
-use crate::math::sphere_maps::{equal_area_sphere_to_square, grid_cell};
+use crate::math::sphere_maps::{
+    concentric_hemisphere_to_square, equal_area_sphere_to_square, grid_cell,
+};
+use crate::spatial::{demorton3, face_normal, morton3, Ellipsoid, Face, Grid, UVec3Key};
 
 enum Backing {
     Map(memmap2::Mmap),
     Owned(Vec<u8>),
 }
 
-/// An opened, verified aggregate.
+/// What a blob of the index holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum BlobKind {
+    Voxels(u32),
+    Faces(u32),
+    Reserved,
+}
+
+/// A blob the index names, and whether it has been verified.
+struct Blob {
+    offset: u64,
+    size: u64,
+    first_key: u64,
+    last_key: u64,
+    count: u32,
+    crc32: u32,
+    kind: BlobKind,
+    /// Where the next blob (or the index) starts: the bytes in between must be zero.
+    gap_end: u64,
+    checked: OnceLock<Result<(), String>>,
+}
+
+/// A level's grid, counts and blobs.
+struct LevelInfo {
+    grid: Grid,
+    counts: Counts,
+    voxel_blobs: Range<usize>,
+    face_blobs: Range<usize>,
+}
+
+/// An opened aggregate: the header and index verified; blocks verified on first use (all of
+/// them up front for [`Aggregate::open`]).
 pub struct Aggregate {
     data: Backing,
     header: Header,
+    checksums: bool,
+    settings: RecordedSettings,
+    levels: Vec<LevelInfo>,
+    blobs: Vec<Blob>,
 }
 
 fn corrupt(s: impl Into<String>) -> FormatError {
@@ -63,8 +106,16 @@ fn verifier_options() -> flatbuffers::VerifierOptions {
 }
 
 impl Aggregate {
-    /// Maps and verifies a file.
+    /// Maps a file and verifies all of it.
     pub fn open(path: &Path) -> Result<Aggregate, FormatError> {
+        let a = Self::open_lazy(path)?;
+        a.verify_all()?;
+        Ok(a)
+    }
+
+    /// Maps a file and verifies its header and index only; each block is verified the first
+    /// time it is read. Opening a file of any size takes milliseconds.
+    pub fn open_lazy(path: &Path) -> Result<Aggregate, FormatError> {
         let file = File::open(path)?;
         let len = file.metadata()?.len();
         if len == 0 {
@@ -76,30 +127,55 @@ impl Aggregate {
         // SAFETY: the map is read-only; the usual caveat of memory maps applies (another
         // process truncating the file while it is mapped), as for every mapped-file reader.
         let map = unsafe { memmap2::Mmap::map(&file)? };
-        Self::verified(Backing::Map(map), true)
+        Self::indexed(Backing::Map(map), true)
     }
 
-    /// Verifies an in-memory file.
+    /// Verifies an in-memory file, all of it.
     pub fn from_bytes(bytes: Vec<u8>) -> Result<Aggregate, FormatError> {
-        Self::verified(Backing::Owned(bytes), true)
+        let a = Self::indexed(Backing::Owned(bytes), true)?;
+        a.verify_all()?;
+        Ok(a)
+    }
+
+    /// An in-memory file with its header and index verified; blocks on first use.
+    pub fn from_bytes_lazy(bytes: Vec<u8>) -> Result<Aggregate, FormatError> {
+        Self::indexed(Backing::Owned(bytes), true)
     }
 
     /// Verifies an in-memory file with every check but the CRC-32s: for fuzzing, where
     /// random bytes would otherwise never get past the checksums to the structural checks.
     pub fn from_bytes_ignoring_checksums(bytes: Vec<u8>) -> Result<Aggregate, FormatError> {
-        Self::verified(Backing::Owned(bytes), false)
+        let a = Self::indexed(Backing::Owned(bytes), false)?;
+        a.verify_all()?;
+        Ok(a)
     }
 
-    fn verified(data: Backing, checksums: bool) -> Result<Aggregate, FormatError> {
+    fn indexed(data: Backing, checksums: bool) -> Result<Aggregate, FormatError> {
         let bytes: &[u8] = match &data {
             Backing::Map(m) => m,
             Backing::Owned(v) => v,
         };
         let header = Header::parse_with(bytes, checksums)?;
-        verify(bytes, &header, checksums)?;
-        Ok(Aggregate { data, header })
+        let (settings, levels, blobs) = verify_index(bytes, &header, checksums)?;
+        Ok(Aggregate {
+            data,
+            header,
+            checksums,
+            settings,
+            levels,
+            blobs,
+        })
     }
 
+    /// Verifies every block not verified yet (in parallel); the first failure is returned.
+    pub fn verify_all(&self) -> Result<(), FormatError> {
+        use rayon::prelude::*;
+        (0..self.blobs.len())
+            .into_par_iter()
+            .try_for_each(|i| self.check(i).map(|_| ()))
+    }
+
+    /// The file's bytes.
     pub fn bytes(&self) -> &[u8] {
         match &self.data {
             Backing::Map(m) => m,
@@ -107,72 +183,144 @@ impl Aggregate {
         }
     }
 
+    /// The fixed header.
     pub fn header(&self) -> Header {
         self.header
     }
 
     /// The index (verified on open).
-    pub fn index(&self) -> fb::Index<'_> {
+    pub(crate) fn index(&self) -> fb::Index<'_> {
         let h = &self.header;
         let b = &self.bytes()[h.index_offset as usize..(h.index_offset + h.index_size) as usize];
-        // SAFETY: verified by `verify` on open, and the bytes are immutable since.
+        // SAFETY: verified by `verify_index` on open, and the bytes are immutable since.
         unsafe { flatbuffers::root_unchecked::<fb::Index>(b) }
     }
 
-    /// A block (verified on open).
-    pub fn block(&self, r: &fb::BlobRef) -> fb::Block<'_> {
-        let b = &self.bytes()[r.offset() as usize..(r.offset() + r.size()) as usize];
-        // SAFETY: as for `index`: every BlobRef of the index was verified on open.
-        unsafe { flatbuffers::root_unchecked::<fb::Block>(b) }
+    /// The bake settings the file records.
+    pub fn settings(&self) -> &RecordedSettings {
+        &self.settings
     }
 
+    /// The generator, e.g. "aggtool 0.1.0".
+    pub fn generator(&self) -> &str {
+        self.index().generator().unwrap_or("")
+    }
+
+    /// The source asset's file name.
+    pub fn source(&self) -> &str {
+        self.index().source().unwrap_or("")
+    }
+
+    /// The source asset's bounds.
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        let ix = self.index();
+        (
+            ix.bounds_min().map_or(Vec3::ZERO, g),
+            ix.bounds_max().map_or(Vec3::ZERO, g),
+        )
+    }
+
+    /// Version and CRC-32 of the M1–M5 tables the file was baked with.
+    pub fn tables(&self) -> (u32, u32) {
+        let ix = self.index();
+        (ix.tables_version(), ix.tables_crc32())
+    }
+
+    /// The number of levels (finest first).
     pub fn level_count(&self) -> usize {
-        self.index().levels().map_or(0, |l| l.len())
+        self.levels.len()
     }
 
     /// The grid of level `l`.
     pub fn grid(&self, l: usize) -> Grid {
-        let lv = self.index().levels().unwrap().get(l);
-        Grid {
-            origin: g(lv.origin().unwrap()),
-            size: lv.size(),
-            res: lv.res(),
+        self.levels[l].grid
+    }
+
+    /// What level `l` stores (counted by the bake).
+    pub fn counts(&self, l: usize) -> Counts {
+        self.levels[l].counts
+    }
+
+    /// Bytes of level `l`'s voxel blocks and face blocks.
+    pub fn level_bytes(&self, l: usize) -> (u64, u64) {
+        let lv = &self.levels[l];
+        let sum = |r: &Range<usize>| self.blobs[r.clone()].iter().map(|b| b.size).sum();
+        (sum(&lv.voxel_blobs), sum(&lv.face_blobs))
+    }
+
+    /// Voxel and face blocks of level `l`.
+    pub fn block_counts(&self, l: usize) -> (usize, usize) {
+        let lv = &self.levels[l];
+        (lv.voxel_blobs.len(), lv.face_blobs.len())
+    }
+
+    /// Verifies blob `i` if it was not yet, and returns its block.
+    fn check(&self, i: usize) -> Result<fb::Block<'_>, FormatError> {
+        let b = &self.blobs[i];
+        let state = b.checked.get_or_init(|| {
+            check_blob(
+                self.bytes(),
+                b,
+                &self.settings,
+                self.levels.as_slice(),
+                self.checksums,
+            )
+        });
+        match state {
+            Ok(()) => Ok(self.block_unchecked(b)),
+            Err(e) => Err(FormatError::Corrupt(e.clone())),
         }
     }
 
-    pub fn counts(&self, l: usize) -> Counts {
-        let lv = self.index().levels().unwrap().get(l);
-        lv.counts().map(|c| Counts::from_fb(&c)).unwrap_or_default()
+    fn block_unchecked(&self, b: &Blob) -> fb::Block<'_> {
+        let bytes = &self.bytes()[b.offset as usize..(b.offset + b.size) as usize];
+        // SAFETY: only called for a blob that passed `check_blob` (the FlatBuffers verifier and
+        // the invariants), and the bytes are immutable.
+        unsafe { flatbuffers::root_unchecked::<fb::Block>(bytes) }
     }
 
-    fn aiv_res(&self) -> u32 {
-        self.index().settings().map_or(32, |s| s.aiv_res())
+    /// Voxel block `i` of level `l`, verified.
+    pub fn voxel_block(&self, l: usize, i: usize) -> Result<VoxelBlock<'_>, FormatError> {
+        let lv = &self.levels[l];
+        let bi = lv.voxel_blobs.start + i;
+        if bi >= lv.voxel_blobs.end {
+            return Err(corrupt(format!("level {l} has no voxel block {i}")));
+        }
+        let block = self.check(bi)?;
+        Ok(VoxelBlock {
+            block,
+            keys: block.keys().expect("verified"),
+            recs: block.voxels().expect("verified"),
+            aiv_res: self.settings.aiv_res,
+        })
     }
 
-    fn abv_res(&self) -> u32 {
-        self.index().settings().map_or(64, |s| s.abv_res())
+    /// Face block `i` of level `l`, verified.
+    pub fn face_block(&self, l: usize, i: usize) -> Result<FaceBlock<'_>, FormatError> {
+        let lv = &self.levels[l];
+        let bi = lv.face_blobs.start + i;
+        if bi >= lv.face_blobs.end {
+            return Err(corrupt(format!("level {l} has no face block {i}")));
+        }
+        let block = self.check(bi)?;
+        Ok(FaceBlock {
+            faces: block.faces().expect("verified"),
+            nodes: block.abv_nodes().expect("verified"),
+            abv_res: self.settings.abv_res,
+        })
     }
 
     /// The voxel with Morton key `key` at level `l`, found by binary search over the blocks'
-    /// key ranges and then over the block's keys.
+    /// key ranges and then over the block's keys. `None` also when its block fails to verify.
     pub fn find_voxel(&self, l: usize, key: u64) -> Option<VoxelRef<'_>> {
-        let lv = self.index().levels()?.get(l);
-        let blocks = lv.voxel_blocks()?;
-        let (mut lo, mut hi) = (0usize, blocks.len());
-        while lo < hi {
-            let mid = (lo + hi) / 2;
-            let r = blocks.get(mid);
-            if r.last_key() < key {
-                lo = mid + 1;
-            } else {
-                hi = mid;
-            }
-        }
-        if lo >= blocks.len() || blocks.get(lo).first_key() > key {
+        let lv = self.levels.get(l)?;
+        let blobs = &self.blobs[lv.voxel_blobs.clone()];
+        let i = blobs.partition_point(|b| b.last_key < key);
+        if i >= blobs.len() || blobs[i].first_key > key {
             return None;
         }
-        let block = self.block(blocks.get(lo));
-        let keys = block.keys()?;
+        let block = self.voxel_block(l, i).ok()?;
+        let keys = block.keys;
         let (mut a, mut b) = (0usize, keys.len());
         while a < b {
             let m = (a + b) / 2;
@@ -182,31 +330,24 @@ impl Aggregate {
                 b = m;
             }
         }
-        (a < keys.len() && keys.get(a) == key).then(|| VoxelRef {
-            key,
-            rec: block.voxels().unwrap().get(a),
-            block,
-            index: a as u32,
-            aiv_res: self.aiv_res(),
-        })
+        (a < keys.len() && keys.get(a) == key).then(|| block.voxel(a))
     }
 
-    /// Every voxel of level `l` in Morton order.
+    /// Every voxel of level `l` in Morton order (of the blocks that verify: every one for a
+    /// file opened with [`Aggregate::open`]).
     pub fn voxels(&self, l: usize) -> impl Iterator<Item = VoxelRef<'_>> + '_ {
-        let lv = self.index().levels().unwrap().get(l);
-        let aiv_res = self.aiv_res();
-        lv.voxel_blocks().into_iter().flatten().flat_map(move |r| {
-            let block = self.block(r);
-            let keys = block.keys().unwrap();
-            let recs = block.voxels().unwrap();
-            (0..keys.len()).map(move |i| VoxelRef {
-                key: keys.get(i),
-                rec: recs.get(i),
-                block,
-                index: i as u32,
-                aiv_res,
-            })
-        })
+        let n = self.levels[l].voxel_blobs.len();
+        (0..n)
+            .filter_map(move |i| self.voxel_block(l, i).ok())
+            .flat_map(|b| (0..b.len()).map(move |i| b.voxel(i)))
+    }
+
+    /// Every boundary face of level `l` (of the blocks that verify).
+    pub fn faces(&self, l: usize) -> impl Iterator<Item = FaceRef<'_>> + '_ {
+        let n = self.levels[l].face_blobs.len();
+        (0..n)
+            .filter_map(move |i| self.face_block(l, i).ok())
+            .flat_map(|b| (0..b.len()).map(move |i| b.face(i)))
     }
 
     /// Decodes level `l` into memory (tests, tools; renderers read zero-copy instead).
@@ -215,37 +356,21 @@ impl Aggregate {
             .voxels(l)
             .map(|v| VoxelData {
                 key: v.key,
-                area: v.rec.area() as f64,
-                coverage: v.rec.coverage(),
+                area: v.area() as f64,
+                coverage: v.coverage(),
                 appearance: v.appearance(),
                 ellipsoid: v.ellipsoid(),
                 aiv: v.aiv_tree(),
                 exposure: v.exposure(),
             })
             .collect();
-        let lv = self.index().levels().unwrap().get(l);
-        let abv_res = self.abv_res();
-        let mut faces = Vec::new();
-        for r in lv.face_blocks().into_iter().flatten() {
-            let block = self.block(r);
-            let nodes = block.abv_nodes().unwrap();
-            for f in block.faces().unwrap() {
-                let s = f.abv_start() as usize;
-                faces.push(FaceData {
-                    face: Face {
-                        voxel: UVec3Key(f.x(), f.y(), f.z()),
-                        dir: f.dir() as u8,
-                    },
-                    abv: SparseHaar {
-                        n: abv_res,
-                        scaling: f.abv_scaling(),
-                        nodes: (s..s + f.abv_count() as usize)
-                            .map(|i| node(nodes.get(i)))
-                            .collect(),
-                    },
-                });
-            }
-        }
+        let faces = self
+            .faces(l)
+            .map(|f| FaceData {
+                face: f.face(),
+                abv: f.abv_tree(),
+            })
+            .collect();
         LevelData {
             grid: self.grid(l),
             voxels,
@@ -255,11 +380,146 @@ impl Aggregate {
     }
 }
 
+/// A verified block of voxels, read zero-copy.
+#[derive(Clone, Copy)]
+pub struct VoxelBlock<'a> {
+    block: fb::Block<'a>,
+    keys: flatbuffers::Vector<'a, u64>,
+    recs: flatbuffers::Vector<'a, fb::Voxel>,
+    aiv_res: u32,
+}
+
+impl<'a> VoxelBlock<'a> {
+    /// Voxels in the block.
+    pub fn len(&self) -> usize {
+        self.keys.len()
+    }
+
+    /// Whether the block holds no voxel (never, for a verified block).
+    pub fn is_empty(&self) -> bool {
+        self.keys.is_empty()
+    }
+
+    /// The Morton key of voxel `i`.
+    pub fn key(&self, i: usize) -> u64 {
+        self.keys.get(i)
+    }
+
+    /// Voxel `i` (in ascending key order).
+    pub fn voxel(&self, i: usize) -> VoxelRef<'a> {
+        VoxelRef {
+            key: self.keys.get(i),
+            rec: self.recs.get(i),
+            block: self.block,
+            index: i as u32,
+            aiv_res: self.aiv_res,
+        }
+    }
+}
+
+/// A verified block of boundary faces, read zero-copy.
+#[derive(Clone, Copy)]
+pub struct FaceBlock<'a> {
+    faces: flatbuffers::Vector<'a, fb::Face>,
+    nodes: flatbuffers::Vector<'a, fb::HaarNode>,
+    abv_res: u32,
+}
+
+impl<'a> FaceBlock<'a> {
+    /// Faces in the block.
+    pub fn len(&self) -> usize {
+        self.faces.len()
+    }
+
+    /// Whether the block holds no face.
+    pub fn is_empty(&self) -> bool {
+        self.faces.is_empty()
+    }
+
+    /// Face `i`.
+    pub fn face(&self, i: usize) -> FaceRef<'a> {
+        FaceRef {
+            rec: self.faces.get(i),
+            nodes: self.nodes,
+            abv_res: self.abv_res,
+        }
+    }
+}
+
+/// A boundary face and its ABV tree, read zero-copy.
+#[derive(Clone, Copy)]
+pub struct FaceRef<'a> {
+    rec: &'a fb::Face,
+    nodes: flatbuffers::Vector<'a, fb::HaarNode>,
+    abv_res: u32,
+}
+
+impl<'a> FaceRef<'a> {
+    /// The face: its voxel and direction.
+    pub fn face(&self) -> Face {
+        Face {
+            voxel: UVec3Key(self.rec.x(), self.rec.y(), self.rec.z()),
+            dir: self.rec.dir() as u8,
+        }
+    }
+
+    /// The Morton key of the face's voxel.
+    pub fn key(&self) -> u64 {
+        morton3(UVec3::new(self.rec.x(), self.rec.y(), self.rec.z()))
+    }
+
+    /// The mean of the ABV map.
+    pub fn mean(&self) -> f32 {
+        self.rec.abv_scaling() / self.abv_res.max(1) as f32
+    }
+
+    /// The boundary visibility (Eq. 26) towards unit `d`, which points into the aggregate
+    /// through the face, walking one path of the tree; the map's mean for directions that do
+    /// not enter through the face.
+    #[inline]
+    pub fn abv(&self, d: Vec3) -> f32 {
+        let n = self.abv_res;
+        let scaling = self.rec.abv_scaling();
+        if self.rec.abv_count() == 0 {
+            return (scaling / n.max(1) as f32).clamp(0.0, 1.0);
+        }
+        let local = Frame::from_z(-face_normal(self.rec.dir() as u8)).to_local(d);
+        if !(local.z > 0.0) {
+            return (scaling / n as f32).clamp(0.0, 1.0);
+        }
+        let cell = grid_cell(concentric_hemisphere_to_square(local), n);
+        let start = self.rec.abv_start() as usize;
+        let nodes = self.nodes;
+        eval_tree(
+            n,
+            scaling,
+            self.rec.abv_count() as usize,
+            |i| node(nodes.get(start + i)),
+            cell % n,
+            cell / n,
+        )
+        .clamp(0.0, 1.0)
+    }
+
+    /// The decoded ABV tree.
+    pub fn abv_tree(&self) -> SparseHaar {
+        let s = self.rec.abv_start() as usize;
+        SparseHaar {
+            n: self.abv_res,
+            scaling: self.rec.abv_scaling(),
+            nodes: (s..s + self.rec.abv_count() as usize)
+                .map(|i| node(self.nodes.get(i)))
+                .collect(),
+        }
+    }
+}
+
 /// A voxel record inside its block, read zero-copy.
 #[derive(Clone, Copy)]
 pub struct VoxelRef<'a> {
+    /// The voxel's Morton key.
     pub key: u64,
-    pub rec: &'a fb::Voxel,
+    rec: &'a fb::Voxel,
     block: fb::Block<'a>,
     /// Position in the block.
     index: u32,
@@ -274,16 +534,33 @@ impl<'a> VoxelRef<'a> {
             .map_or(1.0, |e| e.get(self.index as usize))
     }
 
+    /// The voxel's coordinates in its level.
     pub fn coords(&self) -> UVec3 {
         demorton3(self.key)
     }
 
+    /// Surface area inside the voxel, before cut-outs.
+    pub fn area(&self) -> f32 {
+        self.rec.area()
+    }
+
+    /// The fraction of the area left after cut-outs.
+    pub fn coverage(&self) -> f32 {
+        self.rec.coverage()
+    }
+
+    /// The voxel's ellipsoid.
     pub fn ellipsoid(&self) -> Ellipsoid {
         let r = self.rec;
         Ellipsoid {
             center: g(r.center()),
             axes: Mat3::from_cols(g(r.axis_x()), g(r.axis_y()), g(r.axis_z())),
         }
+    }
+
+    /// The mean of the AIV map.
+    pub fn aiv_mean(&self) -> f32 {
+        self.rec.aiv_scaling() / self.aiv_res.max(1) as f32
     }
 
     /// The interior visibility towards `d` (unit), walking one path of the tree.
@@ -296,7 +573,7 @@ impl<'a> VoxelRef<'a> {
             return (scaling / n.max(1) as f32).clamp(0.0, 1.0);
         }
         let cell = grid_cell(equal_area_sphere_to_square(d), n);
-        let nodes = self.block.aiv_nodes().unwrap();
+        let nodes = self.block.aiv_nodes().expect("verified");
         let start = r.aiv_start() as usize;
         eval_tree(
             n,
@@ -310,9 +587,10 @@ impl<'a> VoxelRef<'a> {
         .clamp(0.0, 1.0)
     }
 
+    /// The decoded AIV tree.
     pub fn aiv_tree(&self) -> SparseHaar {
         let r = self.rec;
-        let nodes = self.block.aiv_nodes().unwrap();
+        let nodes = self.block.aiv_nodes().expect("verified");
         let s = r.aiv_start() as usize;
         SparseHaar {
             n: self.aiv_res,
@@ -326,7 +604,7 @@ impl<'a> VoxelRef<'a> {
     /// The ABSDF inputs.
     pub fn appearance(&self) -> VoxelAppearance {
         let r = self.rec;
-        let lobes = self.block.lobes().unwrap();
+        let lobes = self.block.lobes().expect("verified");
         let lobes = (r.lobe_start()..r.lobe_start() + r.lobe_count())
             .map(|i| {
                 let l = lobes.get(i as usize);
@@ -339,7 +617,7 @@ impl<'a> VoxelRef<'a> {
             .collect();
         let range = r.moment_start() as usize..(r.moment_start() + r.moment_count()) as usize;
         let sets: Vec<MaterialMoments> = if r.flags().contains(fb::VoxelFlags::Metallic) {
-            let m = self.block.moments().unwrap();
+            let m = self.block.moments().expect("verified");
             range
                 .map(|i| {
                     let x = m.get(i);
@@ -355,7 +633,7 @@ impl<'a> VoxelRef<'a> {
                 })
                 .collect()
         } else {
-            let m = self.block.dielectric_moments().unwrap();
+            let m = self.block.dielectric_moments().expect("verified");
             range
                 .map(|i| {
                     let x = m.get(i);
@@ -387,8 +665,14 @@ impl<'a> VoxelRef<'a> {
     }
 }
 
-/// Verifies the index and every block of `data`.
-fn verify(data: &[u8], h: &Header, checksums: bool) -> Result<(), FormatError> {
+/// Verifies the index: its checksum and structure, the settings, the level table, and that the
+/// blobs it names lie in the file, aligned, without overlapping; returns what the reader keeps.
+#[allow(clippy::type_complexity)]
+fn verify_index(
+    data: &[u8],
+    h: &Header,
+    checksums: bool,
+) -> Result<(RecordedSettings, Vec<LevelInfo>, Vec<Blob>), FormatError> {
     let index_bytes = &data[h.index_offset as usize..(h.index_offset + h.index_size) as usize];
     if h.index_offset % ALIGN != 0 {
         return Err(corrupt("index not aligned"));
@@ -405,8 +689,8 @@ fn verify(data: &[u8], h: &Header, checksums: bool) -> Result<(), FormatError> {
     let settings = index
         .settings()
         .ok_or_else(|| corrupt("no bake settings"))?;
-    let (aiv_res, abv_res) = (settings.aiv_res(), settings.abv_res());
-    for (what, n) in [("aiv_res", aiv_res), ("abv_res", abv_res)] {
+    let settings = RecordedSettings::from_fb(&settings);
+    for (what, n) in [("aiv_res", settings.aiv_res), ("abv_res", settings.abv_res)] {
         if !n.is_power_of_two() || n > 1024 {
             return Err(corrupt(format!(
                 "{what} {n} is not a power of two up to 1024"
@@ -414,8 +698,32 @@ fn verify(data: &[u8], h: &Header, checksums: bool) -> Result<(), FormatError> {
         }
     }
     let levels = index.levels().ok_or_else(|| corrupt("no level table"))?;
-    // Every blob in order, for the overlap check.
-    let mut ranges: Vec<(u64, u64)> = Vec::new();
+    let mut blobs: Vec<Blob> = Vec::new();
+    let mut infos = Vec::with_capacity(levels.len());
+    let blob = |r: &fb::BlobRef, kind: BlobKind| -> Result<Blob, FormatError> {
+        let end = r.offset().checked_add(r.size());
+        if r.offset() < HEADER_SIZE as u64
+            || r.offset() % ALIGN != 0
+            || end.is_none_or(|e| e > h.index_offset)
+        {
+            return Err(corrupt(format!(
+                "blob at {}+{} out of range",
+                r.offset(),
+                r.size()
+            )));
+        }
+        Ok(Blob {
+            offset: r.offset(),
+            size: r.size(),
+            first_key: r.first_key(),
+            last_key: r.last_key(),
+            count: r.count(),
+            crc32: r.crc32(),
+            kind,
+            gap_end: 0,
+            checked: OnceLock::new(),
+        })
+    };
     for (li, lv) in levels.iter().enumerate() {
         let res = lv.res();
         if !res.is_power_of_two() || res > 1 << 20 {
@@ -427,66 +735,100 @@ fn verify(data: &[u8], h: &Header, checksums: bool) -> Result<(), FormatError> {
         if !finite3(origin) || !(lv.size() > 0.0 && lv.size().is_finite()) {
             return Err(corrupt(format!("level {li}: bad extent")));
         }
-        let mut voxels = 0u64;
+        let v0 = blobs.len();
         let mut prev_last: Option<u64> = None;
+        let mut voxels = 0u64;
         for r in lv.voxel_blocks().into_iter().flatten() {
-            let block = check_blob(data, h, r, &opts, &mut ranges, checksums)?;
-            voxels += check_voxel_block(&block, r, li as u32, res, aiv_res)?;
-            if prev_last.is_some_and(|p| p >= r.first_key()) {
+            if prev_last.is_some_and(|p| p >= r.first_key()) || r.first_key() > r.last_key() {
                 return Err(corrupt(format!("level {li}: voxel blocks out of order")));
             }
             prev_last = Some(r.last_key());
+            voxels += r.count() as u64;
+            blobs.push(blob(r, BlobKind::Voxels(li as u32))?);
         }
+        let f0 = blobs.len();
         let mut faces = 0u64;
         for r in lv.face_blocks().into_iter().flatten() {
-            let block = check_blob(data, h, r, &opts, &mut ranges, checksums)?;
-            faces += check_face_block(&block, r, li as u32, res, abv_res)?;
+            faces += r.count() as u64;
+            blobs.push(blob(r, BlobKind::Faces(li as u32))?);
         }
-        if let Some(c) = lv.counts() {
-            if c.voxels() != voxels || c.faces() != faces {
-                return Err(corrupt(format!(
-                    "level {li}: counts disagree with its blocks"
-                )));
-            }
+        let counts = lv.counts().map(|c| Counts::from_fb(&c)).unwrap_or_default();
+        if lv.counts().is_some() && (counts.voxels != voxels || counts.faces != faces) {
+            return Err(corrupt(format!(
+                "level {li}: counts disagree with its blocks"
+            )));
         }
+        infos.push(LevelInfo {
+            grid: Grid {
+                origin: g(origin),
+                size: lv.size(),
+                res,
+            },
+            counts,
+            voxel_blobs: v0..f0,
+            face_blobs: f0..blobs.len(),
+        });
     }
     for r in index.pca_blocks().into_iter().flatten() {
-        check_range(h, r, &mut ranges)?;
+        blobs.push(blob(r, BlobKind::Reserved)?);
     }
-    // Blobs must not overlap, and the gaps between them (alignment padding) must be zeros,
-    // so that no byte of the file goes unchecked.
-    ranges.push((h.index_offset, h.index_offset + h.index_size));
-    ranges.sort_unstable();
+    // Blobs must not overlap; the gaps between them (alignment padding) must be zeros, so that
+    // no byte of the file goes unchecked: the gap before the first blob here, each blob's
+    // following gap when the blob is verified.
+    let mut order: Vec<usize> = (0..blobs.len()).collect();
+    order.sort_unstable_by_key(|&i| blobs[i].offset);
     let mut end = HEADER_SIZE as u64;
-    for (a, b) in ranges {
-        if a < end {
+    for (k, &i) in order.iter().enumerate() {
+        let b = &blobs[i];
+        if b.offset < end {
             return Err(corrupt("blobs overlap"));
         }
-        if data[end as usize..a as usize].iter().any(|&x| x != 0) {
+        if k == 0
+            && data[end as usize..b.offset as usize]
+                .iter()
+                .any(|&x| x != 0)
+        {
             return Err(corrupt(format!("non-zero padding at {end}")));
         }
-        end = b;
+        end = b.offset + b.size;
     }
-    Ok(())
+    if end > h.index_offset {
+        return Err(corrupt("blobs overlap"));
+    }
+    if order.is_empty()
+        && data[HEADER_SIZE..h.index_offset as usize]
+            .iter()
+            .any(|&x| x != 0)
+    {
+        return Err(corrupt(format!("non-zero padding at {HEADER_SIZE}")));
+    }
+    for k in 0..order.len() {
+        let next = order
+            .get(k + 1)
+            .map_or(h.index_offset, |&j| blobs[j].offset);
+        blobs[order[k]].gap_end = next;
+    }
+    // Reserved blobs are not read by this version: their bytes are verified now.
+    for &i in &order {
+        if blobs[i].kind == BlobKind::Reserved {
+            let b = &blobs[i];
+            let bytes = &data[b.offset as usize..(b.offset + b.size) as usize];
+            if checksums && crc32fast::hash(bytes) != b.crc32 {
+                return Err(corrupt(format!("blob at {}: checksum mismatch", b.offset)));
+            }
+            check_gap(data, b)?;
+            let _ = b.checked.set(Ok(()));
+        }
+    }
+    Ok((settings, infos, blobs))
 }
 
-fn check_range(
-    h: &Header,
-    r: &fb::BlobRef,
-    ranges: &mut Vec<(u64, u64)>,
-) -> Result<(), FormatError> {
-    let end = r.offset().checked_add(r.size());
-    if r.offset() < HEADER_SIZE as u64
-        || r.offset() % ALIGN != 0
-        || end.is_none_or(|e| e > h.index_offset)
-    {
-        return Err(corrupt(format!(
-            "blob at {}+{} out of range",
-            r.offset(),
-            r.size()
-        )));
+/// The padding after blob `b` up to the next blob is zero.
+fn check_gap(data: &[u8], b: &Blob) -> Result<(), FormatError> {
+    let from = (b.offset + b.size) as usize;
+    if data[from..b.gap_end as usize].iter().any(|&x| x != 0) {
+        return Err(corrupt(format!("non-zero padding at {from}")));
     }
-    ranges.push((r.offset(), r.offset() + r.size()));
     Ok(())
 }
 
@@ -497,40 +839,52 @@ fn has_identifier(b: &[u8], id: &str) -> bool {
         && flatbuffers::buffer_has_identifier(b, id, false)
 }
 
-fn check_blob<'a>(
-    data: &'a [u8],
-    h: &Header,
-    r: &fb::BlobRef,
-    opts: &flatbuffers::VerifierOptions,
-    ranges: &mut Vec<(u64, u64)>,
+/// Verifies one block: checksum, identifier, FlatBuffers structure, the invariants the
+/// accessors rely on, and the padding after it.
+fn check_blob(
+    data: &[u8],
+    r: &Blob,
+    settings: &RecordedSettings,
+    levels: &[LevelInfo],
     checksums: bool,
-) -> Result<fb::Block<'a>, FormatError> {
-    check_range(h, r, ranges)?;
-    let b = &data[r.offset() as usize..(r.offset() + r.size()) as usize];
-    if checksums && crc32fast::hash(b) != r.crc32() {
-        return Err(corrupt(format!(
-            "block at {}: checksum mismatch",
-            r.offset()
-        )));
-    }
-    if !has_identifier(b, BLOCK_ID) {
-        return Err(corrupt(format!(
-            "block at {}: wrong identifier",
-            r.offset()
-        )));
-    }
-    flatbuffers::root_with_opts::<fb::Block>(opts, b)
-        .map_err(|e| corrupt(format!("block at {}: {e}", r.offset())))
+) -> Result<(), String> {
+    let inner = || -> Result<(), FormatError> {
+        let b = &data[r.offset as usize..(r.offset + r.size) as usize];
+        if checksums && crc32fast::hash(b) != r.crc32 {
+            return Err(corrupt(format!("block at {}: checksum mismatch", r.offset)));
+        }
+        if !has_identifier(b, BLOCK_ID) {
+            return Err(corrupt(format!("block at {}: wrong identifier", r.offset)));
+        }
+        let block = flatbuffers::root_with_opts::<fb::Block>(&verifier_options(), b)
+            .map_err(|e| corrupt(format!("block at {}: {e}", r.offset)))?;
+        match r.kind {
+            BlobKind::Voxels(l) => {
+                let res = levels[l as usize].grid.res;
+                check_voxel_block(&block, r, l, res, settings.aiv_res)?;
+            }
+            BlobKind::Faces(l) => {
+                let res = levels[l as usize].grid.res;
+                check_face_block(&block, r, l, res, settings.abv_res)?;
+            }
+            BlobKind::Reserved => {}
+        }
+        check_gap(data, r)
+    };
+    inner().map_err(|e| match e {
+        FormatError::Corrupt(s) => s,
+        other => other.to_string(),
+    })
 }
 
 fn check_voxel_block(
     b: &fb::Block,
-    r: &fb::BlobRef,
+    r: &Blob,
     level: u32,
     res: u32,
     aiv_res: u32,
 ) -> Result<u64, FormatError> {
-    let at = r.offset();
+    let at = r.offset;
     let err = |s: &str| corrupt(format!("voxel block at {at}: {s}"));
     if b.level() != level {
         return Err(err("belongs to another level"));
@@ -546,10 +900,10 @@ fn check_voxel_block(
         return Err(err("missing arrays"));
     };
     let n = keys.len();
-    if recs.len() != n || n as u64 != r.count() as u64 || n == 0 {
+    if recs.len() != n || n as u64 != r.count as u64 || n == 0 {
         return Err(err("voxel count mismatch"));
     }
-    if keys.get(0) != r.first_key() || keys.get(n - 1) != r.last_key() {
+    if keys.get(0) != r.first_key || keys.get(n - 1) != r.last_key {
         return Err(err("key range mismatch"));
     }
     if let Some(e) = b.exposure() {
@@ -648,12 +1002,12 @@ fn check_voxel_block(
 
 fn check_face_block(
     b: &fb::Block,
-    r: &fb::BlobRef,
+    r: &Blob,
     level: u32,
     res: u32,
     abv_res: u32,
 ) -> Result<u64, FormatError> {
-    let at = r.offset();
+    let at = r.offset;
     let err = |s: &str| corrupt(format!("face block at {at}: {s}"));
     if b.level() != level {
         return Err(err("belongs to another level"));
@@ -661,7 +1015,7 @@ fn check_face_block(
     let (Some(faces), Some(nodes)) = (b.faces(), b.abv_nodes()) else {
         return Err(err("missing arrays"));
     };
-    if faces.len() as u64 != r.count() as u64 {
+    if faces.len() as u64 != r.count as u64 {
         return Err(err("face count mismatch"));
     }
     for f in faces.iter() {
@@ -703,6 +1057,11 @@ pub fn exercise(agg: &Aggregate) -> usize {
         }
         let _ = agg.find_voxel(l, 12345);
         n += agg.read_level(l).faces.len();
+        for f in agg.faces(l) {
+            for d in dirs {
+                let _ = f.abv(d);
+            }
+        }
     }
     n
 }

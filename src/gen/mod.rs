@@ -386,7 +386,7 @@ pub fn write(
     })?;
     let path = dir.join(format!("{name}.glb"));
     let bytes = glb::to_glb(&scene, quantize);
-    crate::render::image::write_atomic(&path, |tmp| {
+    crate::util::write_atomic(&path, |tmp| {
         std::fs::write(tmp, &bytes).map_err(|e| e.to_string())
     })?;
     Ok((path, scene.instanced_triangles()))

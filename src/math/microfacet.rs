@@ -123,6 +123,19 @@ pub fn reflect(w: Vec3, n: Vec3) -> Vec3 {
     2.0 * w.dot(n) * n - w
 }
 
+/// ∫ D_ggx over the hemisphere in closed form: M5(α) = 1 + α² atanh(q)/q, q = sqrt(1 − α²)
+/// (from ∫₀¹ dt / (1 + k t²)² with k = α² − 1).
+pub fn m5_exact(alpha: f32) -> f32 {
+    let a = alpha.clamp(ALPHA_MIN, 1.0) as f64;
+    let q = (1.0 - a * a).max(0.0).sqrt();
+    let r = if q < 1e-6 {
+        1.0 + q * q / 3.0
+    } else {
+        q.atanh() / q
+    };
+    (1.0 + a * a * r) as f32
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

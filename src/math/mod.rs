@@ -8,6 +8,7 @@ pub mod frame;
 pub mod haar;
 pub mod lowdiscrepancy;
 pub mod microfacet;
+pub mod numerics;
 pub mod rng;
 pub mod sampling;
 pub mod sg;
@@ -18,26 +19,7 @@ pub mod spherical;
 
 pub use glam::{Vec2, Vec3};
 
-/// Replace NaN and infinities by zero: the last line of defence before a value leaves a
-/// function that promises finite output.
-#[inline]
-pub fn finite_or_zero(x: f32) -> f32 {
-    if x.is_finite() {
-        x
-    } else {
-        0.0
-    }
-}
-
-/// Component-wise [`finite_or_zero`].
-#[inline]
-pub fn finite_vec_or_zero(v: Vec3) -> Vec3 {
-    if v.is_finite() {
-        v
-    } else {
-        Vec3::ZERO
-    }
-}
+pub use numerics::{finite_or_zero, finite_vec_or_zero};
 
 /// `sqrt(max(x, 0))`.
 #[inline]

@@ -400,7 +400,7 @@ mod tests {
         assert!((f.second - Vec3::Z).abs().max_element() < 1e-4, "{f:?}");
         for a in [0.05f32, 0.2, 0.5, 0.8] {
             let s = lobe_shape_exact(Vec2::splat(a), 512);
-            let want = 2.0 * crate::tables::fit::m5_exact(a);
+            let want = 2.0 * crate::math::microfacet::m5_exact(a);
             assert!(
                 (s.mass - want).abs() < 2e-3 * want,
                 "α {a}: {} vs {want}",

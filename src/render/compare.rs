@@ -7,7 +7,7 @@
 use glam::Vec3;
 use serde::Serialize;
 
-use super::image::Image;
+use crate::film::Image;
 
 /// Comparison figures.
 #[derive(Clone, Copy, Debug, Serialize, PartialEq)]

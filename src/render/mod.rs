@@ -1,15 +1,13 @@
-//! Rendering shared by the reference path tracer and (later) the LoD runtime: view files,
-//! camera, lights, images and their comparison.
+//! What the reference renderer needs around it: view files, the reference path tracer itself,
+//! image comparison and captions. Images, the camera and the image loop live in
+//! [`crate::film`], the lights in [`crate::lights`]; the reference renderer depends on the
+//! scene, the BVH and those alone, so that it stays an independent oracle for the LoD.
 
-pub mod camera;
 pub mod compare;
-pub mod image;
 pub mod label;
-pub mod lights;
 pub mod reference;
 pub mod view;
 
-pub use camera::Camera;
-pub use image::Image;
-pub use lights::{Environment, Lights, Sun};
+pub use crate::film::{Camera, Image};
+pub use crate::lights::Lights;
 pub use view::View;

@@ -128,6 +128,46 @@ pub struct View {
 pub const VIEW_VERSION: u32 = 1;
 
 impl View {
+    /// The camera the view describes.
+    pub fn camera(&self) -> crate::film::Camera {
+        let c = &self.camera;
+        crate::film::Camera::look_at(
+            Vec3::from(c.eye),
+            Vec3::from(c.target),
+            Vec3::from(c.up),
+            c.fov_y_deg,
+            c.width,
+            c.height,
+        )
+    }
+
+    /// The lights the view describes (environment maps are loaded from disk). No environment
+    /// and no sun is a constant white sky; a sun alone has a black sky.
+    pub fn lights(&self) -> Result<crate::lights::Lights, crate::film::ImageError> {
+        use crate::lights::{EnvMap, Environment, Lights, Sun};
+        let environment = match &self.environment {
+            Some(EnvironmentDesc::Constant { constant }) => {
+                Environment::Constant(constant.to_vec3())
+            }
+            Some(EnvironmentDesc::Map {
+                path,
+                intensity,
+                rotation_deg,
+            }) => Environment::Map(EnvMap::from_image(
+                &crate::film::Image::read_any(path)?,
+                *intensity,
+                *rotation_deg,
+            )),
+            None if self.sun.is_some() => Environment::Constant(Vec3::ZERO),
+            None => Environment::Constant(Vec3::ONE),
+        };
+        let sun = self.sun.as_ref().map(|s| Sun {
+            direction: Vec3::from(s.direction).normalize(),
+            irradiance: s.irradiance.to_vec3(),
+        });
+        Ok(Lights { environment, sun })
+    }
+
     /// Reads and validates a view file; relative environment paths become absolute against its
     /// folder.
     pub fn load(path: &Path) -> Result<View, ViewError> {

@@ -1,72 +1,96 @@
-//! The LoD runtime: cone tracing through an `.agg` aggregate (paper §6.3, §7.3, Algorithm 1,
-//! Eq. 30).
+//! The LoD runtime: a library host renderers link to trace cones through `.agg` aggregates
+//! (paper §6.3, §7.3, Algorithm 1, Eq. 30).
 //!
-//! [`LodScene::new`] prepares an opened [`Aggregate`] once (per voxel its ABSDF, primitive and
-//! a zero-copy handle on its AIV tree; per level a hash from Morton key to voxel and from
-//! (key, direction) to boundary face). After that, [`LodScene::trace`] is thread-safe and
-//! allocates nothing: a host renderer calls it with a cone (origin, direction, aperture) and
-//! the lights, and gets the radiance and the background's transmittance.
+//! Two layers.
 //!
-//! Per cone, a 3D DDA walks the level whose voxel matches the cone's footprint (Algorithm 1,
-//! line 7), switching to a coarser level only where the ray crosses a boundary of the coarser
-//! grid. Every voxel whose truncated ellipsoid the centre ray meets adds (Eq. 30)
+//! - **Traversal**: [`LodScene::hits`] walks a [`Cone`] through the aggregate and yields, for
+//!   every primitive the centre ray meets, in order, a [`Hit`]: the voxel (a [`VoxelHandle`]
+//!   that answers its ABSDF `eval`/`pdf`/`sample` through [`crate::bsdf::Bsdf`] and its AIV
+//!   towards any direction), the ray parameter, and the coverage weight V̂(ω_o)·|A|_ω/|B|_ω of
+//!   Eq. 30; once the walk is over, [`Hits::transmittance`] is the background's weight, the ABV
+//!   of the face where the cone entered the aggregate (Eq. 26; 1 when it met no primitive). A
+//!   host that does its own lighting shades the hits with its own code and sampler.
+//! - **Shading**: [`LodScene::trace`] does Algorithm 1 with those pieces and the runtime's own
+//!   [`Lights`]: the voxels' contributions L_o·V̂(ω_o)·|A|_ω/|B|_ω summed (order-independent),
+//!   L_o from light and ABSDF samples combined by MIS with the AIV standing in for shadow rays,
+//!   and the background through the ABV.
 //!
-//! ```text
-//! L_o(ω_o) · V̂(ω_o) · |A|_ω / |B|_ω,     L_o(ω_o) = ∫ f̂(ω_i, ω_o) L(ω_i) V̂(ω_i) dω_i
-//! ```
-//!
-//! with L_o estimated by `nee` light samples and `nee` ABSDF samples combined by MIS (splitting,
-//! Algorithm 1 line 14), the AIV V̂ standing in for shadow rays, |A|_ω = coverage · area · E|n·ω|
-//! from the voxel's normal distribution and |B|_ω the primitive's projected area. The
-//! background is added through the ABV of the face where the ray entered the aggregate if the
-//! ray met any primitive (P⁺), in full otherwise. The sum is order-independent.
+//! Per cone a 3D DDA walks the level whose voxel matches the cone's footprint (Algorithm 1,
+//! line 7), switching to a coarser level only where the ray crosses a plane of the coarser
+//! grid, and skipping empty 4³ bricks whole (a bit per brick, a 64-bit mask per occupied
+//! brick). Opening is lazy: [`LodScene::open`] maps the file and reads its index; a level is
+//! prepared (and its blocks verified) the first time a cone needs it, once, thread-safely.
+//! Tracing allocates nothing. No NaN or infinity leaves the runtime: where one would, it is
+//! counted ([`crate::math::numerics`]) and replaced by zero.
 
-pub mod primitive;
+mod hits;
+mod level;
+mod shade;
 mod volume;
 
-use std::collections::HashMap;
-use std::hash::BuildHasherDefault;
+use std::path::Path;
+use std::sync::OnceLock;
 
-use glam::{IVec3, Vec3};
+use glam::{Vec2, Vec3};
 
 use crate::absdf::Absdf;
-use crate::bake::boundary_visibility::face_normal;
-use crate::bake::voxelize::{morton3, Grid};
-use crate::format::{fb, Aggregate, VoxelRef};
-use crate::math::frame::Frame;
-use crate::math::haar::{eval_tree, Node};
+use crate::bsdf::{Bsdf, BsdfSample};
+use crate::format::{Aggregate, FormatError};
 use crate::math::rng::Pcg32;
-use crate::math::sampling::power_heuristic;
-use crate::math::sggx::Sggx;
-use crate::math::sphere_maps::{concentric_hemisphere_to_square, grid_cell};
-use crate::render::lights::Lights;
-use crate::tables::fit::m5_exact;
-use crate::trace::Ray;
-use primitive::{box_interval, box_projected_area, Primitive};
+use crate::spatial::Grid;
 
-/// A hasher for Morton keys: one mixing step instead of SipHash in the traversal's inner loop.
-#[derive(Default, Clone, Copy)]
-pub struct KeyHasher(u64);
+pub use crate::lights::{EnvMap, Environment, LightSample, Lights, Sun};
+pub use hits::{Hit, Hits};
+pub use shade::shade;
 
-impl std::hash::Hasher for KeyHasher {
-    fn finish(&self) -> u64 {
-        crate::math::rng::mix64(self.0)
-    }
-    fn write(&mut self, bytes: &[u8]) {
-        for b in bytes {
-            self.0 = (self.0 << 8) ^ *b as u64;
+/// A cone: a centre ray and the full angle of its aperture (Algorithm 1's r and θ).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Cone {
+    /// Origin of the centre ray.
+    pub origin: Vec3,
+    /// Unit direction of the centre ray.
+    pub dir: Vec3,
+    /// Full aperture angle in radians (a pixel's cone: the angle the pixel subtends).
+    pub aperture: f32,
+    /// The part of the ray traced: from `tmin` to `tmax`.
+    pub tmin: f32,
+    /// See `tmin`; a host clips it to its own nearer surface.
+    pub tmax: f32,
+}
+
+impl Cone {
+    /// A cone over the whole ray (t from 0 to infinity); `dir` is normalised.
+    pub fn new(origin: Vec3, dir: Vec3, aperture: f32) -> Cone {
+        Cone {
+            origin,
+            dir: dir.normalize_or_zero(),
+            aperture,
+            tmin: 0.0,
+            tmax: f32::INFINITY,
         }
-    }
-    fn write_u64(&mut self, v: u64) {
-        self.0 = v;
     }
 }
 
-type FastMap<V> = HashMap<u64, V, BuildHasherDefault<KeyHasher>>;
+/// The random numbers the runtime draws: a host passes its own sampler.
+pub trait Sampler {
+    /// A number in [0, 1).
+    fn next_1d(&mut self) -> f32;
+    /// Two numbers in [0, 1)².
+    fn next_2d(&mut self) -> Vec2 {
+        Vec2::new(self.next_1d(), self.next_1d())
+    }
+}
 
-/// Outgoing AIV below which a voxel's contribution is shaded only with probability
-/// V̂(ω_o) / RR_VISIBILITY (and weighted up when it is).
-const RR_VISIBILITY: f32 = 0.05;
+impl Sampler for Pcg32 {
+    #[inline]
+    fn next_1d(&mut self) -> f32 {
+        self.next_f32()
+    }
+    #[inline]
+    fn next_2d(&mut self) -> Vec2 {
+        Pcg32::next_2d(self)
+    }
+}
 
 /// What stands for a voxel's geometry.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -82,14 +106,37 @@ pub enum PrimitiveKind {
     Volume,
 }
 
+/// How [`LodScene::trace`] turns a cone's hits into radiance.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Shading {
+    /// Shade every primitive met and sum (Eq. 30 term by term).
+    Every,
+    /// Shade `picks` primitives chosen in proportion to their coverage weight by weighted
+    /// reservoir sampling, each standing for the whole weight: an unbiased estimate of the same
+    /// sum at the cost of `picks` shadings per cone, however many voxels the cone crosses.
+    Reservoir {
+        /// Primitives shaded per cone (1 or more).
+        picks: u32,
+    },
+}
+
+impl Default for Shading {
+    fn default() -> Self {
+        Shading::Reservoir { picks: 1 }
+    }
+}
+
 /// Render-time options.
 #[derive(Clone, Copy, Debug)]
 pub struct TraceSettings {
-    /// Light samples and ABSDF samples per primitive hit (MIS; Algorithm 1's m).
+    /// Light samples and ABSDF samples per shaded primitive (MIS; Algorithm 1's m).
     pub nee: u32,
     /// Force this level (0 = finest) instead of choosing by footprint.
     pub level: Option<usize>,
+    /// The primitive.
     pub primitive: PrimitiveKind,
+    /// Every primitive shaded, or a weighted few.
+    pub shading: Shading,
 }
 
 impl Default for TraceSettings {
@@ -98,6 +145,7 @@ impl Default for TraceSettings {
             nee: 1,
             level: None,
             primitive: PrimitiveKind::TruncatedEllipsoid,
+            shading: Shading::default(),
         }
     }
 }
@@ -117,8 +165,8 @@ pub struct ConeResult {
 }
 
 impl ConeResult {
-    /// The surfaces' radiance plus the background through `transmittance`; zero radiance if
-    /// anything non-finite slipped through, so that no NaN or infinity leaves the runtime.
+    /// The surfaces' radiance plus the background through `transmittance`. A non-finite sum
+    /// is counted ([`crate::math::numerics`]) and replaced by zero.
     fn compose(
         surfaces: Vec3,
         background: Vec3,
@@ -126,203 +174,79 @@ impl ConeResult {
         primitives: u32,
         coverage: f32,
     ) -> ConeResult {
-        let radiance = surfaces + background * transmittance;
         ConeResult {
-            radiance: if radiance.is_finite() {
-                radiance
-            } else {
-                Vec3::ZERO
-            },
-            transmittance,
+            radiance: crate::math::finite_vec_or_zero(surfaces + background * transmittance),
+            transmittance: crate::math::finite_or_zero(transmittance),
             primitives,
-            coverage,
+            coverage: crate::math::finite_or_zero(coverage),
         }
     }
 }
 
-/// A voxel ready for shading.
-struct Voxel<'a> {
-    absdf: Absdf<'static>,
-    prim: Option<Primitive>,
-    /// area · coverage.
-    area: f32,
-    /// (weight / mass, lobe) for E|n·ω| = Σ w_k σ_k(ω) / m5_k.
-    lobes: [(f32, Sggx); 4],
-    lobe_count: usize,
-    /// 1 / exposure: the incident AIV counts exposed sides only (see `bake::visibility`).
-    inv_exposure: f32,
-    vref: VoxelRef<'a>,
+/// Why an aggregate could not be opened or a level prepared.
+#[derive(Debug, thiserror::Error)]
+pub enum RuntimeError {
+    /// The file could not be read or failed verification.
+    #[error("{0}")]
+    Format(#[from] FormatError),
+    /// A level's blocks failed verification.
+    #[error("level {level}: {message}")]
+    Level {
+        /// The level (0 = finest).
+        level: usize,
+        /// What was wrong.
+        message: String,
+    },
 }
 
-/// A boundary face: its ABV tree, zero-copy.
-#[derive(Clone, Copy)]
-struct FaceRef<'a> {
-    rec: &'a fb::Face,
-    nodes: flatbuffers::Vector<'a, fb::HaarNode>,
-}
-
-struct Level<'a> {
-    grid: Grid,
-    voxels: Vec<Voxel<'a>>,
-    by_key: FastMap<u32>,
-    /// Key: Morton key · 8 + face direction.
-    faces: FastMap<FaceRef<'a>>,
-}
-
-/// A 3D DDA (Amanatides–Woo) over one grid: the voxel the ray is in and the ray parameters at
-/// which it crosses the next plane along each axis.
-struct Dda {
-    v: IVec3,
-    step: IVec3,
-    t_next: Vec3,
-    delta: Vec3,
-    res: i32,
-}
-
-impl Dda {
-    /// Starts at parameter `t` (in voxel `v` if given, else the voxel holding the point).
-    fn new(g: &Grid, origin: Vec3, dir: Vec3, inv: Vec3, t: f32, v: Option<IVec3>) -> Dda {
-        let s = g.voxel_size();
-        let res = g.res as i32;
-        let step = IVec3::new(
-            (dir.x > 0.0) as i32 - (dir.x < 0.0) as i32,
-            (dir.y > 0.0) as i32 - (dir.y < 0.0) as i32,
-            (dir.z > 0.0) as i32 - (dir.z < 0.0) as i32,
-        );
-        let v = v.unwrap_or_else(|| {
-            ((origin + dir * t - g.origin) / s)
-                .floor()
-                .as_ivec3()
-                .clamp(IVec3::ZERO, IVec3::splat(res - 1))
-        });
-        let next = |a: usize| -> f32 {
-            if step[a] == 0 {
-                return f32::INFINITY;
-            }
-            let b = g.origin[a] + (v[a] + (step[a] > 0) as i32) as f32 * s;
-            (b - origin[a]) * inv[a]
-        };
-        Dda {
-            v,
-            step,
-            t_next: Vec3::new(next(0), next(1), next(2)),
-            delta: Vec3::select(
-                step.cmpeq(IVec3::ZERO),
-                Vec3::INFINITY,
-                (Vec3::splat(s) * inv).abs(),
-            ),
-            res,
-        }
-    }
-
-    /// Where the ray leaves the current voxel.
-    #[inline]
-    fn t_exit(&self) -> f32 {
-        self.t_next.min_element()
-    }
-
-    /// Moves into the next voxel: the axis crossed and the parameter there, or None when the
-    /// ray leaves the grid.
-    #[inline]
-    fn advance(&mut self) -> Option<(usize, f32)> {
-        let n = self.t_next;
-        let axis = if n.x <= n.y && n.x <= n.z {
-            0
-        } else if n.y <= n.z {
-            1
-        } else {
-            2
-        };
-        let t = n[axis];
-        self.v[axis] += self.step[axis];
-        if self.v[axis] < 0 || self.v[axis] >= self.res {
-            return None;
-        }
-        self.t_next[axis] += self.delta[axis];
-        Some((axis, t))
-    }
-}
-
-/// A prepared aggregate.
-pub struct LodScene<'a> {
-    levels: Vec<Level<'a>>,
-    abv_res: u32,
+/// An opened aggregate ready for cone tracing: owns the mapped file; levels are prepared on
+/// first use.
+pub struct LodScene {
+    /// Prepared levels, borrowing from `agg`'s bytes. Declared before `agg` so that it is
+    /// dropped first.
+    levels: Vec<OnceLock<Result<level::Level<'static>, String>>>,
+    grids: Vec<Grid>,
     /// Finest voxel size.
     base: f32,
+    agg: Aggregate,
 }
 
-impl<'a> LodScene<'a> {
-    /// Prepares every level of `agg` (in parallel).
-    pub fn new(agg: &'a Aggregate) -> LodScene<'a> {
-        use rayon::prelude::*;
-        let tables = crate::tables::Tables::embedded();
-        let abv_res = agg.index().settings().map_or(64, |s| s.abv_res());
-        let levels: Vec<Level<'a>> = (0..agg.level_count())
-            .map(|l| {
-                let grid = agg.grid(l);
-                let refs: Vec<VoxelRef<'a>> = agg.voxels(l).collect();
-                let voxels: Vec<Voxel<'a>> = refs
-                    .par_iter()
-                    .map(|v| {
-                        let app = v.appearance();
-                        let e = v.ellipsoid();
-                        let (lo, hi) = grid.voxel_bounds(v.coords());
-                        let mut lobes = [(
-                            0.0,
-                            Sggx::from_frame_roughness(glam::Mat3::IDENTITY, glam::Vec2::ONE),
-                        ); 4];
-                        let lobe_count = app.lobes.len().min(4);
-                        for (k, l) in app.lobes.iter().take(4).enumerate() {
-                            let mass = m5_exact((l.alpha.x * l.alpha.y).sqrt()).max(1e-6);
-                            lobes[k] = (
-                                l.weight / mass,
-                                Sggx::from_frame_roughness(l.frame, l.alpha),
-                            );
-                        }
-                        Voxel {
-                            absdf: Absdf::new(&app, tables),
-                            prim: Primitive::new(e.center, e.axes, lo, hi),
-                            area: v.rec.area() * v.rec.coverage(),
-                            lobes,
-                            lobe_count,
-                            inv_exposure: 1.0 / v.exposure().clamp(1.0 / 16.0, 1.0),
-                            vref: *v,
-                        }
-                    })
-                    .collect();
-                let by_key = refs
-                    .iter()
-                    .enumerate()
-                    .map(|(i, v)| (v.key, i as u32))
-                    .collect();
-                let mut faces = FastMap::default();
-                let lv = agg.index().levels().unwrap().get(l);
-                for r in lv.face_blocks().into_iter().flatten() {
-                    let block = agg.block(r);
-                    let nodes = block.abv_nodes().unwrap();
-                    for f in block.faces().unwrap() {
-                        let key = morton3(glam::UVec3::new(f.x(), f.y(), f.z()));
-                        faces.insert(key * 8 + f.dir() as u64, FaceRef { rec: f, nodes });
-                    }
-                }
-                Level {
-                    grid,
-                    voxels,
-                    by_key,
-                    faces,
-                }
-            })
-            .collect();
-        let base = levels.first().map_or(1.0, |l| l.grid.voxel_size());
+impl LodScene {
+    /// Opens an aggregate lazily: maps the file and verifies its header and index (milliseconds
+    /// for a file of any size); levels are read and verified when cones first need them.
+    pub fn open(path: &Path) -> Result<LodScene, RuntimeError> {
+        Ok(Self::new(Aggregate::open_lazy(path)?))
+    }
+
+    /// A scene over an opened aggregate.
+    pub fn new(agg: Aggregate) -> LodScene {
+        let grids: Vec<Grid> = (0..agg.level_count()).map(|l| agg.grid(l)).collect();
         LodScene {
-            levels,
-            abv_res,
-            base,
+            levels: (0..grids.len()).map(|_| OnceLock::new()).collect(),
+            base: grids.first().map_or(1.0, |g| g.voxel_size()),
+            grids,
+            agg,
         }
     }
 
+    /// The aggregate.
+    pub fn aggregate(&self) -> &Aggregate {
+        &self.agg
+    }
+
+    /// Number of levels (0 = finest).
     pub fn level_count(&self) -> usize {
-        self.levels.len()
+        self.grids.len()
+    }
+
+    /// The grid of level `l`.
+    pub fn grid(&self, l: usize) -> Grid {
+        self.grids[l]
+    }
+
+    /// The bounds of the finest level's cube (the whole aggregate), for framing views.
+    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
+        self.grids.first().map(|g| g.bounds())
     }
 
     /// The level (0 = finest) whose voxel matches a cone of full aperture `aperture` at
@@ -339,304 +263,154 @@ impl<'a> LodScene<'a> {
         if !(x >= 2.0) {
             return 0;
         }
-        (x.log2().floor() as usize).min(self.levels.len().saturating_sub(1))
+        (x.log2().floor() as usize).min(self.grids.len().saturating_sub(1))
     }
 
-    /// E|n·ω| of a voxel's surfaces, from its normal distribution.
+    /// Level `l`, prepared now if it was not: its blocks verified, its voxels' ABSDFs and
+    /// primitives set up, its occupancy masks built.
+    pub fn prepare(&self, l: usize) -> Result<(), RuntimeError> {
+        match self.level(l) {
+            Some(_) => Ok(()),
+            None => Err(RuntimeError::Level {
+                level: l,
+                message: self.levels[l]
+                    .get()
+                    .and_then(|r| r.as_ref().err().cloned())
+                    .unwrap_or_else(|| "no such level".into()),
+            }),
+        }
+    }
+
+    /// Which levels have been prepared so far.
+    pub fn prepared(&self) -> Vec<bool> {
+        self.levels.iter().map(|l| l.get().is_some()).collect()
+    }
+
+    /// The first level that failed to prepare (a damaged block), if any: a render that met it
+    /// treated that level as empty.
+    pub fn first_error(&self) -> Option<RuntimeError> {
+        self.levels
+            .iter()
+            .enumerate()
+            .find_map(|(l, s)| match s.get() {
+                Some(Err(e)) => Some(RuntimeError::Level {
+                    level: l,
+                    message: e.clone(),
+                }),
+                _ => None,
+            })
+    }
+
+    /// Level `l` prepared, or `None` when it failed (or does not exist).
     #[inline]
-    fn mean_cosine(v: &Voxel, w: Vec3) -> f32 {
-        let mut s = 0.0;
-        for (k, s_k) in v.lobes[..v.lobe_count].iter() {
-            s += k * s_k.sigma(w);
-        }
-        s.clamp(0.0, 1.0)
+    fn level(&self, l: usize) -> Option<&level::Level<'_>> {
+        let slot = self.levels.get(l)?;
+        let r = slot.get_or_init(|| {
+            let lv = level::Level::prepare(&self.agg, l)?;
+            // SAFETY: the level borrows the bytes of `self.agg`, which this scene owns and
+            // never mutates or drops before `self.levels` (field order); the bytes live in a
+            // memory map or a heap buffer, so moving the scene does not move them. The
+            // lifetime is narrowed back to `&self` by this function's signature.
+            Ok(unsafe { std::mem::transmute::<level::Level<'_>, level::Level<'static>>(lv) })
+        });
+        r.as_ref().ok()
     }
 
-    /// The AIV for light arriving from `wi`, corrected for the correlation of incident and
-    /// outgoing visibility: min(1, V̂(ω_i)/η) (see `bake::visibility`).
-    #[inline]
-    fn incident_aiv(v: &Voxel, wi: Vec3) -> f32 {
-        (v.vref.aiv(wi) * v.inv_exposure).min(1.0)
-    }
-
-    /// Reflected radiance of a voxel towards `wo` (Algorithm 1, lines 13–17).
-    fn shade(&self, v: &Voxel, wo: Vec3, lights: &Lights, nee: u32, rng: &mut Pcg32) -> Vec3 {
-        Self::shade_with(v, wo, lights, nee, rng, |w| Self::incident_aiv(v, w))
-    }
-
-    /// Reflected radiance of a voxel's ABSDF towards `wo` with `visibility(ω_i)` for the light:
-    /// the sun, then `nee` environment samples and `nee` ABSDF samples combined by MIS.
-    fn shade_with(
-        v: &Voxel,
-        wo: Vec3,
-        lights: &Lights,
-        nee: u32,
-        rng: &mut Pcg32,
-        mut visibility: impl FnMut(Vec3) -> f32,
-    ) -> Vec3 {
-        let mut l = Vec3::ZERO;
-        if let Some(sun) = &lights.sun {
-            let f = v.absdf.eval(sun.direction, wo);
-            if f.max_element() > 0.0 {
-                l += f * sun.irradiance * visibility(sun.direction);
-            }
-        }
-        let env = &lights.environment;
-        let m = nee.max(1);
-        let mut acc = Vec3::ZERO;
-        for _ in 0..m {
-            if let Some(ls) = env.sample(rng.next_2d()) {
-                if ls.pdf > 0.0 && ls.radiance.max_element() > 0.0 {
-                    let (f, pdf_b) = v.absdf.eval_pdf(ls.wi, wo);
-                    if f.max_element() > 0.0 {
-                        acc += f
-                            * ls.radiance
-                            * (visibility(ls.wi) * power_heuristic(ls.pdf, pdf_b) / ls.pdf);
-                    }
-                }
-            }
-            let u_lobe = rng.next_f32();
-            if let Some(bs) = v.absdf.sample(wo, u_lobe, rng.next_2d()) {
-                let le = env.eval(bs.wi);
-                if le.max_element() > 0.0 {
-                    let pdf_l = env.pdf(bs.wi);
-                    acc += bs.value
-                        * le
-                        * (visibility(bs.wi) * power_heuristic(bs.pdf, pdf_l) / bs.pdf);
-                }
-            }
-        }
-        l + acc / m as f32
-    }
-
-    /// The ABV of face (voxel key, dir) towards `d` (pointing into the aggregate).
-    fn abv(&self, level: &Level, key: u64, dir: u8, d: Vec3) -> Option<f32> {
-        let f = level.faces.get(&(key * 8 + dir as u64))?;
-        let n = self.abv_res;
-        let scaling = f.rec.abv_scaling();
-        if f.rec.abv_count() == 0 {
-            return Some(scaling / n as f32);
-        }
-        let local = Frame::from_z(-face_normal(dir)).to_local(d);
-        if !(local.z > 0.0) {
-            return Some(scaling / n as f32);
-        }
-        let cell = grid_cell(concentric_hemisphere_to_square(local), n);
-        let start = f.rec.abv_start() as usize;
-        let nodes = f.nodes;
-        let v = eval_tree(
-            n,
-            scaling,
-            f.rec.abv_count() as usize,
-            |i| {
-                let h = nodes.get(start + i);
-                Node {
-                    details: [h.h(), h.v(), h.d()],
-                    children: h.children(),
-                    subtree: h.subtree(),
-                }
-            },
-            cell % n,
-            cell / n,
-        );
-        Some(v.clamp(0.0, 1.0))
-    }
-
-    /// Traces one cone: centre ray `ray`, full aperture `aperture` (radians).
-    pub fn trace(
+    /// Traces one cone with the runtime's lights and shading (Algorithm 1, Eq. 30).
+    pub fn trace<S: Sampler + ?Sized>(
         &self,
-        ray: &Ray,
-        aperture: f32,
+        cone: &Cone,
         lights: &Lights,
         settings: &TraceSettings,
-        rng: &mut Pcg32,
+        sampler: &mut S,
     ) -> ConeResult {
-        let d = ray.dir;
-        let background = lights.environment.eval(d);
-        let miss = ConeResult {
-            radiance: background,
-            transmittance: 1.0,
-            primitives: 0,
-            coverage: 0.0,
-        };
-        let Some(first) = self.levels.first() else {
-            return miss;
-        };
-        let g0 = first.grid;
-        let inv = d.recip();
-        let (c0, c1) = box_interval(g0.origin, g0.origin + Vec3::splat(g0.size), ray.origin, inv);
-        let (tmin, tmax) = (c0.max(ray.tmin), c1.min(ray.tmax));
-        if !(tmin <= tmax) {
-            return miss;
-        }
-        let tan_half = (0.5 * aperture).tan();
-        let pick = |t: f32| -> usize {
-            settings
-                .level
-                .unwrap_or_else(|| self.level_for_tan(tan_half, t))
-                .min(self.levels.len() - 1)
-        };
-        let mut li = pick(tmin);
-        if settings.primitive == PrimitiveKind::Volume {
-            return self.trace_volume(ray, li, lights, settings.nee, rng);
-        }
-        let mut dda = Dda::new(&self.levels[li].grid, ray.origin, d, inv, tmin, None);
-        let mut t = tmin;
-        // The axis through which the current voxel was entered (for boundary faces): at the
-        // start, the axis of the cube face the ray entered by.
-        let mut entry_axis = {
-            let g = &g0;
-            let (a, b) = (
-                (g.origin - ray.origin) * inv,
-                (g.origin + Vec3::splat(g.size) - ray.origin) * inv,
-            );
-            let near = a.min(b);
-            if near.x >= near.y && near.x >= near.z {
-                0
-            } else if near.y >= near.z {
-                1
-            } else {
-                2
-            }
-        };
-        let mut result = Vec3::ZERO;
-        let mut hits = 0u32;
-        let mut coverage = 0.0f32;
-        let mut vb: Option<f32> = None;
-        let wo = -d;
-        let max_steps = 3 * g0.res as usize + 8;
-        for _ in 0..max_steps {
-            let level = &self.levels[li];
-            let t_exit = dda.t_exit().min(tmax);
-            let key = morton3(dda.v.as_uvec3());
-            if let Some(&idx) = level.by_key.get(&key) {
-                let vox = &level.voxels[idx as usize];
-                // The first occupied voxel: the ray entered the aggregate through its face.
-                if vb.is_none() {
-                    let dir = (2 * entry_axis + (dda.step[entry_axis] < 0) as usize) as u8;
-                    vb = self.abv(level, key, dir, d).or(Some(1.0));
-                }
-                let (hit, area_b) = match settings.primitive {
-                    PrimitiveKind::TruncatedEllipsoid => match &vox.prim {
-                        Some(p) => (p.intersect(ray.origin, d, inv, t, t_exit).is_some(), 0.0),
-                        None => (false, 0.0),
-                    },
-                    PrimitiveKind::Cube | PrimitiveKind::Volume => (
-                        true,
-                        box_projected_area(Vec3::splat(level.grid.voxel_size()), d),
-                    ),
-                };
-                if hit {
-                    hits += 1;
-                    let vo = vox.vref.aiv(wo).clamp(0.0, 1.0);
-                    // Voxels hidden from the viewer add little: Russian roulette below
-                    // V̂(ω_o) = RR_VISIBILITY keeps the sum unbiased and skips most of the
-                    // shading deep inside dense aggregates.
-                    let keep = if vo >= RR_VISIBILITY {
-                        1.0
-                    } else if vo > 0.0 && rng.next_f32() * RR_VISIBILITY < vo {
-                        vo / RR_VISIBILITY
-                    } else {
-                        0.0
-                    };
-                    let area_b = match (settings.primitive, &vox.prim) {
-                        _ if keep == 0.0 => 0.0,
-                        (PrimitiveKind::TruncatedEllipsoid, Some(p)) => p.projected_area(d),
-                        _ => area_b,
-                    };
-                    if area_b > 0.0 {
-                        let a_w = vox.area * Self::mean_cosine(vox, d);
-                        let lo = self.shade(vox, wo, lights, settings.nee, rng);
-                        let c = a_w / area_b;
-                        let w = vo * c / keep;
-                        let add = lo * w;
-                        if add.is_finite() {
-                            result += add;
-                            coverage += w;
-                        }
-                    }
-                }
-            }
-            if t_exit >= tmax {
-                break;
-            }
-            let Some((axis, t_cross)) = dda.advance() else {
-                break;
-            };
-            t = t_cross;
-            entry_axis = axis;
-            // A coarser level only where the crossed plane is also a plane of that level.
-            let want = pick(t);
-            if want > li {
-                let v = dda.v;
-                let b = if dda.step[axis] > 0 {
-                    v[axis]
-                } else {
-                    v[axis] + 1
-                };
-                let mut k = 0;
-                while li + k < want && b % (1 << (k + 1)) == 0 {
-                    k += 1;
-                }
-                if k > 0 {
-                    li += k;
-                    let coarse = IVec3::new(v.x >> k, v.y >> k, v.z >> k);
-                    dda = Dda::new(&self.levels[li].grid, ray.origin, d, inv, t, Some(coarse));
-                }
-            }
-        }
-        let vb = if hits > 0 { vb.unwrap_or(1.0) } else { 1.0 };
-        ConeResult::compose(result, background, vb, hits, coverage)
+        shade::trace(self, cone, lights, settings, sampler)
     }
 
-    /// The bounds of the finest level's cube, for framing views.
-    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
-        let g = self.levels.first()?.grid;
-        Some((g.origin, g.origin + Vec3::splat(g.size)))
+    /// The background's weight along a cone, the ABV of the face it enters the aggregate by
+    /// (1 when it meets no primitive): what the aggregate lets through, for a host's shadow
+    /// rays.
+    pub fn transmittance(&self, cone: &Cone, settings: &TraceSettings) -> f32 {
+        let mut h = self.hits(cone, settings);
+        while h.next_primitive().is_some() {}
+        h.transmittance()
     }
 }
 
-/// Renders an image with the LoD runtime: `spp` cones per pixel, each of the pixel's aperture,
-/// jittered over the pixel; deterministic for a seed.
+/// A voxel met by a cone: its ABSDF and its interior visibility.
+#[derive(Clone, Copy)]
+pub struct VoxelHandle<'s> {
+    voxel: &'s level::Voxel<'s>,
+    level: usize,
+}
+
+impl<'s> VoxelHandle<'s> {
+    /// The level the voxel belongs to (0 = finest).
+    pub fn level(&self) -> usize {
+        self.level
+    }
+
+    /// The voxel's Morton key in its level.
+    pub fn key(&self) -> u64 {
+        self.voxel.vref.key
+    }
+
+    /// The voxel's ABSDF (Eq. 7–23).
+    pub fn absdf(&self) -> &Absdf<'static> {
+        &self.voxel.absdf
+    }
+
+    /// The interior visibility V̂(ω) of the voxel's surfaces towards unit `d` (Eq. 25).
+    #[inline]
+    pub fn aiv(&self, d: Vec3) -> f32 {
+        self.voxel.vref.aiv(d)
+    }
+
+    /// The visibility to use for light arriving from `wi`: min(1, V̂(ω_i)/η), the AIV corrected
+    /// for the correlation of incident and outgoing visibility by the voxel's exposure η (see
+    /// the bake's interior visibility).
+    #[inline]
+    pub fn incident_visibility(&self, wi: Vec3) -> f32 {
+        (self.voxel.vref.aiv(wi) * self.voxel.inv_exposure).min(1.0)
+    }
+}
+
+impl Bsdf for VoxelHandle<'_> {
+    fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {
+        self.voxel.absdf.eval(wi, wo)
+    }
+    fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {
+        self.voxel.absdf.pdf(wi, wo)
+    }
+    fn eval_pdf(&self, wi: Vec3, wo: Vec3) -> (Vec3, f32) {
+        self.voxel.absdf.eval_pdf(wi, wo)
+    }
+    fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
+        self.voxel.absdf.sample(wo, u_lobe, u)
+    }
+}
+
+/// Renders an image with the LoD runtime through the shared image loop
+/// ([`crate::film::render_image`]): `spp` cones per pixel, each of the pixel's aperture, with
+/// the same stratified jitter and seeds as the reference renderer.
 pub fn render(
     scene: &LodScene,
-    camera: &crate::render::Camera,
+    camera: &crate::film::Camera,
     lights: &Lights,
     spp: u32,
     seed: u64,
     settings: &TraceSettings,
-    progress: bool,
-) -> (crate::render::Image, f64) {
-    use rayon::prelude::*;
-    let start = std::time::Instant::now();
-    let (w, h) = (camera.width, camera.height);
-    let aperture = camera.pixel_angle();
-    let bar = crate::render::reference::progress_bar(progress, h as u64, "LoD");
-    let rows: Vec<Vec<Vec3>> = (0..h)
-        .into_par_iter()
-        .map(|y| {
-            let row = (0..w)
-                .map(|x| {
-                    let mut rng = Pcg32::new(seed, (y as u64) * w as u64 + x as u64);
-                    let mut sum = Vec3::ZERO;
-                    for _ in 0..spp.max(1) {
-                        let p = glam::Vec2::new(x as f32, y as f32) + rng.next_2d();
-                        let ray = camera.ray(p);
-                        sum += scene
-                            .trace(&ray, aperture, lights, settings, &mut rng)
-                            .radiance;
-                    }
-                    sum / spp.max(1) as f32
-                })
-                .collect();
-            bar.inc(1);
-            row
-        })
-        .collect();
-    bar.finish_and_clear();
-    let mut img = crate::render::Image::new(w, h);
-    for (y, row) in rows.into_iter().enumerate() {
-        img.pixels[y * w as usize..(y + 1) * w as usize].copy_from_slice(&row);
-    }
-    (img, start.elapsed().as_secs_f64())
+    progress: crate::util::Progress,
+) -> (crate::film::Image, crate::film::ImageStats) {
+    crate::film::render_image(camera, spp, seed, "LoD", progress, |s| {
+        *s.rays += 1;
+        let cone = Cone {
+            origin: s.origin,
+            dir: s.dir,
+            aperture: s.aperture,
+            tmin: 0.0,
+            tmax: f32::INFINITY,
+        };
+        scene.trace(&cone, lights, settings, s.rng).radiance
+    })
 }

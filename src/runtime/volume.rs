@@ -11,120 +11,128 @@
 //! transmittance is Beer–Lambert along the ray (exp(−∫σ_t)), light is scattered once by the
 //! voxel's averaged BSDF (the same f̂ as the aggregate, so that only the visibility model
 //! differs), and shadowing towards each light sample is again exponential transmittance, marched
-//! through the same level. There is no AIV, ABV, primitive or |A|/|B| term: correlation between
-//! voxels is what this model cannot express.
+//! through the same level with the same DDA. There is no AIV, ABV, primitive or |A|/|B| term:
+//! correlation between voxels is what this model cannot express.
 
 use glam::Vec3;
 
-use super::{ConeResult, LodScene, Voxel};
-use crate::bake::voxelize::morton3;
-use crate::math::rng::Pcg32;
-use crate::render::lights::Lights;
-use crate::trace::Ray;
+use super::level::{Level, Voxel};
+use super::shade::shade_with;
+use super::{Cone, ConeResult, LodScene, Sampler, TraceSettings};
+use crate::lights::Lights;
+use crate::spatial::{box_interval, Dda};
 
-use super::primitive::box_interval;
-
-impl<'a> LodScene<'a> {
-    /// Walks the voxels of level `li` along `origin + t·dir` for t in [tmin, tmax], calling
-    /// `f(voxel, t0, t1)` for each occupied one in order; `f` returns false to stop.
-    fn march(
-        &self,
-        li: usize,
-        origin: Vec3,
-        dir: Vec3,
-        tmin: f32,
-        tmax: f32,
-        mut f: impl FnMut(&Voxel, f32, f32) -> bool,
-    ) {
-        let level = &self.levels[li];
-        let g = &level.grid;
-        let inv = dir.recip();
-        let (c0, c1) = box_interval(g.origin, g.origin + Vec3::splat(g.size), origin, inv);
-        let (t0, t1) = (c0.max(tmin), c1.min(tmax));
-        if !(t0 <= t1) {
-            return;
-        }
-        let mut dda = super::Dda::new(g, origin, dir, inv, t0, None);
-        let mut t = t0;
-        for _ in 0..3 * g.res as usize + 8 {
-            let t_exit = dda.t_exit().min(t1);
-            if let Some(&idx) = level.by_key.get(&morton3(dda.v.as_uvec3())) {
-                if t_exit > t && !f(&level.voxels[idx as usize], t, t_exit) {
-                    return;
-                }
-            }
-            if t_exit >= t1 {
+/// Walks the voxels of `level` along `origin + t·dir` for t in [tmin, tmax], calling
+/// `f(voxel, t0, t1)` for each occupied one in order; `f` returns false to stop.
+fn march(
+    level: &Level,
+    origin: Vec3,
+    dir: Vec3,
+    tmin: f32,
+    tmax: f32,
+    mut f: impl FnMut(&Voxel, f32, f32) -> bool,
+) {
+    let g = &level.grid;
+    let inv = dir.recip();
+    let (lo, hi) = g.bounds();
+    let (c0, c1) = box_interval(lo, hi, origin, inv);
+    let (t0, t1) = (c0.max(tmin), c1.min(tmax));
+    if !(t0 <= t1) {
+        return;
+    }
+    let mut dda = Dda::new(g, origin, dir, inv, t0, None);
+    let mut t = t0;
+    for _ in 0..3 * g.res as usize + 8 {
+        let t_exit = dda.t_exit().min(t1);
+        if let Some(idx) = level.find(dda.v) {
+            if t_exit > t && !f(&level.voxels[idx as usize], t, t_exit) {
                 return;
             }
-            match dda.advance() {
-                Some((_, tc)) => t = tc,
-                None => return,
-            }
+        }
+        if t_exit >= t1 {
+            return;
+        }
+        match dda.advance() {
+            Some((_, tc)) => t = tc,
+            None => return,
         }
     }
+}
 
-    /// Extinction coefficient of a voxel of level `li` towards `w`.
-    #[inline]
-    fn extinction(&self, li: usize, v: &Voxel, w: Vec3) -> f32 {
-        let s = self.levels[li].grid.voxel_size();
-        (v.area * Self::mean_cosine(v, w) / (s * s * s)).max(0.0)
-    }
+/// Extinction coefficient of a voxel of `level` towards `w`.
+#[inline]
+fn extinction(level: &Level, v: &Voxel, w: Vec3) -> f32 {
+    let s = level.grid.voxel_size();
+    (v.area * v.mean_cosine(w) / (s * s * s)).max(0.0)
+}
 
-    /// Beer–Lambert transmittance from `p` along `w` to the end of level `li`'s grid.
-    fn volume_transmittance(&self, li: usize, p: Vec3, w: Vec3) -> f32 {
-        let mut tau = 0.0f32;
-        self.march(li, p, w, 0.0, f32::INFINITY, |v, t0, t1| {
-            tau += self.extinction(li, v, w) * (t1 - t0);
-            tau < 20.0
-        });
-        (-tau).exp()
-    }
+/// Beer–Lambert transmittance from `p` along `w` to the end of the level's grid.
+fn volume_transmittance(level: &Level, p: Vec3, w: Vec3) -> f32 {
+    let mut tau = 0.0f32;
+    march(level, p, w, 0.0, f32::INFINITY, |v, t0, t1| {
+        tau += extinction(level, v, w) * (t1 - t0);
+        tau < 20.0
+    });
+    (-tau).exp()
+}
 
-    /// Traces a ray through level `li` read as an exponential-transmittance volume (the
+impl LodScene {
+    /// Traces a cone through its level read as an exponential-transmittance volume (the
     /// baseline above). `transmittance` is the background's Beer–Lambert weight.
-    pub fn trace_volume(
+    pub(crate) fn trace_volume<S: Sampler + ?Sized>(
         &self,
-        ray: &Ray,
-        li: usize,
+        cone: &Cone,
         lights: &Lights,
-        nee: u32,
-        rng: &mut Pcg32,
+        settings: &TraceSettings,
+        sampler: &mut S,
     ) -> ConeResult {
-        let background = lights.environment.eval(ray.dir);
-        if self.levels.is_empty() {
-            return ConeResult {
-                radiance: background,
-                transmittance: 1.0,
-                primitives: 0,
-                coverage: 0.0,
-            };
-        }
-        let li = li.min(self.levels.len() - 1);
-        let wo = -ray.dir;
+        let background = lights.environment.eval(cone.dir);
+        let miss = ConeResult {
+            radiance: background,
+            transmittance: 1.0,
+            primitives: 0,
+            coverage: 0.0,
+        };
+        let Some(g0) = self.grids.first() else {
+            return miss;
+        };
+        let (c0, _) = box_interval(g0.bounds().0, g0.bounds().1, cone.origin, cone.dir.recip());
+        let li = settings
+            .level
+            .unwrap_or_else(|| self.level_for(cone.aperture, c0.max(cone.tmin)))
+            .min(self.grids.len() - 1);
+        let Some(level) = self.level(li) else {
+            return miss;
+        };
+        let wo = -cone.dir;
         let mut tr = 1.0f32;
         let mut sum = Vec3::ZERO;
         let mut touched = 0u32;
-        self.march(li, ray.origin, ray.dir, ray.tmin, ray.tmax, |v, t0, t1| {
-            let sigma = self.extinction(li, v, ray.dir);
-            let len = t1 - t0;
-            let absorbed = 1.0 - (-sigma * len).exp();
-            if absorbed > 1e-6 {
-                touched += 1;
-                // A point distributed like the segment's first scattering.
-                let u = rng.next_f32();
-                let dt = (-(1.0 - u * absorbed).ln() / sigma).clamp(0.0, len);
-                let p = ray.at(t0 + dt);
-                let ls = Self::shade_with(v, wo, lights, nee, rng, |w| {
-                    self.volume_transmittance(li, p, w)
-                });
-                let add = ls * (tr * absorbed);
-                if add.is_finite() {
-                    sum += add;
+        march(
+            level,
+            cone.origin,
+            cone.dir,
+            cone.tmin,
+            cone.tmax,
+            |v, t0, t1| {
+                let sigma = extinction(level, v, cone.dir);
+                let len = t1 - t0;
+                let absorbed = 1.0 - (-sigma * len).exp();
+                if absorbed > 1e-6 {
+                    touched += 1;
+                    // A point distributed like the segment's first scattering.
+                    let u = sampler.next_1d();
+                    let dt = (-(1.0 - u * absorbed).ln() / sigma).clamp(0.0, len);
+                    let p = cone.origin + cone.dir * (t0 + dt);
+                    let ls = shade_with(&v.absdf, wo, lights, settings.nee, sampler, |w| {
+                        volume_transmittance(level, p, w)
+                    });
+                    sum += ls * (tr * absorbed);
+                    tr *= 1.0 - absorbed;
                 }
-                tr *= 1.0 - absorbed;
-            }
-            tr > 1e-4
-        });
+                tr > 1e-4
+            },
+        );
         ConeResult::compose(sum, background, tr, touched, 1.0 - tr)
     }
 }

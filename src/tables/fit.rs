@@ -12,7 +12,7 @@ use super::{Table, Tables};
 use crate::math::beta::RoughnessDistribution;
 use crate::math::frame::Frame;
 use crate::math::lowdiscrepancy::sobol_2d;
-use crate::math::microfacet::{ggx_sample_vndf, ALPHA_MIN};
+use crate::math::microfacet::{ggx_sample_vndf, m5_exact, ALPHA_MIN};
 use crate::math::sggx::Sggx;
 
 // ---------------------------------------------------------------------------------------
@@ -96,19 +96,6 @@ fn logit(p: f64) -> f64 {
 
 // ---------------------------------------------------------------------------------------
 // Kernels and ground truths.
-
-/// ∫ D_ggx over the hemisphere in closed form: M5(α) = 1 + α² atanh(q)/q, q = sqrt(1 − α²)
-/// (from ∫₀¹ dt / (1 + k t²)² with k = α² − 1).
-pub fn m5_exact(alpha: f32) -> f32 {
-    let a = alpha.clamp(ALPHA_MIN, 1.0) as f64;
-    let q = (1.0 - a * a).max(0.0).sqrt();
-    let r = if q < 1e-6 {
-        1.0 + q * q / 3.0
-    } else {
-        q.atanh() / q
-    };
-    (1.0 + a * a * r) as f32
-}
 
 /// Isotropic GGX lobe value at polar angle cosine `c` (zero below the horizon).
 #[inline]
@@ -501,7 +488,7 @@ fn fill_convolution(
     t: &mut Table,
     kernel_of: impl Fn(f32) -> Kernel + Sync,
     samples: u32,
-    progress: &indicatif::ProgressBar,
+    progress: &crate::util::progress::StageCounter,
 ) {
     let nodes: Vec<Vec<f32>> = (0..t.node_count()).map(|k| t.node_params(k)).collect();
     let fitted: Vec<(Vec2, f32)> = nodes
@@ -512,7 +499,7 @@ fn fill_convolution(
             let (ax, ay) = (p[0].min(p[1]), p[0].max(p[1]));
             let (a, sc, _, _) =
                 fit_convolution(Vec2::new(ax, ay), kernel_of(p[2]), samples, k as u32);
-            progress.inc(1);
+            progress.add(1);
             if p[0] <= p[1] {
                 (a, sc)
             } else {
@@ -526,7 +513,7 @@ fn fill_convolution(
 }
 
 /// Builds all five tables.
-pub fn build(settings: BuildSettings, progress: bool) -> Tables {
+pub fn build(settings: BuildSettings, progress: crate::util::Progress) -> Tables {
     let ar = (ALPHA_MIN, 1.0);
     let mut m5 = Table::new("M5 integral of D_mic over the sphere", &[256], &[ar], 1);
     let mut m4 = Table::new("M4 inverse LTC scale of the GGX lobe", &[256], &[ar], 1);
@@ -565,14 +552,13 @@ pub fn build(settings: BuildSettings, progress: bool) -> Tables {
         &[ar, ar, ar],
         3,
     );
-    let bar = crate::render::reference::progress_bar(
+    let bar = crate::util::progress::StageCounter::new(
         progress,
-        (m1.node_count() + m3.node_count()) as u64,
         "tables",
+        (m1.node_count() + m3.node_count()) as u64,
     );
     fill_convolution(&mut m1, Kernel::Sg, settings.samples, &bar);
     fill_convolution(&mut m3, Kernel::Ggx, settings.samples, &bar);
-    bar.finish_and_clear();
     Tables { m1, m2, m3, m4, m5 }
 }
 
@@ -874,12 +860,12 @@ mod determinism {
             .num_threads(1)
             .build()
             .unwrap()
-            .install(|| build(s, false).to_bytes());
+            .install(|| build(s, &crate::util::no_progress).to_bytes());
         let two = rayon::ThreadPoolBuilder::new()
             .num_threads(2)
             .build()
             .unwrap()
-            .install(|| build(s, false).to_bytes());
+            .install(|| build(s, &crate::util::no_progress).to_bytes());
         assert_eq!(one, two);
     }
 }

@@ -1,5 +1,7 @@
-//! Lights of the view file: an environment (constant or equirectangular map, importance
-//! sampled) and an optional sun (a directional light given by its irradiance).
+//! Lights: an environment (constant or equirectangular map, importance sampled) and an
+//! optional sun (a directional light given by its irradiance). The reference renderer and the
+//! LoD runtime (as [`crate::runtime::Lights`]) light with the same implementation; it depends
+//! on [`crate::math`] alone (and [`crate::film::Image`] for the convenience constructor).
 //!
 //! The map is evaluated exactly as Mitsuba 3's `envmap` does (probed with Mitsuba 3.9: texel
 //! column `i` peaks at `u = (i + ½) / W`, row `j` at `v = j / (H − 1)`), so that renders can be
@@ -9,13 +11,10 @@
 //! weighted by the mean luminance of each cell's corners times sin θ; a cell whose corners are
 //! all black has zero radiance inside and zero density, any other cell has both positive.
 
-use std::f32::consts::PI;
-use std::path::Path;
-
 use glam::{Mat3, Vec2, Vec3};
+use std::f32::consts::PI;
 
-use super::image::{Image, ImageError};
-use super::view::{EnvironmentDesc, View};
+use crate::film::Image;
 use crate::math::color::luminance;
 use crate::math::distribution::Distribution2D;
 use crate::math::sampling::{square_to_uniform_sphere, uniform_sphere_pdf};
@@ -53,16 +52,37 @@ pub struct EnvMap {
 }
 
 impl EnvMap {
-    /// From an image, intensity and rotation about +Y in degrees. Negative and non-finite texels
+    /// From an image, intensity and rotation about +Y in degrees (see [`EnvMap::new`]).
+    pub fn from_image(image: &Image, intensity: f32, rotation_deg: f32) -> Self {
+        Self::new(
+            image.width,
+            image.height,
+            &image.pixels,
+            intensity,
+            rotation_deg,
+        )
+    }
+
+    /// From `width × height` texels (row 0 at the top, +Y up; fewer texels than that are taken
+    /// as black), intensity and rotation about +Y in degrees. Negative and non-finite texels
     /// become zero.
-    pub fn new(image: &Image, intensity: f32, rotation_deg: f32) -> Self {
-        let mut width = image.width as usize;
-        let mut height = image.height as usize;
-        let mut texels: Vec<Vec3> = image
-            .pixels
+    pub fn new(
+        width: u32,
+        height: u32,
+        pixels: &[Vec3],
+        intensity: f32,
+        rotation_deg: f32,
+    ) -> Self {
+        let mut width = width as usize;
+        let mut height = height as usize;
+        let n = width.saturating_mul(height);
+        let mut texels: Vec<Vec3> = pixels
             .iter()
+            .copied()
+            .chain(std::iter::repeat(Vec3::ZERO))
+            .take(n)
             .map(|p| {
-                let q = *p * intensity;
+                let q = p * intensity;
                 if q.is_finite() {
                     q.max(Vec3::ZERO)
                 } else {
@@ -92,7 +112,11 @@ impl EnvMap {
                 weights[j * width + i] = 0.25 * l * sin_theta;
             }
         }
-        let rot = Mat3::from_rotation_y(rotation_deg.to_radians());
+        let rot = if rotation_deg.is_finite() {
+            Mat3::from_rotation_y(rotation_deg.to_radians())
+        } else {
+            Mat3::IDENTITY
+        };
         EnvMap {
             width,
             height,
@@ -226,29 +250,12 @@ pub struct Lights {
 }
 
 impl Lights {
-    /// Lights described by a view file (environment maps are loaded from disk).
-    pub fn from_view(view: &View) -> Result<Lights, ImageError> {
-        let environment = match &view.environment {
-            Some(EnvironmentDesc::Constant { constant }) => {
-                Environment::Constant(constant.to_vec3())
-            }
-            Some(EnvironmentDesc::Map {
-                path,
-                intensity,
-                rotation_deg,
-            }) => Environment::Map(EnvMap::new(
-                &Image::read_any(Path::new(path))?,
-                *intensity,
-                *rotation_deg,
-            )),
-            None if view.sun.is_some() => Environment::Constant(Vec3::ZERO),
-            None => Environment::Constant(Vec3::ONE),
-        };
-        let sun = view.sun.as_ref().map(|s| Sun {
-            direction: Vec3::from(s.direction).normalize(),
-            irradiance: s.irradiance.to_vec3(),
-        });
-        Ok(Lights { environment, sun })
+    /// A constant environment of radiance `rgb` and no sun.
+    pub fn constant(rgb: Vec3) -> Lights {
+        Lights {
+            environment: Environment::Constant(rgb),
+            sun: None,
+        }
     }
 }
 
@@ -268,7 +275,7 @@ mod tests {
                 });
             }
         }
-        EnvMap::new(&img, 1.0, 30.0)
+        EnvMap::from_image(&img, 1.0, 30.0)
     }
 
     #[test]
@@ -305,7 +312,7 @@ mod tests {
         // u = 0.5/4 and 2.5/4, and linearly in v to the poles.
         let mut img = Image::new(4, 3);
         img.pixels[4 + 1] = Vec3::ONE;
-        let m = EnvMap::new(&img, 2.0, 0.0);
+        let m = EnvMap::from_image(&img, 2.0, 0.0);
         let at = |u: f32, v: f32| m.eval(equirect_to_dir(Vec2::new(u, v))).x;
         assert!((at(0.375, 0.5) - 2.0).abs() < 1e-4);
         assert!((at(0.25, 0.5) - 1.0).abs() < 1e-4);
@@ -313,7 +320,7 @@ mod tests {
         assert!((at(0.375, 0.25) - 1.0).abs() < 1e-3);
         assert!(at(0.125, 0.5).abs() < 1e-5 && at(0.9, 0.5).abs() < 1e-5);
         // Rotating the map about +Y by 90° turns the peak's direction by R_y(90°).
-        let r = EnvMap::new(&img, 1.0, 90.0);
+        let r = EnvMap::from_image(&img, 1.0, 90.0);
         let peak =
             Mat3::from_rotation_y(90f32.to_radians()) * equirect_to_dir(Vec2::new(0.375, 0.5));
         assert!(

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use glam::Vec3;
 
 use crate::math::color::linear_to_srgb;
+use crate::util::write_atomic;
 
 /// Errors reading or writing images.
 #[derive(Debug, thiserror::Error)]
@@ -22,34 +23,6 @@ pub struct Image {
     pub width: u32,
     pub height: u32,
     pub pixels: Vec<Vec3>,
-}
-
-/// Writes through a temporary file next to `path` and renames it into place, so that readers
-/// never see a half-written file and a failure leaves any previous file intact.
-pub fn write_atomic(
-    path: &Path,
-    write: impl FnOnce(&Path) -> Result<(), String>,
-) -> Result<(), String> {
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("out");
-    // Keep the extension last: encoders pick the format from it.
-    let tmp = dir.join(format!(
-        ".{}.{}.tmp.{}",
-        name,
-        std::process::id(),
-        path.extension().and_then(|e| e.to_str()).unwrap_or("bin")
-    ));
-    let result = write(&tmp).and_then(|_| {
-        std::fs::rename(&tmp, path).map_err(|e| format!("cannot rename into place: {e}"))
-    });
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
 }
 
 impl Image {

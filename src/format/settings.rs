@@ -1,0 +1,110 @@
+//! The bake settings a file records (`BakeSettings` in the schema), decoded: what a reader
+//! needs to know about how a file was made (map resolutions, truncation, the AIV weighting).
+//! The bake converts its own settings into this record; readers never see the generated
+//! FlatBuffers table.
+
+use serde::{Deserialize, Serialize};
+
+use super::fb;
+
+/// What the AIV (Eq. 25) averages visibility over.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum AivWeighting {
+    /// Surface area, as Eq. 25 is written (files of format 1.0 and 1.1).
+    #[default]
+    Area,
+    /// Projected area |n·ω| dA towards the direction (format 1.2 on).
+    ProjectedArea,
+}
+
+/// The settings a bake recorded in its file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RecordedSettings {
+    /// Finest and coarsest level resolution.
+    pub max_res: u32,
+    /// Coarsest level resolution.
+    pub min_res: u32,
+    /// Surface samples per voxel at the finest level.
+    pub samples: u32,
+    /// Cap on the samples per voxel of coarser levels.
+    pub max_samples: u32,
+    /// Interior-visibility map resolution.
+    pub aiv_res: u32,
+    /// Interior-visibility rays per surface sample.
+    pub aiv_rays: u32,
+    /// Boundary-visibility map resolution.
+    pub abv_res: u32,
+    /// Boundary-visibility rays per direction cell (or per block of cells above
+    /// `abv_full_res`).
+    pub abv_rays: u32,
+    /// Levels finer than this share ABV rays among blocks of cells (0: none do).
+    pub abv_full_res: u32,
+    /// Most SGGX lobes per voxel.
+    pub ndf_lobes: u32,
+    /// Directional-moment grid resolution.
+    pub moment_res: u32,
+    /// Fraction of wavelet coefficients kept at most.
+    pub keep: f32,
+    /// Detail energy kept by the truncation.
+    pub energy: f32,
+    /// Every effect stored in full.
+    pub keep_all_effects: bool,
+    /// Monte Carlo noise shrunk out of the visibility wavelets.
+    pub denoise: bool,
+    /// What the AIV averages over.
+    pub aiv_weighting: AivWeighting,
+}
+
+impl RecordedSettings {
+    /// Decodes the schema's table.
+    pub fn from_fb(s: &fb::BakeSettings) -> RecordedSettings {
+        RecordedSettings {
+            max_res: s.max_res(),
+            min_res: s.min_res(),
+            samples: s.samples(),
+            max_samples: s.max_samples(),
+            aiv_res: s.aiv_res(),
+            aiv_rays: s.aiv_rays(),
+            abv_res: s.abv_res(),
+            abv_rays: s.abv_rays(),
+            abv_full_res: s.abv_full_res(),
+            ndf_lobes: s.ndf_lobes(),
+            moment_res: s.moment_res(),
+            keep: s.keep(),
+            energy: s.energy(),
+            keep_all_effects: s.keep_all_effects(),
+            denoise: s.denoise(),
+            aiv_weighting: if s.aiv_weighting() == fb::AivWeighting::ProjectedArea {
+                AivWeighting::ProjectedArea
+            } else {
+                AivWeighting::Area
+            },
+        }
+    }
+
+    /// The schema table's arguments.
+    pub fn to_fb_args(&self) -> fb::BakeSettingsArgs {
+        fb::BakeSettingsArgs {
+            max_res: self.max_res,
+            samples: self.samples,
+            max_samples: self.max_samples,
+            aiv_res: self.aiv_res,
+            aiv_rays: self.aiv_rays,
+            abv_res: self.abv_res,
+            abv_rays: self.abv_rays,
+            ndf_lobes: self.ndf_lobes,
+            moment_res: self.moment_res,
+            keep: self.keep,
+            energy: self.energy,
+            keep_all_effects: self.keep_all_effects,
+            min_res: self.min_res,
+            denoise: self.denoise,
+            aiv_weighting: match self.aiv_weighting {
+                AivWeighting::Area => fb::AivWeighting::Area,
+                AivWeighting::ProjectedArea => fb::AivWeighting::ProjectedArea,
+            },
+            abv_full_res: self.abv_full_res,
+        }
+    }
+}

@@ -1,0 +1,234 @@
+//! A level prepared for cone tracing: per voxel its ABSDF, its truncated ellipsoid and a
+//! zero-copy handle on its AIV tree, in Morton order; occupancy as a bit per 4³ brick (dense)
+//! and per occupied brick a 64-bit mask of its voxels with the index of its first voxel, so
+//! that the traversal skips empty bricks whole and finds a voxel without hashing; the boundary
+//! faces by (voxel key, direction).
+
+use std::collections::HashMap;
+use std::hash::BuildHasherDefault;
+
+use glam::{IVec3, UVec3, Vec3};
+
+use crate::absdf::Absdf;
+use crate::format::read::FaceRef;
+use crate::format::{Aggregate, VoxelRef};
+use crate::math::microfacet::m5_exact;
+use crate::math::sggx::Sggx;
+use crate::spatial::{morton3, Grid, TruncatedEllipsoid};
+
+/// A hasher for Morton keys: one mixing step instead of SipHash.
+#[derive(Default, Clone, Copy)]
+pub struct KeyHasher(u64);
+
+impl std::hash::Hasher for KeyHasher {
+    fn finish(&self) -> u64 {
+        crate::math::rng::mix64(self.0)
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.0 = (self.0 << 8) ^ *b as u64;
+        }
+    }
+    fn write_u64(&mut self, v: u64) {
+        self.0 = v;
+    }
+}
+
+type FastMap<V> = HashMap<u64, V, BuildHasherDefault<KeyHasher>>;
+
+/// Brick edge in voxels (a brick's 64 voxels are one Morton range).
+pub const BRICK: i32 = 4;
+
+/// A voxel ready for shading.
+pub struct Voxel<'a> {
+    pub absdf: Absdf<'static>,
+    pub prim: Option<TruncatedEllipsoid>,
+    /// area · coverage.
+    pub area: f32,
+    /// (weight / mass, lobe) for E|n·ω| = Σ w_k σ_k(ω) / m5_k.
+    pub lobes: [(f32, Sggx); 4],
+    pub lobe_count: u8,
+    /// 1 / exposure: the incident AIV counts exposed sides only.
+    pub inv_exposure: f32,
+    pub vref: VoxelRef<'a>,
+}
+
+impl Voxel<'_> {
+    /// E|n·ω| of the voxel's surfaces, from its normal distribution.
+    #[inline]
+    pub fn mean_cosine(&self, w: Vec3) -> f32 {
+        let mut s = 0.0;
+        for (k, s_k) in self.lobes[..self.lobe_count as usize].iter() {
+            s += k * s_k.sigma(w);
+        }
+        s.clamp(0.0, 1.0)
+    }
+}
+
+/// An occupied brick: which of its 64 voxels exist, and the index of the first.
+#[derive(Clone, Copy, Debug)]
+pub struct Brick {
+    pub mask: u64,
+    pub first: u32,
+}
+
+/// Where occupied bricks are found.
+enum BrickIndex {
+    /// Bricks per axis ≤ 128: a dense table of indices into `bricks` (u32::MAX: empty).
+    Dense(Vec<u32>),
+    /// Larger grids: a hash from brick Morton key.
+    Sparse(FastMap<u32>),
+}
+
+/// A prepared level.
+pub struct Level<'a> {
+    pub grid: Grid,
+    /// Bricks per axis.
+    pub brick_res: i32,
+    pub voxels: Vec<Voxel<'a>>,
+    bricks: Vec<Brick>,
+    index: BrickIndex,
+    /// One bit per brick, x fastest: whether it holds any voxel.
+    occupied: Vec<u64>,
+    /// Boundary faces: key · 8 + direction.
+    faces: FastMap<FaceRef<'a>>,
+}
+
+impl<'a> Level<'a> {
+    /// Prepares level `l` of `agg`, verifying its blocks.
+    pub fn prepare(agg: &'a Aggregate, l: usize) -> Result<Level<'a>, String> {
+        let tables = crate::tables::Tables::embedded();
+        let grid = agg.grid(l);
+        let (nv, nf) = agg.block_counts(l);
+        let mut refs: Vec<VoxelRef<'a>> = Vec::with_capacity(agg.counts(l).voxels as usize);
+        for b in 0..nv {
+            let block = agg.voxel_block(l, b).map_err(|e| e.to_string())?;
+            refs.extend((0..block.len()).map(|i| block.voxel(i)));
+        }
+        let voxels: Vec<Voxel<'a>> = refs
+            .iter()
+            .map(|v| {
+                let app = v.appearance();
+                let (lo, hi) = grid.voxel_bounds(v.coords());
+                let mut lobes = [(
+                    0.0,
+                    Sggx::from_frame_roughness(glam::Mat3::IDENTITY, glam::Vec2::ONE),
+                ); 4];
+                let lobe_count = app.lobes.len().min(4);
+                for (k, lb) in app.lobes.iter().take(4).enumerate() {
+                    let mass = m5_exact((lb.alpha.x * lb.alpha.y).sqrt()).max(1e-6);
+                    lobes[k] = (
+                        lb.weight / mass,
+                        Sggx::from_frame_roughness(lb.frame, lb.alpha),
+                    );
+                }
+                Voxel {
+                    absdf: Absdf::new(&app, tables),
+                    prim: TruncatedEllipsoid::new(&v.ellipsoid(), lo, hi),
+                    area: v.area() * v.coverage(),
+                    lobes,
+                    lobe_count: lobe_count as u8,
+                    inv_exposure: 1.0 / v.exposure().clamp(1.0 / 16.0, 1.0),
+                    vref: *v,
+                }
+            })
+            .collect();
+        // Bricks: voxels are sorted by Morton key, so each brick is a run of keys >> 6.
+        let brick_res = (grid.res as i32 + BRICK - 1) / BRICK;
+        let mut bricks: Vec<Brick> = Vec::new();
+        let mut brick_keys: Vec<u64> = Vec::new();
+        for (i, v) in refs.iter().enumerate() {
+            let bk = v.key >> 6;
+            if brick_keys.last() != Some(&bk) {
+                brick_keys.push(bk);
+                bricks.push(Brick {
+                    mask: 0,
+                    first: i as u32,
+                });
+            }
+            bricks.last_mut().expect("pushed").mask |= 1u64 << (v.key & 63);
+        }
+        let cells = (brick_res as u64).pow(3);
+        let mut occupied = vec![0u64; cells.div_ceil(64) as usize];
+        let index = if brick_res <= 128 {
+            let mut dense = vec![u32::MAX; cells as usize];
+            for (i, &bk) in brick_keys.iter().enumerate() {
+                let c = crate::spatial::demorton3(bk).as_ivec3();
+                dense[Self::linear(brick_res, c)] = i as u32;
+            }
+            BrickIndex::Dense(dense)
+        } else {
+            BrickIndex::Sparse(
+                brick_keys
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &k)| (k, i as u32))
+                    .collect(),
+            )
+        };
+        for &bk in &brick_keys {
+            let c = crate::spatial::demorton3(bk).as_ivec3();
+            let i = Self::linear(brick_res, c);
+            occupied[i / 64] |= 1u64 << (i % 64);
+        }
+        let mut faces = FastMap::default();
+        for b in 0..nf {
+            let block = agg.face_block(l, b).map_err(|e| e.to_string())?;
+            for i in 0..block.len() {
+                let f = block.face(i);
+                faces.insert(f.key() * 8 + f.face().dir as u64, f);
+            }
+        }
+        Ok(Level {
+            grid,
+            brick_res,
+            voxels,
+            bricks,
+            index,
+            occupied,
+            faces,
+        })
+    }
+
+    #[inline]
+    fn linear(brick_res: i32, c: IVec3) -> usize {
+        ((c.z * brick_res + c.y) * brick_res + c.x) as usize
+    }
+
+    /// Whether brick `c` (in brick coordinates, inside the grid) holds any voxel.
+    #[inline]
+    pub fn brick_occupied(&self, c: IVec3) -> bool {
+        let i = Self::linear(self.brick_res, c);
+        self.occupied[i / 64] >> (i % 64) & 1 != 0
+    }
+
+    /// The occupied brick `c`.
+    #[inline]
+    pub fn brick(&self, c: IVec3) -> Option<Brick> {
+        let i = match &self.index {
+            BrickIndex::Dense(d) => d[Self::linear(self.brick_res, c)],
+            BrickIndex::Sparse(m) => *m.get(&morton3(c.as_uvec3()))?,
+        };
+        self.bricks.get(i as usize).copied()
+    }
+
+    /// The index of voxel `v` in `voxels`, if it exists.
+    #[inline]
+    pub fn find(&self, v: IVec3) -> Option<u32> {
+        let b = self.brick(v >> 2)?;
+        Self::in_brick(&b, v)
+    }
+
+    /// The index of voxel `v` of brick `b`, if it exists.
+    #[inline]
+    pub fn in_brick(b: &Brick, v: IVec3) -> Option<u32> {
+        let bit = morton3((v & 3).as_uvec3()) as u32;
+        (b.mask >> bit & 1 != 0).then(|| b.first + (b.mask & ((1u64 << bit) - 1)).count_ones())
+    }
+
+    /// The boundary face of voxel `v` in direction `dir`.
+    #[inline]
+    pub fn face(&self, v: UVec3, dir: u8) -> Option<&FaceRef<'a>> {
+        self.faces.get(&(morton3(v) * 8 + dir as u64))
+    }
+}
