@@ -79,6 +79,62 @@ pub fn lune_mass(wi: Vec3, wo: Vec3, wh: Vec3, inv_s: f32) -> f32 {
     total.clamp(0.0, 1.0)
 }
 
+/// S(ω_i, ω_o; α) tabulated. The lobe is isotropic about ω_h, the bisector of ω_i and ω_o, so
+/// the lune's mass depends on the angle between ω_i and ω_o and on α alone: a 2D table over
+/// t = √cos(θ_io / 2) and √((α − α_min)/(1 − α_min)), built once from M4 with [`lune_mass`]
+/// (whose LTC integral was a quarter of a voxel's shading), read bilinearly.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LuneTable {
+    data: Vec<f32>,
+}
+
+/// Table size along t and along α.
+const LUNE_T: usize = 65;
+const LUNE_A: usize = 33;
+
+impl LuneTable {
+    /// The table for the LTC scales `m4` gives (α ↦ 1/s).
+    pub fn new(m4: &crate::tables::Table) -> LuneTable {
+        let amin = crate::math::microfacet::ALPHA_MIN;
+        let mut data = vec![0f32; LUNE_T * LUNE_A];
+        for j in 0..LUNE_A {
+            let ua = j as f32 / (LUNE_A - 1) as f32;
+            let alpha = amin + (1.0 - amin) * ua * ua;
+            let inv_s = m4.lookup1(&[alpha]);
+            for i in 0..LUNE_T {
+                let t = i as f32 / (LUNE_T - 1) as f32;
+                let c = t * t; // cos(θ/2)
+                let s = (1.0 - c * c).max(0.0).sqrt();
+                let (wi, wo) = (Vec3::new(s, 0.0, c), Vec3::new(-s, 0.0, c));
+                data[j * LUNE_T + i] = if c <= 0.0 {
+                    0.0
+                } else {
+                    lune_mass(wi, wo, Vec3::Z, inv_s)
+                };
+            }
+        }
+        LuneTable { data }
+    }
+
+    /// S for directions with ω_i·ω_o = `cos_io` and microfacet roughness `alpha`.
+    #[inline]
+    pub fn lookup(&self, cos_io: f32, alpha: f32) -> f32 {
+        let amin = crate::math::microfacet::ALPHA_MIN;
+        let c = (0.5 * (1.0 + cos_io)).max(0.0).sqrt(); // cos(θ/2)
+        let t = c.sqrt().clamp(0.0, 1.0) * (LUNE_T - 1) as f32;
+        let ua = ((alpha - amin) / (1.0 - amin)).clamp(0.0, 1.0).sqrt() * (LUNE_A - 1) as f32;
+        if !(t.is_finite() && ua.is_finite()) {
+            return 0.0;
+        }
+        let (i, j) = ((t as usize).min(LUNE_T - 2), (ua as usize).min(LUNE_A - 2));
+        let (fx, fy) = (t - i as f32, ua - j as f32);
+        let at = |i: usize, j: usize| self.data[j * LUNE_T + i];
+        let a = at(i, j) + (at(i + 1, j) - at(i, j)) * fx;
+        let b = at(i, j + 1) + (at(i + 1, j + 1) - at(i, j + 1)) * fx;
+        (a + (b - a) * fy).clamp(0.0, 1.0)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -136,5 +192,32 @@ mod tests {
             );
         }
         assert_eq!(lune_mass(Vec3::Z, -Vec3::Z, Vec3::X, 1.0), 0.0);
+    }
+
+    /// The table against the exact lune mass, for random direction pairs and roughnesses: the
+    /// bilinear error stays below 0.01 everywhere and 0.002 on average.
+    #[test]
+    fn lune_table_matches_lune_mass() {
+        let t = crate::tables::Tables::embedded();
+        let table = LuneTable::new(&t.m4);
+        let mut rng = Pcg32::new(8, 3);
+        let (mut worst, mut sum) = (0f32, 0f32);
+        let n = 4000;
+        for k in 0..n {
+            let wi = square_to_uniform_sphere(rng.next_2d());
+            let wo = square_to_uniform_sphere(rng.next_2d());
+            let u = rng.next_f32();
+            let alpha = if k % 2 == 0 { u * u } else { u }.max(crate::math::microfacet::ALPHA_MIN);
+            let h = wi + wo;
+            if h.length() < 1e-4 {
+                continue;
+            }
+            let exact = lune_mass(wi, wo, h.normalize(), t.m4.lookup1(&[alpha]));
+            let e = (table.lookup(wi.dot(wo), alpha) - exact).abs();
+            worst = worst.max(e);
+            sum += e;
+        }
+        let mean = sum / n as f32;
+        assert!(worst < 0.01 && mean < 0.002, "worst {worst}, mean {mean}");
     }
 }

@@ -33,9 +33,9 @@ use std::f32::consts::FRAC_1_PI;
 use glam::{Mat3, Vec2, Vec3};
 
 use crate::math::beta::RoughnessDistribution;
-use crate::math::microfacet::{ggx_lambda, schlick_weight, ALPHA_MIN};
+use crate::math::microfacet::{ggx_lambda_iso, schlick_weight, ALPHA_MIN};
 use crate::math::sg::COSINE_SHARPNESS;
-use crate::math::sggx::Sggx;
+use crate::math::sggx::{Sggx, SggxDensity};
 use crate::math::sphere_maps::{equal_area_sphere_to_square, grid_cell};
 use crate::math::{finite_or_zero, finite_vec_or_zero};
 use crate::tables::Tables;
@@ -177,14 +177,13 @@ pub struct VoxelAppearance {
 struct SpecLobe {
     weight: f32,
     sggx: Sggx,
+    density: SggxDensity,
     frame: Mat3,
     /// Roughness of the macro lobe and of the microfacet lobe (for G).
     macro_alpha: Vec2,
     micro_alpha: f32,
     /// Index of the microfacet lobe (0 or 1): S depends on it alone.
     micro: usize,
-    /// LTC inverse scale of the microfacet lobe (M4).
-    inv_s: f32,
 }
 
 use crate::bsdf::Bsdf;
@@ -193,18 +192,18 @@ pub use crate::bsdf::BsdfSample;
 /// The factorized ABSDF of one voxel, with every ω-independent table lookup done once.
 #[derive(Clone, Debug)]
 pub struct Absdf<'t> {
-    /// The tables are read while building; the lifetime keeps the API of a table-backed ABSDF.
-    _tables: std::marker::PhantomData<&'t Tables>,
+    /// The tables (S of Eq. 21 is read from them at evaluation).
+    tables: &'t Tables,
     lobes: Vec<NdfLobe>,
     unit: Vec<Sggx>,
     /// Per lobe, for the diffuse term: 1 / mass and (mass/4)·E[n nᵀ] in world space.
     diffuse_terms: Vec<(f32, Mat3)>,
     spec: Vec<SpecLobe>,
     /// Specular sampling lobes (weight, convolved SGGX) and their total weight.
-    spec_sampling: Vec<(f32, Sggx)>,
+    spec_sampling: Vec<(f32, Sggx, SggxDensity)>,
     spec_total: f32,
     /// Diffuse sampling lobes at the fixed κ (§7.3) and their total weight.
-    diffuse_sampling: Vec<(f32, Sggx)>,
+    diffuse_sampling: Vec<(f32, Sggx, SggxDensity)>,
     diffuse_total: f32,
     moments: Moments,
     /// Moments averaged over directions: used when ω_h is undefined (ω_i = −ω_o), so that the
@@ -249,10 +248,8 @@ fn pair_g2(frame: Mat3, macro_alpha: Vec2, micro_alpha: f32, wi: Vec3, wo: Vec3,
     if ci <= 0.0 || co <= 0.0 {
         return 0.0;
     }
-    let f = crate::math::frame::Frame::from_z(n);
-    let a = f.to_local(wi);
-    let b = f.to_local(wo);
-    let l = ggx_lambda(a, micro_alpha, micro_alpha) + ggx_lambda(b, micro_alpha, micro_alpha);
+    // The microfacet lobe is isotropic: Λ needs only the cosines to n.
+    let l = ggx_lambda_iso(ci, micro_alpha) + ggx_lambda_iso(co, micro_alpha);
     if l >= f32::MAX {
         0.0
     } else {
@@ -315,31 +312,30 @@ impl<'t> Absdf<'t> {
                 tables.m3.lookup_into(&[l.alpha.x, l.alpha.y, a], &mut o);
                 let alpha = Vec2::new(o[0], o[1]).clamp(Vec2::splat(ALPHA_MIN), Vec2::ONE);
                 let m5 = tables.m5.lookup1(&[a]);
+                let sggx = lobe_sggx(l.frame, alpha);
                 spec.push(SpecLobe {
                     weight: l.weight * m * m5 * o[2].max(0.0),
-                    sggx: lobe_sggx(l.frame, alpha),
+                    sggx,
+                    density: sggx.density(),
                     frame: l.frame,
                     macro_alpha: l.alpha,
                     micro_alpha: a,
                     micro: mi,
-                    inv_s: tables.m4.lookup1(&[a]),
                 });
             }
         }
-        let diffuse_sampling: Vec<(f32, Sggx)> = lobes
+        let diffuse_sampling: Vec<(f32, Sggx, SggxDensity)> = lobes
             .iter()
             .map(|l| {
                 let mut o = [0f32; 3];
                 tables
                     .m1
                     .lookup_into(&[l.alpha.x, l.alpha.y, SAMPLING_KAPPA], &mut o);
-                (
-                    l.weight,
-                    lobe_sggx(
-                        l.frame,
-                        Vec2::new(o[0], o[1]).clamp(Vec2::splat(ALPHA_MIN), Vec2::ONE),
-                    ),
-                )
+                let s = lobe_sggx(
+                    l.frame,
+                    Vec2::new(o[0], o[1]).clamp(Vec2::splat(ALPHA_MIN), Vec2::ONE),
+                );
+                (l.weight, s, s.density())
             })
             .collect();
         let mean_moments = match &v.moments {
@@ -351,11 +347,12 @@ impl<'t> Absdf<'t> {
                 MaterialMoments::mean(specular),
             ),
         };
-        let spec_sampling: Vec<(f32, Sggx)> = spec.iter().map(|l| (l.weight, l.sggx)).collect();
+        let spec_sampling: Vec<(f32, Sggx, SggxDensity)> =
+            spec.iter().map(|l| (l.weight, l.sggx, l.density)).collect();
         let spec_total = spec_sampling.iter().map(|x| x.0).sum();
         let diffuse_total = diffuse_sampling.iter().map(|x| x.0).sum();
         Absdf {
-            _tables: std::marker::PhantomData,
+            tables,
             lobes,
             unit,
             diffuse_terms,
@@ -423,7 +420,7 @@ impl<'t> Absdf<'t> {
     }
 
     /// Density of ω_h under a visible-normal mixture and the reflection Jacobian.
-    fn mixture_pdf(lobes: &[(f32, Sggx)], total: f32, wi: Vec3, wo: Vec3) -> f32 {
+    fn mixture_pdf(lobes: &[(f32, Sggx, SggxDensity)], total: f32, wi: Vec3, wo: Vec3) -> f32 {
         let h = wi + wo;
         let hl = h.length();
         if !(hl > 1e-6) || total <= 0.0 {
@@ -435,8 +432,12 @@ impl<'t> Absdf<'t> {
             return 0.0;
         }
         let mut p = 0.0;
-        for (w, s) in lobes {
-            p += w / total * s.visible_pdf(wo, wh);
+        for (w, s, d) in lobes {
+            // The visible-normal density max(0, ω_o·m) D(m) / σ(ω_o), D precomputed.
+            let sigma = s.sigma(wo);
+            if sigma > 0.0 {
+                p += w / total * (oh * d.d(wh) / sigma);
+            }
         }
         finite_or_zero(p / (4.0 * oh))
     }
@@ -471,15 +472,16 @@ impl Bsdf for Absdf<'_> {
             let fc = schlick_weight(wh.dot(wo));
             let fres = (1.0 - fc) * sm.reflectance() + Vec3::splat(fc * sm.grazing());
             let mut acc = 0.0f32;
-            // S depends only on the microfacet lobe: compute it once per lobe (at most two).
+            // S depends only on the microfacet lobe: look it up once per lobe (at most two).
+            let cos_io = wi.dot(wo);
             let mut s_cache = [f32::NAN; 2];
             for l in &self.spec {
-                let d = l.sggx.d(wh);
+                let d = l.density.d(wh);
                 if d <= 0.0 {
                     continue;
                 }
                 let s = if s_cache[l.micro].is_nan() {
-                    let v = ltc::lune_mass(wi, wo, wh, l.inv_s);
+                    let v = self.tables.lune.lookup(cos_io, l.micro_alpha);
                     s_cache[l.micro] = v;
                     v
                 } else {
@@ -539,7 +541,7 @@ impl Bsdf for Absdf<'_> {
         }
         v = v.clamp(0.0, 0.999_999) * total;
         let mut chosen = list.last()?.1;
-        for (w, s) in list {
+        for (w, s, _) in list {
             if v < *w {
                 chosen = *s;
                 break;

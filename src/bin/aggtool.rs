@@ -29,7 +29,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Generate a built-in scene, render it, and say where everything is (the main job).
+    /// Generate a built-in scene, bake it, render the LoD and the reference at equal time
+    /// against a converged reference, and say where everything is (the main job).
     Demo {
         /// Output folder.
         #[arg(short, long, default_value = "aggtool-demo")]
@@ -61,6 +62,13 @@ enum Command {
         /// images of this many pixels square, LoD by footprint.
         #[arg(long)]
         speed: Option<u32>,
+        /// With --speed: the bakes' finest resolutions (default: the image's).
+        #[arg(long, value_delimiter = ',')]
+        bake_res: Vec<u32>,
+        /// With --speed: where bakes are kept and reused (NAME-RES.agg; default: the output
+        /// folder).
+        #[arg(long)]
+        agg_dir: Option<PathBuf>,
         /// Output folder (table.md, table.json, pictures).
         #[arg(short, long, default_value = "aggtool-eval")]
         output: PathBuf,
@@ -604,6 +612,8 @@ fn eval(
     spp: u32,
     reference_spp: u32,
     speed: Option<u32>,
+    bake_res: Vec<u32>,
+    agg_dir: Option<PathBuf>,
     output: &Path,
 ) -> Result<()> {
     use aggtool::eval;
@@ -652,38 +662,78 @@ fn eval(
         }
     }
     if let Some(px) = speed {
-        let mut rows = Vec::new();
-        println!("| scene | triangles | image | spp | bake s | .agg MiB | LoD s | reference s | speed-up | LoD RMSE | reference RMSE | equal-time reference spp | its RMSE |");
-        println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
-        for (name, load) in &scenes {
-            let scene = load()?;
-            let bake = aggtool::bake::BakeSettings {
-                max_res: px.max(8),
-                ..Default::default()
-            };
-            let r = eval::speed_scene(
-                name,
-                &scene,
-                &bake,
-                px,
-                spp,
-                reference_spp,
-                output,
-                &aggtool::util::no_progress,
-            )?;
-            println!(
-                "| {} | {} | {}² | {} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2}× | {:.4} | {:.4} | {} ({:.2} s) | {:.4} |",
-                r.scene, r.triangles, r.res, r.spp, r.bake_seconds, r.agg_bytes as f64 / 1048576.0,
-                r.lod_seconds, r.reference_seconds, r.reference_seconds / r.lod_seconds.max(1e-9),
-                r.lod_rmse, r.reference_rmse, r.equal_time_reference_spp,
-                r.equal_time_reference_seconds, r.equal_time_reference_rmse
-            );
-            rows.push(r);
+        // Each scene as a file (generated hard cases written as GLB), each bake looked up in
+        // --agg-dir as NAME-RES.agg and baked there when missing.
+        let agg_dir = agg_dir.unwrap_or_else(|| output.to_path_buf());
+        std::fs::create_dir_all(&agg_dir)?;
+        let mut files: Vec<(String, PathBuf)> = Vec::new();
+        for a in assets {
+            if let Some(n) = a.to_str().and_then(|s| s.strip_prefix("gen:")) {
+                if !gen::NAMES.contains(&n) {
+                    bail!(
+                        "{}: unknown hard case; choose one of: {}",
+                        a.display(),
+                        gen::NAMES.join(", ")
+                    );
+                }
+                let path = agg_dir.join(format!("{n}-{triangles}.glb"));
+                if !path.exists() {
+                    let settings = GenSettings {
+                        triangles,
+                        ..GenSettings::default()
+                    };
+                    let (p, _) =
+                        gen::write(n, &settings, &agg_dir, false).map_err(anyhow::Error::msg)?;
+                    std::fs::rename(&p, &path)?;
+                }
+                files.push((n.to_string(), path));
+            } else {
+                let name = a
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_else(|| "asset".into());
+                files.push((name, a.clone()));
+            }
         }
+        let bake_res = if bake_res.is_empty() {
+            vec![px.max(8)]
+        } else {
+            bake_res
+        };
+        let bars = TerminalProgress::new();
+        let mut rows = Vec::new();
+        for (name, path) in &files {
+            for &br in &bake_res {
+                let agg = agg_dir.join(format!("{name}-{br}.agg"));
+                let bake = aggtool::bake::BakeSettings {
+                    max_res: br,
+                    ..Default::default()
+                };
+                let r = eval::speed_scene(
+                    &eval::SpeedInput {
+                        name,
+                        asset: path,
+                        agg: &agg,
+                    },
+                    &bake,
+                    px,
+                    spp,
+                    reference_spp,
+                    output,
+                    &|s, d, n| bars.report(s, d, n),
+                )?;
+                bars.finish();
+                eprintln!("{}: done", r.scene);
+                rows.push(r);
+            }
+        }
+        let table = eval::speed_table(&rows);
+        println!("{table}");
+        std::fs::write(output.join("speed.md"), &table)?;
         let json = output.join("speed.json");
         std::fs::write(&json, serde_json::to_string_pretty(&rows)?)?;
         println!(
-            "output: {} and {}/*-speed.png (reference | LoD | reference at equal time)",
+            "output: {}, speed.md and {}/NAME-RES-speed.png (reference | LoD | reference at equal spp | reference at equal time)",
             json.display(),
             output.display()
         );
@@ -727,9 +777,10 @@ fn eval(
     Ok(())
 }
 
-/// The main job on a built-in scene: generate, bake, render the LoD and the reference,
-/// compare.
+/// The main job on a built-in scene: generate, bake, render the LoD and the reference at equal
+/// time, compare both with a converged reference.
 fn demo(output: &Path) -> Result<()> {
+    use aggtool::render::reference::{self, ReferenceSettings};
     let t_all = std::time::Instant::now();
     std::fs::create_dir_all(output)?;
     let settings = GenSettings {
@@ -761,7 +812,7 @@ fn demo(output: &Path) -> Result<()> {
         report.levels.len(),
         report.bytes as f64 / 1048576.0
     );
-    // One view, rendered both ways (128², so one finest voxel is about one pixel).
+    // One view (128², so one finest voxel is about one pixel), a sun and a blue sky.
     let (c, r) = scene.bounding_sphere();
     let mut view = View::framing(c, r, 128, 128, 64);
     view.sun = Some(aggtool::render::view::SunDesc {
@@ -775,42 +826,79 @@ fn demo(output: &Path) -> Result<()> {
         output.join("view.json"),
         serde_json::to_string_pretty(&view)?,
     )?;
-    let ref_path = output.join("reference.exr");
-    let ref_stats = run_reference(&scene, &view, &ref_path, 0.0)?;
-    let lod_path = output.join("lod.exr");
-    let mut lod_view = view.clone();
-    lod_view.spp = 16;
-    let (_, lod_s) = run_lod(
-        &agg_path,
-        &lod_view,
-        &lod_path,
-        0.0,
+    let lights = view.lights()?;
+    let camera = view.camera();
+    let accel = Accel::build(&scene);
+    let render_ref = |spp: u32, seed: u64| {
+        reference::render(
+            &accel,
+            &camera,
+            &lights,
+            ReferenceSettings { spp, seed },
+            &|s, d, n| bars.report(s, d, n),
+        )
+    };
+    // The converged reference the two are judged against.
+    let (truth, truth_stats) = render_ref(1024, 7);
+    bars.finish();
+    truth.write_exr(&output.join("reference-1024spp.exr"))?;
+    // The LoD at 64 spp, then the reference in the same time.
+    let lod_spp = 64;
+    let t = std::time::Instant::now();
+    let lod = aggtool::runtime::LodScene::open(&agg_path)?;
+    let (lod_img, lod_stats) = aggtool::runtime::render(
+        &lod,
+        &camera,
+        &lights,
+        lod_spp,
+        1,
         &aggtool::runtime::TraceSettings::default(),
-    )?;
-    let (a, b) = (Image::read_exr(&lod_path)?, Image::read_exr(&ref_path)?);
-    let cmp = compare(&a, &b).map_err(anyhow::Error::msg)?;
-    let (diff, scale) = difference_image(&a, &b, None);
+        &|s, d, n| bars.report(s, d, n),
+    );
+    bars.finish();
+    let lod_s = t.elapsed().as_secs_f64();
+    println!("{}", lod_stats.line("LoD"));
+    let per_spp = truth_stats.seconds / 1024.0;
+    let mut ref_spp = ((lod_s / per_spp).floor() as u32).max(1);
+    let (mut ref_img, mut ref_stats) = render_ref(ref_spp, 1);
+    if ref_stats.seconds > 1.2 * lod_s && ref_spp > 1 {
+        ref_spp = ((ref_spp as f64 * lod_s / ref_stats.seconds).floor() as u32).max(1);
+        (ref_img, ref_stats) = render_ref(ref_spp, 1);
+    }
+    bars.finish();
+    println!("{}", ref_stats.line("reference"));
+    lod_img.write_exr(&output.join("lod.exr"))?;
+    ref_img.write_exr(&output.join("reference-equal-time.exr"))?;
+    let lod_cmp = compare(&lod_img, &truth).map_err(anyhow::Error::msg)?;
+    let ref_cmp = compare(&ref_img, &truth).map_err(anyhow::Error::msg)?;
+    let (lod_diff, scale) = difference_image(&lod_img, &truth, None);
+    let (ref_diff, _) = difference_image(&ref_img, &truth, Some(scale));
     let sbs = output.join("side-by-side.png");
     let captions = [
+        ["reference".to_string(), "1024 spp".to_string()],
         [
-            "reference".to_string(),
-            format!("{} spp {:.2} s", view.spp, ref_stats.seconds),
+            format!("lod {lod_spp} spp {lod_s:.2} s"),
+            format!("rmse {:.4}", lod_cmp.rmse),
         ],
         [
-            format!("lod {} spp", lod_view.spp),
-            format!("{lod_s:.2} s bake {bake_s:.0} s"),
+            format!("ref {ref_spp} spp {:.2} s", ref_stats.seconds),
+            format!("rmse {:.4}", ref_cmp.rmse),
         ],
-        [
-            format!("rmse {:.4}", cmp.rmse),
-            format!("white = {scale:.3}"),
-        ],
+        ["lod difference".to_string(), format!("white = {scale:.3}")],
+        ["ref difference".to_string(), "same scale".to_string()],
     ];
-    let (w, h) = (a.width, a.height);
-    let panels: Vec<(Vec<u8>, u32)> = [&b.to_srgb8(0.0), &a.to_srgb8(0.0), &diff.to_srgb8(0.0)]
-        .iter()
-        .zip(&captions)
-        .map(|(img, c)| aggtool::render::label::with_caption(img, w, h, &[&c[0], &c[1]], 1))
-        .collect();
+    let (w, h) = (truth.width, truth.height);
+    let panels: Vec<(Vec<u8>, u32)> = [
+        &truth.to_srgb8(0.0),
+        &lod_img.to_srgb8(0.0),
+        &ref_img.to_srgb8(0.0),
+        &lod_diff.to_srgb8(0.0),
+        &ref_diff.to_srgb8(0.0),
+    ]
+    .iter()
+    .zip(&captions)
+    .map(|(img, c)| aggtool::render::label::with_caption(img, w, h, &[&c[0], &c[1]], 1))
+    .collect();
     let ph = panels[0].1;
     side_by_side(
         &sbs,
@@ -819,11 +907,11 @@ fn demo(output: &Path) -> Result<()> {
         ph,
     )?;
     println!(
-        "stats: reference {:.2} s at {} spp; LoD {:.2} s at {} spp; RMSE {:.4} (relMSE {:.4}); difference white = {scale:.3}",
-        ref_stats.seconds, view.spp, lod_s, lod_view.spp, cmp.rmse, cmp.relmse
+        "stats: equal time: LoD {:.2} s at {lod_spp} spp, RMSE {:.4}; reference {:.2} s at {ref_spp} spp, RMSE {:.4} (against the reference at 1024 spp)",
+        lod_s, lod_cmp.rmse, ref_stats.seconds, ref_cmp.rmse
     );
     println!(
-        "output: {} (reference | LoD | difference), in {:.0} s",
+        "output: {} (reference 1024 spp | LoD | reference at equal time | differences), in {:.0} s",
         sbs.display(),
         t_all.elapsed().as_secs_f64()
     );
@@ -841,6 +929,8 @@ fn run(cli: Cli) -> Result<()> {
             spp,
             reference_spp,
             speed,
+            bake_res,
+            agg_dir,
             output,
         } => eval(
             &assets,
@@ -850,6 +940,8 @@ fn run(cli: Cli) -> Result<()> {
             spp,
             reference_spp,
             speed,
+            bake_res,
+            agg_dir,
             &output,
         ),
         Command::Reference {

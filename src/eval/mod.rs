@@ -365,27 +365,49 @@ pub fn markdown_table(results: &[SceneResult]) -> String {
 pub struct SpeedResult {
     pub scene: String,
     pub triangles: usize,
+    /// Image side in pixels.
     pub res: u32,
+    /// The bake's finest resolution.
+    pub bake_res: u32,
     pub spp: u32,
+    /// Seconds the bake took (0 when an existing file was reused).
     pub bake_seconds: f64,
     pub agg_bytes: u64,
-    /// Equal spp: seconds of each renderer.
+    /// Whole commands at equal spp: the LoD opens the file and renders; the reference imports
+    /// the asset, builds its BVH and renders.
     pub lod_seconds: f64,
     pub reference_seconds: f64,
+    /// The render loops alone, at equal spp.
+    pub lod_render_seconds: f64,
+    pub reference_render_seconds: f64,
+    /// The levels the LoD touched (resolutions).
+    pub lod_levels: Vec<u32>,
     pub lod_rmse: f64,
     pub reference_rmse: f64,
-    /// Equal time: the reference's spp that fits in the LoD's time, and its RMSE.
+    /// Equal time: the reference's spp whose whole command takes the LoD's whole time (at
+    /// least 1), its time and RMSE.
     pub equal_time_reference_spp: u32,
     pub equal_time_reference_seconds: f64,
     pub equal_time_reference_rmse: f64,
+    /// Non-finite values counted in the LoD render (zero when healthy).
+    pub lod_non_finite: u64,
     pub picture: PathBuf,
 }
 
-/// The speed study on one scene: an image of `res`² pixels with LoD chosen by footprint from
-/// a bake of `bake.max_res`, at `spp`, against the reference at `reference_spp`.
+/// A scene for the speed study: an asset file (imported the way `aggtool reference` does) and
+/// its aggregate (baked into `dir` if missing).
+pub struct SpeedInput<'a> {
+    pub name: &'a str,
+    pub asset: &'a Path,
+    pub agg: &'a Path,
+}
+
+/// The speed study on one scene (paper Table 3's times, Fig. 17's equal-time comparison): an
+/// image of `res`² pixels with LoD chosen by footprint from the aggregate, at `spp`, against the
+/// reference at `reference_spp`. Whole commands are timed in process, as `aggtool render` and
+/// `aggtool reference` spend them (opening or importing, BVH, render; not writing images).
 pub fn speed_scene(
-    name: &str,
-    scene: &Scene,
+    input: &SpeedInput,
     bake: &BakeSettings,
     res: u32,
     spp: u32,
@@ -394,26 +416,61 @@ pub fn speed_scene(
     progress: Progress,
 ) -> Result<SpeedResult> {
     std::fs::create_dir_all(dir)?;
-    let agg_path = dir.join(format!("{name}.agg"));
+    let name = input.name;
+    let mut bake_seconds = 0.0;
+    if !input.agg.exists() {
+        let scene = crate::import::load(input.asset, Default::default())?;
+        let t = Instant::now();
+        bake_to_file(&scene, name, bake, input.agg, progress)?;
+        bake_seconds = t.elapsed().as_secs_f64();
+    }
+    // The reference: import, BVH, render — timed as one command.
     let t = Instant::now();
-    let report = bake_to_file(scene, name, bake, &agg_path, progress)?;
-    let bake_seconds = t.elapsed().as_secs_f64();
-    let lod = LodScene::new(Aggregate::open(&agg_path)?);
-    let accel = Accel::build(scene);
-    let view = study_view(scene, res, spp);
+    let scene = crate::import::load(input.asset, Default::default())
+        .with_context(|| format!("importing {}", input.asset.display()))?;
+    let accel = Accel::build(&scene);
+    let load_seconds = t.elapsed().as_secs_f64();
+    let view = study_view(&scene, res, spp);
     let (truth, _) = reference_render(&accel, &view, reference_spp, 7)?;
-    let (lod_img, lod_seconds) = lod_render(&lod, &view, spp, 1, &TraceSettings::default())?;
-    let (ref_img, reference_seconds) = reference_render(&accel, &view, spp, 1)?;
+    let (ref_img, reference_render_seconds) = reference_render(&accel, &view, spp, 1)?;
+    let reference_seconds = load_seconds + reference_render_seconds;
+    // The LoD: open (lazily) and render, in a fresh scene so that level preparation counts.
+    let t = Instant::now();
+    let lod = LodScene::open(input.agg)?;
+    let lights = view.lights()?;
+    let (lod_img, stats) = crate::runtime::render(
+        &lod,
+        &view.camera(),
+        &lights,
+        spp,
+        1,
+        &TraceSettings::default(),
+        &crate::util::no_progress,
+    );
+    let lod_seconds = t.elapsed().as_secs_f64();
+    if let Some(e) = lod.first_error() {
+        anyhow::bail!("{}: {e}", input.agg.display());
+    }
+    let lod_levels: Vec<u32> = lod
+        .prepared()
+        .iter()
+        .enumerate()
+        .filter(|(_, p)| **p)
+        .map(|(l, _)| lod.grid(l).res)
+        .collect();
     let lod_rmse = compare(&lod_img, &truth).expect("same size").rmse;
     let reference_rmse = compare(&ref_img, &truth).expect("same size").rmse;
-    // Equal time: scale the reference's spp to the LoD's time, then correct once.
-    let per_spp = reference_seconds / spp as f64;
-    let mut eq_spp = ((lod_seconds / per_spp).floor() as u32).max(1);
-    let (mut eq_img, mut eq_secs) = reference_render(&accel, &view, eq_spp, 3)?;
-    if eq_secs > lod_seconds * 1.25 && eq_spp > 1 {
-        eq_spp = ((eq_spp as f64 * lod_seconds / eq_secs).floor() as u32).max(1);
-        (eq_img, eq_secs) = reference_render(&accel, &view, eq_spp, 3)?;
+    // Equal time: the reference's spp whose whole command fits the LoD's whole time, scaled
+    // from its render time per spp, then corrected once.
+    let per_spp = reference_render_seconds / spp as f64;
+    let budget = (lod_seconds - load_seconds).max(0.0);
+    let mut eq_spp = ((budget / per_spp).floor() as u32).max(1);
+    let (mut eq_img, mut eq_render) = reference_render(&accel, &view, eq_spp, 3)?;
+    if eq_render > budget * 1.25 && eq_spp > 1 {
+        eq_spp = ((eq_spp as f64 * budget / eq_render).floor() as u32).max(1);
+        (eq_img, eq_render) = reference_render(&accel, &view, eq_spp, 3)?;
     }
+    let eq_secs = load_seconds + eq_render;
     let eq_rmse = compare(&eq_img, &truth).expect("same size").rmse;
     let k = (256 / res).max(1);
     let side = res * k;
@@ -425,11 +482,15 @@ pub fn speed_scene(
             format!("{lod_seconds:.2} s rmse {lod_rmse:.4}"),
         ],
         vec![
+            format!("reference {spp} spp"),
+            format!("{reference_seconds:.2} s rmse {reference_rmse:.4}"),
+        ],
+        vec![
             format!("reference {eq_spp} spp"),
             format!("{eq_secs:.2} s rmse {eq_rmse:.4}"),
         ],
     ];
-    let tiles: Vec<Vec<u8>> = [&truth, &lod_img, &eq_img]
+    let tiles: Vec<Vec<u8>> = [&truth, &lod_img, &ref_img, &eq_img]
         .iter()
         .zip(&captions)
         .map(|(i, c)| {
@@ -445,24 +506,53 @@ pub fn speed_scene(
         })
         .collect();
     let tile_h = side + 2 * crate::render::label::line_height(sc) + 4 * sc;
-    let picture = dir.join(format!("{name}-speed.png"));
+    let picture = dir.join(format!("{name}-{res}-speed.png"));
     tile_png(&picture, &[tiles], side, tile_h)?;
-    drop(lod);
-    std::fs::remove_file(&agg_path).ok();
     Ok(SpeedResult {
         scene: name.to_string(),
         triangles: scene.instanced_triangle_count(),
         res,
+        bake_res: lod.grid(0).res,
         spp,
         bake_seconds,
-        agg_bytes: report.bytes,
+        agg_bytes: lod.aggregate().header().file_size,
         lod_seconds,
         reference_seconds,
+        lod_render_seconds: stats.seconds,
+        reference_render_seconds,
+        lod_levels,
         lod_rmse,
         reference_rmse,
         equal_time_reference_spp: eq_spp,
         equal_time_reference_seconds: eq_secs,
         equal_time_reference_rmse: eq_rmse,
+        lod_non_finite: stats.non_finite,
         picture,
     })
+}
+
+/// The speed table in Markdown.
+pub fn speed_table(rows: &[SpeedResult]) -> String {
+    let mut s = String::from("| scene | triangles | image | bake | spp | LoD s | reference s | LoD / reference | render only | LoD levels | LoD RMSE | reference RMSE | equal-time reference spp (s) | its RMSE |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    for r in rows {
+        s += &format!(
+            "| {} | {} | {}² | {}³ | {} | {:.2} | {:.2} | {:.2}× | {:.2}× | {:?} | {:.4} | {:.4} | {} ({:.2}) | {:.4} |\n",
+            r.scene,
+            r.triangles,
+            r.res,
+            r.bake_res,
+            r.spp,
+            r.lod_seconds,
+            r.reference_seconds,
+            r.lod_seconds / r.reference_seconds.max(1e-9),
+            r.lod_render_seconds / r.reference_render_seconds.max(1e-9),
+            r.lod_levels,
+            r.lod_rmse,
+            r.reference_rmse,
+            r.equal_time_reference_spp,
+            r.equal_time_reference_seconds,
+            r.equal_time_reference_rmse
+        );
+    }
+    s
 }

@@ -601,20 +601,24 @@ impl<'a> VoxelRef<'a> {
         }
     }
 
+    /// The voxel's SGGX lobes (Eq. 8), without allocating.
+    pub fn lobes(&self) -> impl Iterator<Item = NdfLobe> + 'a {
+        let r = self.rec;
+        let lobes = self.block.lobes().expect("verified");
+        (r.lobe_start()..r.lobe_start() + r.lobe_count()).map(move |i| {
+            let l = lobes.get(i as usize);
+            NdfLobe {
+                weight: l.weight(),
+                frame: Mat3::from_cols(g(l.t()), g(l.b()), g(l.n())),
+                alpha: Vec2::new(l.alpha_x(), l.alpha_y()),
+            }
+        })
+    }
+
     /// The ABSDF inputs.
     pub fn appearance(&self) -> VoxelAppearance {
         let r = self.rec;
-        let lobes = self.block.lobes().expect("verified");
-        let lobes = (r.lobe_start()..r.lobe_start() + r.lobe_count())
-            .map(|i| {
-                let l = lobes.get(i as usize);
-                NdfLobe {
-                    weight: l.weight(),
-                    frame: Mat3::from_cols(g(l.t()), g(l.b()), g(l.n())),
-                    alpha: Vec2::new(l.alpha_x(), l.alpha_y()),
-                }
-            })
-            .collect();
+        let lobes = self.lobes().collect();
         let range = r.moment_start() as usize..(r.moment_start() + r.moment_count()) as usize;
         let sets: Vec<MaterialMoments> = if r.flags().contains(fb::VoxelFlags::Metallic) {
             let m = self.block.moments().expect("verified");

@@ -287,10 +287,18 @@ pub fn validate_tree(n: u32, len: usize, node: impl Fn(usize) -> Node) -> Result
         return Err(format!("tree for a {n}x{n} map"));
     }
     let depth = n.trailing_zeros() as usize;
-    // Iterative preorder walk: (node index, level).
-    let mut stack = vec![(0usize, 0usize)];
+    if depth > 16 {
+        return Err(format!("tree for a {n}x{n} map"));
+    }
+    // Iterative preorder walk: (node index, level), on a fixed stack (at most three pending
+    // siblings per level), allocating nothing: blocks are verified on first read, while a
+    // render waits.
+    let mut stack = [(0usize, 0usize); 4 * 17];
+    let mut top = 1usize;
     let mut visited = 0usize;
-    while let Some((i, l)) = stack.pop() {
+    while top > 0 {
+        top -= 1;
+        let (i, l) = stack[top];
         if i >= len {
             return Err(format!("node {i} out of {len}"));
         }
@@ -306,13 +314,15 @@ pub fn validate_tree(n: u32, len: usize, node: impl Fn(usize) -> Node) -> Result
             return Err(format!("node {i}: bad child mask {}", nd.children));
         }
         let mut j = i + 1;
-        let mut kids = Vec::with_capacity(4);
+        let mut kids = [0usize; 4];
+        let mut nk = 0;
         for q in 0..4 {
             if nd.children & (1 << q) != 0 {
                 if j >= len {
                     return Err(format!("node {i}: child beyond the tree"));
                 }
-                kids.push(j);
+                kids[nk] = j;
+                nk += 1;
                 j = j
                     .checked_add(node(j).subtree as usize)
                     .ok_or("subtree size overflow")?;
@@ -325,8 +335,12 @@ pub fn validate_tree(n: u32, len: usize, node: impl Fn(usize) -> Node) -> Result
                 j - i
             ));
         }
-        for k in kids.into_iter().rev() {
-            stack.push((k, l + 1));
+        for &k in kids[..nk].iter().rev() {
+            if top >= stack.len() {
+                return Err("tree deeper than its map".into());
+            }
+            stack[top] = (k, l + 1);
+            top += 1;
         }
     }
     if node(0).subtree as usize != len {

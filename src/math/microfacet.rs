@@ -48,6 +48,18 @@ pub fn ggx_lambda(w: Vec3, ax: f32, ay: f32) -> f32 {
     0.5 * (-1.0 + (1.0 + a2t2).sqrt())
 }
 
+/// Λ of an isotropic GGX of roughness α for a direction at cosine `c` to the normal:
+/// (−1 + √(1 + α² tan²θ)) / 2; `f32::MAX` at or below the horizon.
+#[inline]
+pub fn ggx_lambda_iso(c: f32, alpha: f32) -> f32 {
+    let c2 = c * c;
+    if !(c > 0.0) {
+        return f32::MAX;
+    }
+    let a2t2 = alpha * alpha * (1.0 - c2).max(0.0) / c2;
+    0.5 * (-1.0 + (1.0 + a2t2).sqrt())
+}
+
 /// Smith masking G1(w).
 #[inline]
 pub fn ggx_g1(w: Vec3, ax: f32, ay: f32) -> f32 {

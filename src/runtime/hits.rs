@@ -13,8 +13,9 @@ use glam::{IVec3, Vec3};
 use super::level::{Brick, Level, BRICK};
 use super::{Cone, LodScene, PrimitiveKind, TraceSettings, VoxelHandle};
 use crate::spatial::dda::entry_axis;
+use crate::spatial::ellipsoid::AreaCase;
 use crate::spatial::face::entry_face;
-use crate::spatial::{box_interval, box_projected_area, Dda, Grid};
+use crate::spatial::{box_interval, box_projected_area, truncated_entry, Dda, Grid};
 
 /// A primitive the cone met.
 #[derive(Clone, Copy)]
@@ -25,6 +26,18 @@ pub struct Hit<'s> {
     pub t: f32,
     /// The coverage weight V̂(ω_o)·|A|_ω/|B|_ω of Eq. 30: the voxel's share of the cone.
     pub weight: f32,
+}
+
+/// How the walk weighs its hits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Weights {
+    /// Eq. 30's weight with |B|_ω (the 64-point estimate where the ellipsoid crosses its
+    /// voxel).
+    Exact,
+    /// The same with [`crate::spatial::TruncatedEllipsoid::projected_area_bound`] for |B|_ω:
+    /// a lower bound of the weight, within a small factor, for choosing whom to shade; the
+    /// chosen hit's weight is corrected by [`Hits::exact_factor`].
+    Bound,
 }
 
 /// The voxel walk inside one occupied brick.
@@ -56,7 +69,9 @@ pub struct Hits<'s> {
     vb: Option<f32>,
     primitives: u32,
     steps_left: u32,
+    steps_max: u32,
     done: bool,
+    weights: Weights,
 }
 
 /// The grid of a level's bricks (it may overhang the level's cube when res < 4).
@@ -101,7 +116,9 @@ impl LodScene {
             vb: None,
             primitives: 0,
             steps_left: 0,
+            steps_max: 0,
             done: true,
+            weights: Weights::Exact,
         };
         let Some(g0) = self.grids.first().copied() else {
             return h;
@@ -120,12 +137,40 @@ impl LodScene {
         h.entry_axis = entry_axis(lo, hi, cone.origin, inv);
         h.li = h.pick(tmin);
         h.steps_left = 6 * g0.res + 64;
+        h.steps_max = h.steps_left;
         h.done = !h.enter_level(None);
         h
     }
 }
 
 impl<'s> Hits<'s> {
+    /// Weighs hits this way from now on.
+    pub(crate) fn with_weights(mut self, w: Weights) -> Self {
+        self.weights = w;
+        self
+    }
+
+    /// exact weight / bound weight of a hit yielded under [`Weights::Bound`].
+    #[inline]
+    pub(crate) fn exact_factor(&self, hit: &Hit) -> f32 {
+        let (level, idx) = (hit.voxel.data, hit.voxel.idx);
+        if self.settings.primitive != PrimitiveKind::TruncatedEllipsoid
+            || level.hit[idx as usize].area_case != Some(AreaCase::Crossing)
+        {
+            return 1.0;
+        }
+        let Some(p) = level.primitive(idx) else {
+            return 0.0;
+        };
+        let d = self.cone.dir;
+        let exact = p.projected_area(d);
+        if exact > 0.0 {
+            p.projected_area_bound(d) / exact
+        } else {
+            0.0
+        }
+    }
+
     /// The level for parameter `t`: forced, or the footprint's.
     #[inline]
     fn pick(&self, t: f32) -> usize {
@@ -152,6 +197,11 @@ impl<'s> Hits<'s> {
     /// Primitives met so far.
     pub fn primitives(&self) -> u32 {
         self.primitives
+    }
+
+    /// Traversal steps taken so far (bricks and voxels visited), for profiling.
+    pub fn steps(&self) -> u32 {
+        self.steps_max - self.steps_left
     }
 
     /// The background's weight: the ABV of the face where the cone entered the aggregate if it
@@ -181,7 +231,7 @@ impl<'s> Hits<'s> {
                 let t_exit = ib.dda.t_exit().min(ib.t_exit).min(self.t_end);
                 let mut found = None;
                 if let Some(idx) = Level::in_brick(&ib.brick, v) {
-                    let vox = &level.voxels[idx as usize];
+                    let rec = &level.hit[idx as usize];
                     if self.vb.is_none() {
                         let a = self.entry_axis;
                         let dir = entry_face(a, ib.dda.step[a]);
@@ -192,9 +242,18 @@ impl<'s> Hits<'s> {
                         );
                     }
                     let hit = match self.settings.primitive {
-                        PrimitiveKind::TruncatedEllipsoid => vox.prim.and_then(|p| {
-                            p.intersect(self.cone.origin, self.cone.dir, self.inv, self.t, t_exit)
-                        }),
+                        PrimitiveKind::TruncatedEllipsoid if rec.area_case.is_some() => {
+                            truncated_entry(
+                                rec.center,
+                                rec.inv,
+                                self.cone.origin,
+                                self.cone.dir,
+                                self.t - level.pad,
+                                t_exit + level.pad,
+                            )
+                            .map(|t| t.max(self.t))
+                        }
+                        PrimitiveKind::TruncatedEllipsoid => None,
                         _ => Some(self.t),
                     };
                     if let Some(th) = hit {
@@ -314,18 +373,30 @@ impl<'s> Hits<'s> {
     /// The coverage weight of voxel `idx` of `level` for this cone.
     #[inline]
     fn weight(&self, level: &Level, idx: u32) -> f32 {
-        let vox = &level.voxels[idx as usize];
+        let rec = &level.hit[idx as usize];
+        let w = &level.weight[idx as usize];
         let d = self.cone.dir;
-        let area_b = match (self.settings.primitive, &vox.prim) {
-            (PrimitiveKind::TruncatedEllipsoid, Some(p)) => p.projected_area(d),
+        let area_b = match (self.settings.primitive, rec.area_case) {
+            (PrimitiveKind::TruncatedEllipsoid, Some(case)) => {
+                let ellipsoid = std::f32::consts::PI * w.det * (rec.inv * d).length();
+                let cube = box_projected_area(Vec3::splat(level.voxel_size + 2.0 * level.pad), d);
+                match (case, self.weights) {
+                    (AreaCase::EllipsoidInside, _) => ellipsoid,
+                    (AreaCase::VoxelInside, _) => cube,
+                    (AreaCase::Crossing, Weights::Bound) => ellipsoid.min(cube),
+                    (AreaCase::Crossing, Weights::Exact) => {
+                        level.primitive(idx).map_or(0.0, |p| p.projected_area(d))
+                    }
+                }
+            }
             (PrimitiveKind::TruncatedEllipsoid, None) => 0.0,
-            _ => box_projected_area(Vec3::splat(level.grid.voxel_size()), d),
+            _ => box_projected_area(Vec3::splat(level.voxel_size), d),
         };
         if !(area_b > 0.0) {
             return 0.0;
         }
-        let vo = vox.vref.aiv(-d);
-        vo * vox.area * vox.mean_cosine(d) / area_b
+        let vo = w.vref.aiv(-d);
+        vo * rec.area * w.mean_cosine(d) / area_b
     }
 }
 
@@ -339,7 +410,8 @@ impl<'s> Iterator for Hits<'s> {
             if weight > 0.0 {
                 return Some(Hit {
                     voxel: VoxelHandle {
-                        voxel: &level.voxels[idx as usize],
+                        data: level,
+                        idx,
                         level: li,
                     },
                     t,

@@ -1,20 +1,28 @@
-//! A level prepared for cone tracing: per voxel its ABSDF, its truncated ellipsoid and a
-//! zero-copy handle on its AIV tree, in Morton order; occupancy as a bit per 4³ brick (dense)
-//! and per occupied brick a 64-bit mask of its voxels with the index of its first voxel, so
-//! that the traversal skips empty bricks whole and finds a voxel without hashing; the boundary
-//! faces by (voxel key, direction).
+//! A level prepared for cone tracing, laid out for the traversal's cache:
+//!
+//! - per voxel, in Morton order, one 64-byte record with what the hit test needs (the
+//!   ellipsoid's centre and inverse axes; the voxel box comes from the DDA) and a few bytes the
+//!   weight needs; a second record, read only for primitives actually hit, with the normal
+//!   lobes for E|n·ω|, the exposure and the zero-copy AIV handle; and the voxel's ABSDF, built
+//!   the first time the voxel is shaded (once, thread-safely);
+//! - occupancy as a bit per 4³ brick and, per occupied brick, a 64-bit mask of its voxels with
+//!   the index of its first voxel, so that the traversal skips empty bricks whole and finds a
+//!   voxel without hashing;
+//! - the boundary faces by (voxel key, direction).
 
 use std::collections::HashMap;
 use std::hash::BuildHasherDefault;
+use std::sync::OnceLock;
 
-use glam::{IVec3, UVec3, Vec3};
+use glam::{IVec3, Mat3, UVec3, Vec3};
 
 use crate::absdf::Absdf;
 use crate::format::read::FaceRef;
 use crate::format::{Aggregate, VoxelRef};
 use crate::math::microfacet::m5_exact;
 use crate::math::sggx::Sggx;
-use crate::spatial::{morton3, Grid, TruncatedEllipsoid};
+use crate::spatial::ellipsoid::AreaCase;
+use crate::spatial::{morton3, Ellipsoid, Grid, TruncatedEllipsoid};
 
 /// A hasher for Morton keys: one mixing step instead of SipHash.
 #[derive(Default, Clone, Copy)]
@@ -39,27 +47,40 @@ type FastMap<V> = HashMap<u64, V, BuildHasherDefault<KeyHasher>>;
 /// Brick edge in voxels (a brick's 64 voxels are one Morton range).
 pub const BRICK: i32 = 4;
 
-/// A voxel ready for shading.
-pub struct Voxel<'a> {
-    pub absdf: Absdf<'static>,
-    pub prim: Option<TruncatedEllipsoid>,
-    /// area · coverage.
+/// What the hit test reads: one cache line.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
+pub struct HitRecord {
+    /// The ellipsoid's centre.
+    pub center: Vec3,
+    /// The inverse of its axes.
+    pub inv: Mat3,
+    /// area · coverage: the voxel's surface area after cut-outs.
     pub area: f32,
-    /// (weight / mass, lobe) for E|n·ω| = Σ w_k σ_k(ω) / m5_k.
-    pub lobes: [(f32, Sggx); 4],
+    /// How |B|_ω is computed; `None` for a voxel without a usable ellipsoid.
+    pub area_case: Option<AreaCase>,
+}
+
+/// What the weight and the visibility read, for primitives hit.
+pub struct WeightRecord<'a> {
+    /// The normal lobes scaled so that E|n·ω| = Σ σ_k(ω) (SGGX matrices times (w_k / m5_k)²).
+    pub lobes: [Sggx; 4],
     pub lobe_count: u8,
     /// 1 / exposure: the incident AIV counts exposed sides only.
     pub inv_exposure: f32,
+    /// The ellipsoid's axes and |det| (for |B|_ω).
+    pub axes: Mat3,
+    pub det: f32,
     pub vref: VoxelRef<'a>,
 }
 
-impl Voxel<'_> {
+impl WeightRecord<'_> {
     /// E|n·ω| of the voxel's surfaces, from its normal distribution.
     #[inline]
     pub fn mean_cosine(&self, w: Vec3) -> f32 {
         let mut s = 0.0;
-        for (k, s_k) in self.lobes[..self.lobe_count as usize].iter() {
-            s += k * s_k.sigma(w);
+        for l in &self.lobes[..self.lobe_count as usize] {
+            s += l.sigma(w);
         }
         s.clamp(0.0, 1.0)
     }
@@ -83,9 +104,14 @@ enum BrickIndex {
 /// A prepared level.
 pub struct Level<'a> {
     pub grid: Grid,
+    /// Voxel size, and the padding of a voxel's interval (spatial::VOXEL_PAD of it).
+    pub voxel_size: f32,
+    pub pad: f32,
     /// Bricks per axis.
     pub brick_res: i32,
-    pub voxels: Vec<Voxel<'a>>,
+    pub hit: Vec<HitRecord>,
+    pub weight: Vec<WeightRecord<'a>>,
+    absdf: Vec<OnceLock<Box<Absdf<'static>>>>,
     bricks: Vec<Brick>,
     index: BrickIndex,
     /// One bit per brick, x fastest: whether it holds any voxel.
@@ -97,7 +123,6 @@ pub struct Level<'a> {
 impl<'a> Level<'a> {
     /// Prepares level `l` of `agg`, verifying its blocks.
     pub fn prepare(agg: &'a Aggregate, l: usize) -> Result<Level<'a>, String> {
-        let tables = crate::tables::Tables::embedded();
         let grid = agg.grid(l);
         let (nv, nf) = agg.block_counts(l);
         let mut refs: Vec<VoxelRef<'a>> = Vec::with_capacity(agg.counts(l).voxels as usize);
@@ -105,34 +130,44 @@ impl<'a> Level<'a> {
             let block = agg.voxel_block(l, b).map_err(|e| e.to_string())?;
             refs.extend((0..block.len()).map(|i| block.voxel(i)));
         }
-        let voxels: Vec<Voxel<'a>> = refs
-            .iter()
-            .map(|v| {
-                let app = v.appearance();
-                let (lo, hi) = grid.voxel_bounds(v.coords());
-                let mut lobes = [(
-                    0.0,
-                    Sggx::from_frame_roughness(glam::Mat3::IDENTITY, glam::Vec2::ONE),
-                ); 4];
-                let lobe_count = app.lobes.len().min(4);
-                for (k, lb) in app.lobes.iter().take(4).enumerate() {
-                    let mass = m5_exact((lb.alpha.x * lb.alpha.y).sqrt()).max(1e-6);
-                    lobes[k] = (
-                        lb.weight / mass,
-                        Sggx::from_frame_roughness(lb.frame, lb.alpha),
-                    );
-                }
-                Voxel {
-                    absdf: Absdf::new(&app, tables),
-                    prim: TruncatedEllipsoid::new(&v.ellipsoid(), lo, hi),
-                    area: v.area() * v.coverage(),
-                    lobes,
-                    lobe_count: lobe_count as u8,
-                    inv_exposure: 1.0 / v.exposure().clamp(1.0 / 16.0, 1.0),
-                    vref: *v,
-                }
-            })
-            .collect();
+        let mut hit = Vec::with_capacity(refs.len());
+        let mut weight = Vec::with_capacity(refs.len());
+        for v in &refs {
+            let (lo, hi) = grid.voxel_bounds(v.coords());
+            let e: Ellipsoid = v.ellipsoid();
+            let prim = TruncatedEllipsoid::new(&e, lo, hi);
+            hit.push(HitRecord {
+                center: e.center,
+                inv: prim.map_or(Mat3::ZERO, |p| p.inv),
+                area: v.area() * v.coverage(),
+                area_case: prim.map(|p| p.area_case),
+            });
+            let mut lobes = [Sggx::from_frame_roughness(Mat3::IDENTITY, glam::Vec2::ONE); 4];
+            let mut lobe_count = 0;
+            for lb in v.lobes().take(4) {
+                let mass = m5_exact((lb.alpha.x * lb.alpha.y).sqrt()).max(1e-6);
+                let k = (lb.weight / mass).max(0.0);
+                let s = Sggx::from_frame_roughness(lb.frame, lb.alpha);
+                let k2 = k * k;
+                lobes[lobe_count] = Sggx {
+                    xx: s.xx * k2,
+                    yy: s.yy * k2,
+                    zz: s.zz * k2,
+                    xy: s.xy * k2,
+                    xz: s.xz * k2,
+                    yz: s.yz * k2,
+                };
+                lobe_count += 1;
+            }
+            weight.push(WeightRecord {
+                lobes,
+                lobe_count: lobe_count as u8,
+                inv_exposure: 1.0 / v.exposure().clamp(1.0 / 16.0, 1.0),
+                axes: e.axes,
+                det: prim.map_or(0.0, |p| p.det),
+                vref: *v,
+            });
+        }
         // Bricks: voxels are sorted by Morton key, so each brick is a run of keys >> 6.
         let brick_res = (grid.res as i32 + BRICK - 1) / BRICK;
         let mut bricks: Vec<Brick> = Vec::new();
@@ -179,10 +214,15 @@ impl<'a> Level<'a> {
                 faces.insert(f.key() * 8 + f.face().dir as u64, f);
             }
         }
+        let voxel_size = grid.voxel_size();
         Ok(Level {
             grid,
+            voxel_size,
+            pad: crate::spatial::VOXEL_PAD * voxel_size,
             brick_res,
-            voxels,
+            absdf: (0..hit.len()).map(|_| OnceLock::new()).collect(),
+            hit,
+            weight,
             bricks,
             index,
             occupied,
@@ -212,7 +252,7 @@ impl<'a> Level<'a> {
         self.bricks.get(i as usize).copied()
     }
 
-    /// The index of voxel `v` in `voxels`, if it exists.
+    /// The index of voxel `v` in the level's records, if it exists.
     #[inline]
     pub fn find(&self, v: IVec3) -> Option<u32> {
         let b = self.brick(v >> 2)?;
@@ -230,5 +270,33 @@ impl<'a> Level<'a> {
     #[inline]
     pub fn face(&self, v: UVec3, dir: u8) -> Option<&FaceRef<'a>> {
         self.faces.get(&(morton3(v) * 8 + dir as u64))
+    }
+
+    /// The primitive of voxel `idx`, rebuilt (for |B|_ω in the crossing case).
+    pub fn primitive(&self, idx: u32) -> Option<TruncatedEllipsoid> {
+        let (h, w) = (&self.hit[idx as usize], &self.weight[idx as usize]);
+        let area_case = h.area_case?;
+        let (lo, hi) = self.grid.voxel_bounds(w.vref.coords());
+        let pad = Vec3::splat(self.pad);
+        Some(TruncatedEllipsoid {
+            center: h.center,
+            axes: w.axes,
+            inv: h.inv,
+            det: w.det,
+            lo: lo - pad,
+            hi: hi + pad,
+            area_case,
+        })
+    }
+
+    /// The ABSDF of voxel `idx`, built on first use.
+    #[inline]
+    pub fn absdf(&self, idx: u32) -> &Absdf<'static> {
+        self.absdf[idx as usize].get_or_init(|| {
+            Box::new(Absdf::new(
+                &self.weight[idx as usize].vref.appearance(),
+                crate::tables::Tables::embedded(),
+            ))
+        })
     }
 }

@@ -340,7 +340,8 @@ impl LodScene {
 /// A voxel met by a cone: its ABSDF and its interior visibility.
 #[derive(Clone, Copy)]
 pub struct VoxelHandle<'s> {
-    voxel: &'s level::Voxel<'s>,
+    data: &'s level::Level<'s>,
+    idx: u32,
     level: usize,
 }
 
@@ -352,18 +353,19 @@ impl<'s> VoxelHandle<'s> {
 
     /// The voxel's Morton key in its level.
     pub fn key(&self) -> u64 {
-        self.voxel.vref.key
+        self.data.weight[self.idx as usize].vref.key
     }
 
-    /// The voxel's ABSDF (Eq. 7–23).
-    pub fn absdf(&self) -> &Absdf<'static> {
-        &self.voxel.absdf
+    /// The voxel's ABSDF (Eq. 7–23), built the first time it is asked for.
+    #[inline]
+    pub fn absdf(&self) -> &'s Absdf<'static> {
+        self.data.absdf(self.idx)
     }
 
     /// The interior visibility V̂(ω) of the voxel's surfaces towards unit `d` (Eq. 25).
     #[inline]
     pub fn aiv(&self, d: Vec3) -> f32 {
-        self.voxel.vref.aiv(d)
+        self.data.weight[self.idx as usize].vref.aiv(d)
     }
 
     /// The visibility to use for light arriving from `wi`: min(1, V̂(ω_i)/η), the AIV corrected
@@ -371,22 +373,23 @@ impl<'s> VoxelHandle<'s> {
     /// the bake's interior visibility).
     #[inline]
     pub fn incident_visibility(&self, wi: Vec3) -> f32 {
-        (self.voxel.vref.aiv(wi) * self.voxel.inv_exposure).min(1.0)
+        let w = &self.data.weight[self.idx as usize];
+        (w.vref.aiv(wi) * w.inv_exposure).min(1.0)
     }
 }
 
 impl Bsdf for VoxelHandle<'_> {
     fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {
-        self.voxel.absdf.eval(wi, wo)
+        self.absdf().eval(wi, wo)
     }
     fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {
-        self.voxel.absdf.pdf(wi, wo)
+        self.absdf().pdf(wi, wo)
     }
     fn eval_pdf(&self, wi: Vec3, wo: Vec3) -> (Vec3, f32) {
-        self.voxel.absdf.eval_pdf(wi, wo)
+        self.absdf().eval_pdf(wi, wo)
     }
     fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
-        self.voxel.absdf.sample(wo, u_lobe, u)
+        self.absdf().sample(wo, u_lobe, u)
     }
 }
 

@@ -2,6 +2,7 @@
 
 use glam::Vec3;
 
+use super::hits::{Hit, Weights};
 use super::{
     Cone, ConeResult, LodScene, PrimitiveKind, Sampler, Shading, TraceSettings, VoxelHandle,
 };
@@ -94,26 +95,33 @@ pub(crate) fn trace<S: Sampler + ?Sized>(
             (sum, cov)
         }
         Shading::Reservoir { picks } => {
-            // Weighted reservoir sampling (one reservoir per pick): each keeps hit k with
-            // probability w_k / Σw; shading the kept one and scaling by Σw is an unbiased
-            // estimate of Σ w_k L_o^k.
+            // Weighted reservoir sampling (one reservoir per pick) over bound weights ŵ_k
+            // (|B|_ω replaced by a cheap upper bound): each reservoir keeps hit k with
+            // probability ŵ_k / Σŵ; shading the kept one and scaling by Σŵ · w_k/ŵ_k is an
+            // unbiased estimate of Σ w_k L_o^k, with the exact |B|_ω computed once per pick.
+            hits = hits.with_weights(Weights::Bound);
             let n = (picks.max(1) as usize).min(MAX_PICKS);
-            let mut kept: [Option<VoxelHandle>; MAX_PICKS] = [None; MAX_PICKS];
+            let mut kept: [Option<Hit>; MAX_PICKS] = [None; MAX_PICKS];
             let mut wsum = 0.0f32;
             for h in &mut hits {
                 wsum += h.weight;
                 let p = h.weight / wsum;
                 for slot in kept.iter_mut().take(n) {
                     if sampler.next_1d() < p {
-                        *slot = Some(h.voxel);
+                        *slot = Some(h);
                     }
                 }
             }
-            let mut sum = Vec3::ZERO;
-            for v in kept.iter().take(n).flatten() {
-                sum += shade(v, wo, lights, settings.nee, sampler);
+            let (mut sum, mut cov) = (Vec3::ZERO, 0.0f32);
+            for h in kept.iter().take(n).flatten() {
+                let k = hits.exact_factor(h);
+                if k > 0.0 {
+                    sum += shade(&h.voxel, wo, lights, settings.nee, sampler) * k;
+                    cov += k;
+                }
             }
-            (sum * (wsum / n as f32), wsum)
+            let scale = wsum / n as f32;
+            (sum * scale, cov * scale)
         }
     };
     ConeResult::compose(

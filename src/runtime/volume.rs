@@ -16,7 +16,7 @@
 
 use glam::Vec3;
 
-use super::level::{Level, Voxel};
+use super::level::Level;
 use super::shade::shade_with;
 use super::{Cone, ConeResult, LodScene, Sampler, TraceSettings};
 use crate::lights::Lights;
@@ -30,7 +30,7 @@ fn march(
     dir: Vec3,
     tmin: f32,
     tmax: f32,
-    mut f: impl FnMut(&Voxel, f32, f32) -> bool,
+    mut f: impl FnMut(u32, f32, f32) -> bool,
 ) {
     let g = &level.grid;
     let inv = dir.recip();
@@ -45,7 +45,7 @@ fn march(
     for _ in 0..3 * g.res as usize + 8 {
         let t_exit = dda.t_exit().min(t1);
         if let Some(idx) = level.find(dda.v) {
-            if t_exit > t && !f(&level.voxels[idx as usize], t, t_exit) {
+            if t_exit > t && !f(idx, t, t_exit) {
                 return;
             }
         }
@@ -59,11 +59,12 @@ fn march(
     }
 }
 
-/// Extinction coefficient of a voxel of `level` towards `w`.
+/// Extinction coefficient of voxel `idx` of `level` towards `w`.
 #[inline]
-fn extinction(level: &Level, v: &Voxel, w: Vec3) -> f32 {
-    let s = level.grid.voxel_size();
-    (v.area * v.mean_cosine(w) / (s * s * s)).max(0.0)
+fn extinction(level: &Level, idx: u32, w: Vec3) -> f32 {
+    let s = level.voxel_size;
+    let area = level.hit[idx as usize].area;
+    (area * level.weight[idx as usize].mean_cosine(w) / (s * s * s)).max(0.0)
 }
 
 /// Beer–Lambert transmittance from `p` along `w` to the end of the level's grid.
@@ -124,7 +125,7 @@ impl LodScene {
                     let u = sampler.next_1d();
                     let dt = (-(1.0 - u * absorbed).ln() / sigma).clamp(0.0, len);
                     let p = cone.origin + cone.dir * (t0 + dt);
-                    let ls = shade_with(&v.absdf, wo, lights, settings.nee, sampler, |w| {
+                    let ls = shade_with(level.absdf(v), wo, lights, settings.nee, sampler, |w| {
                         volume_transmittance(level, p, w)
                     });
                     sum += ls * (tr * absorbed);

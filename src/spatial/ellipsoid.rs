@@ -1,7 +1,7 @@
 //! The truncated ellipsoid primitive (paper §6.1): the intersection of a voxel with an
-//! ellipsoid bounding the voxel's surfaces. [`TruncatedEllipsoid::intersect`] is the one ray
-//! test of the project: the bake's P⁺ test (which rays of a boundary face count towards the
-//! ABV, Eq. 26) and the runtime's primitive hit (Eq. 30) both call it.
+//! ellipsoid bounding the voxel's surfaces. [`truncated_entry`] is the one ray test of the
+//! project: the bake's P⁺ test (which rays of a boundary face count towards the ABV, Eq. 26)
+//! and the runtime's primitive hit (Eq. 30) both call it.
 //!
 //! The projected area |B|_ω of Eq. 24 follows the supplemental Algorithm 1 (points spread over
 //! the ellipsoid's shadow, with its two early exits, decided once per primitive) with two
@@ -82,6 +82,25 @@ pub fn ellipsoid_ray_interval(center: Vec3, inv: Mat3, o: Vec3, d: Vec3) -> Opti
     Some((t - s, t + s))
 }
 
+/// Where the ray `o + t d` enters the ellipsoid (centre `center`, inverse axes `inv`) within
+/// the parameter interval [t0, t1] the ray spends inside the primitive's voxel: the one
+/// primitive hit test of bake and runtime. The bake gets [t0, t1] from the voxel's box
+/// ([`TruncatedEllipsoid::intersect`]), the runtime from its DDA, both padded by
+/// [`VOXEL_PAD`] of the voxel size.
+#[inline]
+pub fn truncated_entry(center: Vec3, inv: Mat3, o: Vec3, d: Vec3, t0: f32, t1: f32) -> Option<f32> {
+    if !(t0 <= t1) {
+        return None;
+    }
+    let (e0, e1) = ellipsoid_ray_interval(center, inv, o, d)?;
+    let (lo, hi) = (e0.max(t0), e1.min(t1));
+    (lo <= hi).then_some(lo)
+}
+
+/// The padding of a primitive's voxel, as a fraction of its size: a ray on a voxel boundary,
+/// placed in this voxel by one computation's rounding, is not outside its box by another's.
+pub const VOXEL_PAD: f32 = 1e-5;
+
 /// How |B|_ω is computed for a primitive, decided once when it is made.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum AreaCase {
@@ -117,9 +136,7 @@ impl TruncatedEllipsoid {
     /// The primitive of an ellipsoid in the voxel box [lo, hi]; `None` for a degenerate
     /// ellipsoid (singular or non-finite axes).
     pub fn new(e: &Ellipsoid, lo: Vec3, hi: Vec3) -> Option<TruncatedEllipsoid> {
-        // A hair wider than the voxel, so that a ray on a voxel boundary, placed in this voxel
-        // by the traversal's rounding, is not outside its box by the other rounding.
-        let pad = Vec3::splat(1e-5 * (hi - lo).max_element());
+        let pad = Vec3::splat(VOXEL_PAD * (hi - lo).max_element());
         let (lo, hi) = (lo - pad, hi + pad);
         let inv = e.axes.inverse();
         let det = e.axes.determinant().abs();
@@ -168,17 +185,11 @@ impl TruncatedEllipsoid {
     }
 
     /// Entry parameter of the ray `o + t d` (with `inv_d` = 1/d) into the truncated ellipsoid
-    /// within [tmin, tmax]: the one primitive hit test of bake and runtime.
+    /// within [tmin, tmax] ([`truncated_entry`] over the ray's interval in the padded box).
     #[inline]
     pub fn intersect(&self, o: Vec3, d: Vec3, inv_d: Vec3, tmin: f32, tmax: f32) -> Option<f32> {
         let (b0, b1) = box_interval(self.lo, self.hi, o, inv_d);
-        let (t0, t1) = (b0.max(tmin), b1.min(tmax));
-        if !(t0 <= t1) {
-            return None;
-        }
-        let (e0, e1) = ellipsoid_ray_interval(self.center, self.inv, o, d)?;
-        let (lo, hi) = (e0.max(t0), e1.min(t1));
-        (lo <= hi).then_some(lo)
+        truncated_entry(self.center, self.inv, o, d, b0.max(tmin), b1.min(tmax))
     }
 
     /// Projected area of the whole ellipsoid along unit `w`: π |det M| |M⁻¹ w|.
@@ -203,6 +214,21 @@ impl TruncatedEllipsoid {
         }
     }
 
+    /// An upper bound on |B|_ω, cheap: exact in the two early-exit cases, otherwise the smaller
+    /// of the ellipsoid's and the box's projected areas (the truncated ellipsoid lies inside
+    /// both). Within a small factor of |B|_ω, so a weight computed with it can choose which of
+    /// a cone's voxels to shade, the exact |B|_ω being computed for the chosen one only.
+    #[inline]
+    pub fn projected_area_bound(&self, w: Vec3) -> f32 {
+        match self.area_case {
+            AreaCase::EllipsoidInside => self.ellipsoid_projected_area(w),
+            AreaCase::VoxelInside => self.box_projected_area(w),
+            AreaCase::Crossing => self
+                .ellipsoid_projected_area(w)
+                .min(self.box_projected_area(w)),
+        }
+    }
+
     /// The 64-point estimate of |B|_ω for an ellipsoid that crosses its voxel's boundary.
     fn crossing_projected_area(&self, w: Vec3) -> f32 {
         let full = self.ellipsoid_projected_area(w);
@@ -212,34 +238,72 @@ impl TruncatedEllipsoid {
             return 0.0;
         }
         let f = Frame::from_z(q);
-        let inv_w = w.recip();
         // The chord of the unit ball along q through (p, 0) maps to a + t·w in world space,
-        // a = c + p.x·mx + p.y·my − h·mz, spanning t in [0, 2h·(mz·w)].
+        // a = c + p.x·mx + p.y·my − h·mz, spanning t in [0, 2h·(mz·w)]. Per axis the slab
+        // test of that chord is affine in (p.x, p.y, h): evaluated for all points at once,
+        // structure of arrays, so that the loop vectorises.
         let (mx, my, mz) = (self.axes * f.x, self.axes * f.y, self.axes * f.z);
         let mzw = 2.0 * mz.dot(w);
-        let mut hits = 0;
-        for &(p, h) in disk_points() {
-            let a = self.center + p.x * mx + p.y * my - h * mz;
-            let len = h * mzw;
-            let (t0, t1) = box_interval(self.lo, self.hi, a, inv_w);
-            if t0.max(len.min(0.0)) <= t1.min(len.max(0.0)) {
-                hits += 1;
+        let pts = disk_points();
+        let mut t0 = [0f32; AREA_SAMPLES];
+        let mut t1 = [0f32; AREA_SAMPLES];
+        for k in 0..AREA_SAMPLES {
+            let len = pts.h[k] * mzw;
+            t0[k] = len.min(0.0);
+            t1[k] = len.max(0.0);
+        }
+        for axis in 0..3 {
+            let (lo, hi, c) = (self.lo[axis], self.hi[axis], self.center[axis]);
+            if w[axis] == 0.0 {
+                // Lines parallel to the slab: inside it for every t or for none.
+                for k in 0..AREA_SAMPLES {
+                    let a = c + pts.x[k] * mx[axis] + pts.y[k] * my[axis] - pts.h[k] * mz[axis];
+                    if a < lo || a > hi {
+                        t0[k] = f32::INFINITY;
+                    }
+                }
+                continue;
+            }
+            let inv = 1.0 / w[axis];
+            let (a_lo, a_hi) = ((lo - c) * inv, (hi - c) * inv);
+            let (bx, by, bz) = (mx[axis] * inv, my[axis] * inv, mz[axis] * inv);
+            for k in 0..AREA_SAMPLES {
+                let off = bx * pts.x[k] + by * pts.y[k] - bz * pts.h[k];
+                let (u, v) = (a_lo - off, a_hi - off);
+                t0[k] = t0[k].max(u.min(v));
+                t1[k] = t1[k].min(u.max(v));
             }
         }
+        let hits = (0..AREA_SAMPLES).filter(|&k| t0[k] <= t1[k]).count();
         full * hits as f32 / AREA_SAMPLES as f32
     }
 }
 
 /// The stratified points of the unit disk that |B|_ω tests, with the unit ball's half-chord
-/// height over each: computed once (their sines and cosines were 8% of a LoD render).
-fn disk_points() -> &'static [(Vec2, f32); AREA_SAMPLES] {
-    static POINTS: std::sync::OnceLock<[(Vec2, f32); AREA_SAMPLES]> = std::sync::OnceLock::new();
+/// height over each, as arrays: computed once (their sines and cosines were 8% of a LoD
+/// render).
+struct DiskPoints {
+    x: [f32; AREA_SAMPLES],
+    y: [f32; AREA_SAMPLES],
+    h: [f32; AREA_SAMPLES],
+}
+
+fn disk_points() -> &'static DiskPoints {
+    static POINTS: std::sync::OnceLock<DiskPoints> = std::sync::OnceLock::new();
     POINTS.get_or_init(|| {
-        std::array::from_fn(|k| {
+        let mut d = DiskPoints {
+            x: [0.0; AREA_SAMPLES],
+            y: [0.0; AREA_SAMPLES],
+            h: [0.0; AREA_SAMPLES],
+        };
+        for k in 0..AREA_SAMPLES {
             let u = Vec2::new(((k % 8) as f32 + 0.5) / 8.0, ((k / 8) as f32 + 0.5) / 8.0);
             let p = square_to_concentric_disk(u);
-            (p, (1.0 - p.length_squared()).max(0.0).sqrt())
-        })
+            d.x[k] = p.x;
+            d.y[k] = p.y;
+            d.h[k] = (1.0 - p.length_squared()).max(0.0).sqrt();
+        }
+        d
     })
 }
 

@@ -4,8 +4,8 @@
 //!
 //! Everything that decides *where* something is lives here once, so that the bake and the
 //! runtime agree by construction: the bake's P⁺ test of the boundary visibility (Eq. 26) and the
-//! runtime's primitive hit are the same [`TruncatedEllipsoid::intersect`], so the ABV is defined
-//! over exactly the rays the runtime counts as hits; the cone tracer and the volume baseline walk
+//! runtime's primitive hit are the same [`truncated_entry`] over the ray's interval in the
+//! padded voxel, so the ABV is defined over exactly the rays the runtime counts as hits; the cone tracer and the volume baseline walk
 //! the same [`Dda`]. This module depends on [`crate::math`] only.
 
 pub mod dda;
@@ -15,7 +15,9 @@ pub mod grid;
 pub mod morton;
 
 pub use dda::Dda;
-pub use ellipsoid::{ellipsoid_ray_interval, Ellipsoid, TruncatedEllipsoid};
+pub use ellipsoid::{
+    ellipsoid_ray_interval, truncated_entry, Ellipsoid, TruncatedEllipsoid, VOXEL_PAD,
+};
 pub use face::{face_normal, Face, UVec3Key, FACE_DIRS};
 pub use grid::{box_interval, box_projected_area, Grid};
 pub use morton::{demorton3, morton3};

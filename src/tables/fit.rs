@@ -559,7 +559,7 @@ pub fn build(settings: BuildSettings, progress: crate::util::Progress) -> Tables
     );
     fill_convolution(&mut m1, Kernel::Sg, settings.samples, &bar);
     fill_convolution(&mut m3, Kernel::Ggx, settings.samples, &bar);
-    Tables { m1, m2, m3, m4, m5 }
+    Tables::new(m1, m2, m3, m4, m5)
 }
 
 /// One table's fit error against fresh ground truth at random parameters (off the nodes, so

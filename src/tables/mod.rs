@@ -128,7 +128,7 @@ impl Table {
     }
 }
 
-/// All five tables.
+/// All five tables, and what is derived from them.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Tables {
     pub m1: Table,
@@ -136,6 +136,8 @@ pub struct Tables {
     pub m3: Table,
     pub m4: Table,
     pub m5: Table,
+    /// S of Eq. 21 tabulated from M4 (not stored: derived on load).
+    pub lune: crate::absdf::ltc::LuneTable,
 }
 
 /// Errors reading a table file.
@@ -252,13 +254,26 @@ impl Tables {
             )));
         }
         let mut it = tables.into_iter();
-        Ok(Tables {
-            m1: it.next().unwrap(),
-            m2: it.next().unwrap(),
-            m3: it.next().unwrap(),
-            m4: it.next().unwrap(),
-            m5: it.next().unwrap(),
-        })
+        Ok(Tables::new(
+            it.next().unwrap(),
+            it.next().unwrap(),
+            it.next().unwrap(),
+            it.next().unwrap(),
+            it.next().unwrap(),
+        ))
+    }
+
+    /// The five tables, with what is derived from them.
+    pub fn new(m1: Table, m2: Table, m3: Table, m4: Table, m5: Table) -> Tables {
+        let lune = crate::absdf::ltc::LuneTable::new(&m4);
+        Tables {
+            m1,
+            m2,
+            m3,
+            m4,
+            m5,
+            lune,
+        }
     }
 
     /// The tables embedded in this build.
