@@ -79,8 +79,28 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         (t.elapsed().as_secs_f64(), acc)
     };
-    let (every, _) = time(Shading::Every);
-    let (res1, _) = time(Shading::Reservoir { picks: 1 });
+    // `--only every|reservoir|roulette` times one mode (for instruction counts under callgrind).
+    let only = args
+        .iter()
+        .position(|a| a == "--only")
+        .and_then(|i| args.get(i + 1))
+        .cloned();
+    let run = |name: &str, shading: Shading| {
+        if only.as_deref().is_none_or(|o| o == name) {
+            time(shading).0
+        } else {
+            f64::NAN
+        }
+    };
+    let every = run("every", Shading::Every);
+    let res1 = run(
+        "reservoir",
+        Shading::Reservoir {
+            picks: 1,
+            roulette: false,
+        },
+    );
+    let rr = run("roulette", Shading::default());
     println!(
         "{agg}: {} cones ({}×{} at {spp}); open {:.1} ms, first walk (levels prepared) {:.3} s",
         cones.len(),
@@ -97,11 +117,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         hits as f64 / n
     );
     println!(
-        "single thread, ns per cone: walk {:.0}, walk with exact weights {:.0}, trace shading every hit {:.0}, trace reservoir 1 pick {:.0}",
+        "single thread, ns per cone: walk {:.0}, walk with exact weights {:.0}, trace shading every hit {:.0}, trace reservoir 1 pick {:.0}, with coverage roulette {:.0}",
         walk_plain / n * 1e9,
         walk_exact / n * 1e9,
         every / n * 1e9,
-        res1 / n * 1e9
+        res1 / n * 1e9,
+        rr / n * 1e9
     );
     Ok(())
 }

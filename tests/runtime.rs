@@ -600,9 +600,18 @@ fn reservoir_shading_is_unbiased() {
         (m, ((sq / n as f64 - m * m).max(0.0) / n as f64).sqrt())
     };
     let (a, ea) = mean(Shading::Every, 1);
-    let (b, eb) = mean(Shading::Reservoir { picks: 1 }, 2);
-    let (c, ec) = mean(Shading::Reservoir { picks: 3 }, 3);
+    let reservoir = |picks| Shading::Reservoir {
+        picks,
+        roulette: false,
+    };
+    let (b, eb) = mean(reservoir(1), 2);
+    let (c, ec) = mean(reservoir(3), 3);
+    let (d, ed) = mean(Shading::default(), 4);
     let tol = |e1: f64, e2: f64| 4.0 * (e1 * e1 + e2 * e2).sqrt();
+    assert!(
+        (a - d).abs() < tol(ea, ed),
+        "every {a} ± {ea}, with roulette {d} ± {ed}"
+    );
     assert!(
         (a - b).abs() < tol(ea, eb),
         "every {a} ± {ea}, reservoir {b} ± {eb}"

@@ -96,6 +96,42 @@ fn node(n: &fb::HaarNode) -> Node {
     }
 }
 
+/// Bytes of one `HaarNode` struct (schema: three floats, a uint, a ubyte, padding).
+const NODE_BYTES: usize = 20;
+
+/// The nodes `start..start + count` of a tree as raw bytes (verified to lie inside the vector).
+#[inline]
+fn tree_bytes<'a>(
+    nodes: flatbuffers::Vector<'a, fb::HaarNode>,
+    start: usize,
+    count: usize,
+) -> &'a [u8] {
+    let b = nodes.bytes();
+    let (a, e) = (start * NODE_BYTES, (start + count) * NODE_BYTES);
+    b.get(a..e).unwrap_or(&[])
+}
+
+/// Node `i` of a tree's raw bytes, decoded (the look-ups' hot path: no accessor calls).
+#[inline]
+fn node_at(tree: &[u8], i: usize) -> Node {
+    let b = &tree[i * NODE_BYTES..(i + 1) * NODE_BYTES];
+    let f = |o: usize| f32::from_le_bytes([b[o], b[o + 1], b[o + 2], b[o + 3]]);
+    Node {
+        details: [f(0), f(4), f(8)],
+        subtree: u32::from_le_bytes([b[12], b[13], b[14], b[15]]),
+        children: b[16],
+    }
+}
+
+/// A verified tree's value at cell (x, y), walking one path ([`eval_tree`]); finite (a
+/// non-finite value, which verification rules out, is counted and replaced).
+#[inline]
+fn eval_bytes(n: u32, scaling: f32, tree: &[u8], cell: u32) -> f32 {
+    let len = tree.len() / NODE_BYTES;
+    let v = eval_tree(n, scaling, len, |i| node_at(tree, i), cell % n, cell / n);
+    crate::math::finite_or_zero(v).clamp(0.0, 1.0)
+}
+
 fn verifier_options() -> flatbuffers::VerifierOptions {
     flatbuffers::VerifierOptions {
         max_depth: 16,
@@ -488,17 +524,12 @@ impl<'a> FaceRef<'a> {
             return (scaling / n as f32).clamp(0.0, 1.0);
         }
         let cell = grid_cell(concentric_hemisphere_to_square(local), n);
-        let start = self.rec.abv_start() as usize;
-        let nodes = self.nodes;
-        eval_tree(
-            n,
-            scaling,
+        let tree = tree_bytes(
+            self.nodes,
+            self.rec.abv_start() as usize,
             self.rec.abv_count() as usize,
-            |i| node(nodes.get(start + i)),
-            cell % n,
-            cell / n,
-        )
-        .clamp(0.0, 1.0)
+        );
+        eval_bytes(n, scaling, tree, cell)
     }
 
     /// The decoded ABV tree.
@@ -574,17 +605,9 @@ impl<'a> VoxelRef<'a> {
         }
         let cell = grid_cell(equal_area_sphere_to_square(d), n);
         let nodes = self.block.aiv_nodes().expect("verified");
-        let start = r.aiv_start() as usize;
-        eval_tree(
-            n,
-            scaling,
-            r.aiv_count() as usize,
-            |i| node(nodes.get(start + i)),
-            cell % n,
-            cell / n,
-        )
+        let tree = tree_bytes(nodes, r.aiv_start() as usize, r.aiv_count() as usize);
         // A visibility: truncated wavelets may ring slightly outside [0, 1].
-        .clamp(0.0, 1.0)
+        eval_bytes(n, scaling, tree, cell)
     }
 
     /// The decoded AIV tree.

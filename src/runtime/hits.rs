@@ -1,21 +1,22 @@
 //! The traversal layer: a cone's walk through the aggregate, as an iterator of [`Hit`]s
 //! (Algorithm 1, lines 6–12, 19).
 //!
-//! A DDA over the 4³ bricks of the current level skips empty bricks by one bit each; inside an
-//! occupied brick a voxel DDA finds the voxels by the brick's 64-bit mask. The level is the
-//! footprint's (line 7), and changes to a coarser one only where the ray crosses a brick plane
-//! that is also a plane of the coarser grid, as in the paper ("we switch to a coarser LoD only
-//! at the boundary of the coarser voxels"). The face through which the ray entered the first
-//! occupied voxel gives the ABV (lines 9–10).
+//! The walk is a hierarchical DDA over the level's occupancy: cells of 4^g voxels for
+//! g = top … 0, one bit each; an empty cell is crossed in one step, an occupied one is entered
+//! and walked at the next finer granularity, down to the voxels, found in their brick's 64-bit
+//! mask. The level is the footprint's (line 7), and changes to a coarser one only where the ray
+//! crosses a plane that is also a plane of the coarser grid, as in the paper ("we switch to a
+//! coarser LoD only at the boundary of the coarser voxels"). The face through which the ray
+//! entered the first occupied voxel gives the ABV (lines 9–10).
 
 use glam::{IVec3, Vec3};
 
-use super::level::{Brick, Level, BRICK};
+use super::level::{Brick, Level, BRICK, MAX_GRANULARITY};
 use super::{Cone, LodScene, PrimitiveKind, TraceSettings, VoxelHandle};
 use crate::spatial::dda::entry_axis;
 use crate::spatial::ellipsoid::AreaCase;
 use crate::spatial::face::entry_face;
-use crate::spatial::{box_interval, box_projected_area, truncated_entry, Dda, Grid};
+use crate::spatial::{box_interval, box_projected_area, truncated_entry, Dda};
 
 /// A primitive the cone met.
 #[derive(Clone, Copy)]
@@ -40,17 +41,6 @@ pub(crate) enum Weights {
     Bound,
 }
 
-/// The voxel walk inside one occupied brick.
-#[derive(Clone, Copy)]
-struct InBrick {
-    dda: Dda,
-    brick: Brick,
-    /// The brick's coordinates.
-    c: IVec3,
-    /// Where the ray leaves the brick.
-    t_exit: f32,
-}
-
 /// The walk of one cone: an iterator over the primitives it meets, in order.
 pub struct Hits<'s> {
     scene: &'s LodScene,
@@ -61,8 +51,11 @@ pub struct Hits<'s> {
     t_end: f32,
     li: usize,
     level: Option<&'s Level<'s>>,
-    bricks: Dda,
-    inner: Option<InBrick>,
+    /// One DDA per granularity, `g` the current one.
+    ddas: [Dda; MAX_GRANULARITY],
+    g: usize,
+    /// The brick being walked when `g` is 0.
+    brick: Option<Brick>,
     t: f32,
     entry_axis: usize,
     /// The ABV at the first occupied voxel, once met.
@@ -72,16 +65,8 @@ pub struct Hits<'s> {
     steps_max: u32,
     done: bool,
     weights: Weights,
-}
-
-/// The grid of a level's bricks (it may overhang the level's cube when res < 4).
-#[inline]
-fn brick_grid(g: &Grid, brick_res: i32) -> Grid {
-    Grid {
-        origin: g.origin,
-        size: g.voxel_size() * (brick_res * BRICK) as f32,
-        res: brick_res as u32,
-    }
+    /// The ray parameter from which the footprint asks for a coarser level than `li`.
+    t_switch: f32,
 }
 
 impl LodScene {
@@ -98,19 +83,9 @@ impl LodScene {
             t_end: 0.0,
             li: 0,
             level: None,
-            bricks: Dda::new(
-                &Grid {
-                    origin: Vec3::ZERO,
-                    size: 1.0,
-                    res: 1,
-                },
-                Vec3::ZERO,
-                Vec3::X,
-                Vec3::X,
-                0.0,
-                Some(IVec3::ZERO),
-            ),
-            inner: None,
+            ddas: [Dda::IDLE; MAX_GRANULARITY],
+            g: 0,
+            brick: None,
             t: 0.0,
             entry_axis: 0,
             vb: None,
@@ -119,6 +94,7 @@ impl LodScene {
             steps_max: 0,
             done: true,
             weights: Weights::Exact,
+            t_switch: f32::INFINITY,
         };
         let Some(g0) = self.grids.first().copied() else {
             return h;
@@ -136,7 +112,7 @@ impl LodScene {
         h.t_end = tmax;
         h.entry_axis = entry_axis(lo, hi, cone.origin, inv);
         h.li = h.pick(tmin);
-        h.steps_left = 6 * g0.res + 64;
+        h.steps_left = 8 * g0.res + 64;
         h.steps_max = h.steps_left;
         h.done = !h.enter_level(None);
         h
@@ -188,9 +164,27 @@ impl<'s> Hits<'s> {
             return false;
         };
         self.level = Some(level);
-        let bg = brick_grid(&level.grid, level.brick_res);
-        self.bricks = Dda::new(&bg, self.cone.origin, self.cone.dir, self.inv, self.t, at);
-        self.inner = None;
+        // Algorithm 1's line 7 asks for level li + 1 once tan(θ/2)·t/s ≥ 2^(li+1).
+        self.t_switch = if self.settings.level.is_some() || self.li + 1 >= self.scene.grids.len() {
+            f32::INFINITY
+        } else {
+            self.scene.base * (2u64 << self.li) as f32 / self.tan_half
+        };
+        self.g = level.top;
+        // A level of at most 4³ voxels is one brick, walked directly.
+        self.brick = if level.top == 0 {
+            level.brick(IVec3::ZERO)
+        } else {
+            None
+        };
+        self.ddas[self.g] = Dda::new(
+            &level.grids[self.g],
+            self.cone.origin,
+            self.cone.dir,
+            self.inv,
+            self.t,
+            at,
+        );
         true
     }
 
@@ -223,21 +217,21 @@ impl<'s> Hits<'s> {
                 break;
             }
             self.steps_left -= 1;
-            let level = self.level.expect("a level while walking");
-            let li = self.li;
-            if let Some(mut ib) = self.inner {
-                // Inside an occupied brick: this voxel, then the next.
-                let v = ib.dda.v;
-                let t_exit = ib.dda.t_exit().min(ib.t_exit).min(self.t_end);
+            let level = self.level?;
+            let (li, g) = (self.li, self.g);
+            let c = self.ddas[g].v;
+            if g == 0 {
+                // A voxel of the current brick: test its primitive, then move on.
+                let t_exit = self.ddas[0].t_exit().min(self.t_end);
                 let mut found = None;
-                if let Some(idx) = Level::in_brick(&ib.brick, v) {
+                if let Some(idx) = self.brick.and_then(|b| Level::in_brick(&b, c)) {
                     let rec = &level.hit[idx as usize];
                     if self.vb.is_none() {
                         let a = self.entry_axis;
-                        let dir = entry_face(a, ib.dda.step[a]);
+                        let dir = entry_face(a, self.ddas[0].step[a]);
                         self.vb = Some(
                             level
-                                .face(v.as_uvec3(), dir)
+                                .face(c.as_uvec3(), dir)
                                 .map_or(1.0, |f| f.abv(self.cone.dir)),
                         );
                     }
@@ -261,92 +255,75 @@ impl<'s> Hits<'s> {
                         found = Some((idx, th));
                     }
                 }
-                // Advance within the brick, or leave it.
-                if t_exit >= ib.t_exit.min(self.t_end) {
-                    self.inner = None;
-                    self.t = ib.t_exit;
-                    if ib.t_exit >= self.t_end {
-                        self.done = true;
-                    } else {
-                        self.advance_brick();
-                    }
-                } else {
-                    match ib.dda.advance() {
-                        Some((axis, tc)) if (ib.dda.v >> 2) == ib.c => {
-                            self.t = tc;
-                            self.entry_axis = axis;
-                            self.inner = Some(ib);
-                        }
-                        _ => {
-                            self.inner = None;
-                            self.t = ib.t_exit;
-                            self.advance_brick();
-                        }
-                    }
-                }
+                self.advance(t_exit);
                 if let Some((idx, th)) = found {
                     return Some((level, li, idx, th));
                 }
                 continue;
             }
-            // Between bricks.
-            let c = self.bricks.v;
-            let t_exit = self.bricks.t_exit().min(self.t_end);
-            if level.brick_occupied(c) {
-                if let Some(brick) = level.brick(c) {
-                    let s = level.grid.voxel_size();
-                    let p = self.cone.origin + self.cone.dir * self.t;
-                    let lo = c * BRICK;
-                    let v = ((p - level.grid.origin) / s)
-                        .floor()
-                        .as_ivec3()
-                        .clamp(lo, lo + IVec3::splat(BRICK - 1));
-                    let dda = Dda::new(
-                        &level.grid,
-                        self.cone.origin,
-                        self.cone.dir,
-                        self.inv,
-                        self.t,
-                        Some(v),
-                    );
-                    self.inner = Some(InBrick {
-                        dda,
-                        brick,
-                        c,
-                        t_exit,
-                    });
-                    continue;
+            if level.occupied_at(g, c) {
+                // Into the occupied cell: its children, from where the ray is.
+                let child = g - 1;
+                let cg = &level.grids[child];
+                let lo = c * BRICK;
+                let hi = (lo + IVec3::splat(BRICK - 1)).min(IVec3::splat(cg.res as i32 - 1));
+                let p = self.cone.origin + self.cone.dir * self.t - cg.origin;
+                let v = (p * (cg.res as f32 / cg.size)).as_ivec3().clamp(lo, hi);
+                self.ddas[child] = self.ddas[g].child(v);
+                if child == 0 {
+                    self.brick = level.brick(c);
                 }
+                self.g = child;
+                continue;
             }
-            if t_exit >= self.t_end {
-                self.done = true;
-                break;
-            }
-            self.advance_brick();
+            let t_exit = self.ddas[g].t_exit().min(self.t_end);
+            self.advance(t_exit);
         }
         None
     }
 
-    /// Moves to the next brick (and to a coarser level where the footprint asks for one and
-    /// the crossed plane allows it).
-    fn advance_brick(&mut self) {
-        let Some((axis, tc)) = self.bricks.advance() else {
+    /// Leaves the current cell (which the ray leaves at `t_exit`): the next cell of the same
+    /// granularity, or of a coarser one where the ray leaves the parent too; then a coarser
+    /// level where the footprint asks for one and the crossed plane allows it.
+    #[inline(always)]
+    fn advance(&mut self, t_exit: f32) {
+        if t_exit >= self.t_end {
             self.done = true;
             return;
+        }
+        let level = self.level.expect("a level while walking");
+        let mut g = self.g;
+        let (axis, tc) = loop {
+            let d = &mut self.ddas[g];
+            let Some((axis, tc)) = d.advance() else {
+                self.done = true;
+                return;
+            };
+            // The cell was inside its parent: it left it if it crossed a multiple of 4.
+            let x = d.v[axis] & 3;
+            let left = if d.step[axis] > 0 { x == 0 } else { x == 3 };
+            if left && g < level.top {
+                // Out of the parent cell: the parent crosses the same plane.
+                g += 1;
+                continue;
+            }
+            break (axis, tc);
         };
+        self.g = g;
         self.t = tc;
         self.entry_axis = axis;
+        if tc < self.t_switch {
+            return;
+        }
         let want = self.pick(tc);
         if want <= self.li {
             return;
         }
-        // The crossed plane, in voxels of the current level.
-        let c = self.bricks.v;
-        let b = if self.bricks.step[axis] > 0 {
-            c[axis]
-        } else {
-            c[axis] + 1
-        } * BRICK;
+        // The crossed plane, in voxels of the current level: a plane of level li + k too when
+        // divisible by 2^k.
+        let v = self.ddas[g].v;
+        let step = self.ddas[g].step[axis];
+        let b = (if step > 0 { v[axis] } else { v[axis] + 1 }) << (2 * g);
         let mut k = 0;
         while self.li + k < want && b % (1 << (k + 1)) == 0 {
             k += 1;
@@ -354,18 +331,21 @@ impl<'s> Hits<'s> {
         if k == 0 {
             return;
         }
-        let level = self.level.expect("a level while walking");
-        let s = level.grid.voxel_size();
-        let p = self.cone.origin + self.cone.dir * tc;
-        let lo = c * BRICK;
-        let mut v = ((p - level.grid.origin) / s)
-            .floor()
+        // The voxel entered, at the current level (exact on the crossed axis).
+        let s = level.voxel_size;
+        let p = self.cone.origin + self.cone.dir * tc - level.grid.origin;
+        let mut vox = (p / s)
             .as_ivec3()
-            .clamp(lo, lo + IVec3::splat(BRICK - 1));
-        v[axis] = if self.bricks.step[axis] > 0 { b } else { b - 1 };
+            .clamp(IVec3::ZERO, IVec3::splat(level.grid.res as i32 - 1));
+        vox[axis] = if step > 0 { b } else { b - 1 };
         self.li += k;
-        let coarse = IVec3::new(v.x >> k, v.y >> k, v.z >> k);
-        if !self.enter_level(Some(coarse >> 2)) {
+        let coarse = IVec3::new(vox.x >> k, vox.y >> k, vox.z >> k);
+        let Some(next) = self.scene.level(self.li) else {
+            self.done = true;
+            return;
+        };
+        let at = coarse >> (2 * next.top) as i32;
+        if !self.enter_level(Some(at)) {
             self.done = true;
         }
     }

@@ -5,9 +5,10 @@
 //!   weight needs; a second record, read only for primitives actually hit, with the normal
 //!   lobes for E|n·ω|, the exposure and the zero-copy AIV handle; and the voxel's ABSDF, built
 //!   the first time the voxel is shaded (once, thread-safely);
-//! - occupancy as a bit per 4³ brick and, per occupied brick, a 64-bit mask of its voxels with
-//!   the index of its first voxel, so that the traversal skips empty bricks whole and finds a
-//!   voxel without hashing;
+//! - occupancy as a hierarchy of bits, one per cell of 4^g voxels for g = 1 (bricks) up to
+//!   the coarsest granularity with at most 4 cells per axis, and per occupied brick a 64-bit
+//!   mask of its voxels with the index of its first voxel, so that the traversal crosses empty
+//!   space in large steps and finds a voxel without hashing;
 //! - the boundary faces by (voxel key, direction).
 
 use std::collections::HashMap;
@@ -101,6 +102,11 @@ enum BrickIndex {
     Sparse(FastMap<u32>),
 }
 
+/// Most granularities of the occupancy hierarchy (cells of 4^g voxels, g = 0 the voxels):
+/// enough for 4^7 = 16384 voxels per axis with at most 4 cells per axis at the top (bakes go to
+/// 4096; a finer level just has more cells at its top).
+pub const MAX_GRANULARITY: usize = 8;
+
 /// A prepared level.
 pub struct Level<'a> {
     pub grid: Grid,
@@ -109,13 +115,17 @@ pub struct Level<'a> {
     pub pad: f32,
     /// Bricks per axis.
     pub brick_res: i32,
+    /// The coarsest granularity `top` (cells of 4^top voxels, at most 4 per axis), and per
+    /// granularity its grid (g = 0: the voxels; g = 1: the bricks) and, for g ≥ 1, one bit per
+    /// cell (x fastest): whether it holds any voxel.
+    pub top: usize,
+    pub grids: [Grid; MAX_GRANULARITY],
+    occ: Vec<Vec<u64>>,
     pub hit: Vec<HitRecord>,
     pub weight: Vec<WeightRecord<'a>>,
     absdf: Vec<OnceLock<Box<Absdf<'static>>>>,
     bricks: Vec<Brick>,
     index: BrickIndex,
-    /// One bit per brick, x fastest: whether it holds any voxel.
-    occupied: Vec<u64>,
     /// Boundary faces: key · 8 + direction.
     faces: FastMap<FaceRef<'a>>,
 }
@@ -206,6 +216,37 @@ impl<'a> Level<'a> {
             let i = Self::linear(brick_res, c);
             occupied[i / 64] |= 1u64 << (i % 64);
         }
+        // The coarser granularities: 4^g voxels per cell, until at most 4 cells per axis.
+        let mut top = 0usize;
+        let mut cells_g = [0i32; MAX_GRANULARITY];
+        cells_g[0] = grid.res as i32;
+        while cells_g[top] > BRICK && top + 1 < MAX_GRANULARITY {
+            top += 1;
+            cells_g[top] = (cells_g[top - 1] + BRICK - 1) / BRICK;
+        }
+        let mut grids = [grid; MAX_GRANULARITY];
+        for g in 1..=top {
+            grids[g] = Grid {
+                origin: grid.origin,
+                size: grid.voxel_size() * (cells_g[g] as f32) * (BRICK as f32).powi(g as i32),
+                res: cells_g[g] as u32,
+            };
+        }
+        let mut occ = Vec::with_capacity(top);
+        for g in 1..=top {
+            if g == 1 {
+                occ.push(std::mem::take(&mut occupied));
+                continue;
+            }
+            let n = cells_g[g];
+            let mut bits = vec![0u64; (n as u64).pow(3).div_ceil(64) as usize];
+            for &bk in &brick_keys {
+                let c = crate::spatial::demorton3(bk).as_ivec3() >> (2 * (g - 1)) as i32;
+                let i = ((c.z * n + c.y) * n + c.x) as usize;
+                bits[i / 64] |= 1u64 << (i % 64);
+            }
+            occ.push(bits);
+        }
         let mut faces = FastMap::default();
         for b in 0..nf {
             let block = agg.face_block(l, b).map_err(|e| e.to_string())?;
@@ -220,12 +261,14 @@ impl<'a> Level<'a> {
             voxel_size,
             pad: crate::spatial::VOXEL_PAD * voxel_size,
             brick_res,
+            top,
+            grids,
+            occ,
             absdf: (0..hit.len()).map(|_| OnceLock::new()).collect(),
             hit,
             weight,
             bricks,
             index,
-            occupied,
             faces,
         })
     }
@@ -235,11 +278,12 @@ impl<'a> Level<'a> {
         ((c.z * brick_res + c.y) * brick_res + c.x) as usize
     }
 
-    /// Whether brick `c` (in brick coordinates, inside the grid) holds any voxel.
+    /// Whether cell `c` of granularity `g` ≥ 1 holds any voxel.
     #[inline]
-    pub fn brick_occupied(&self, c: IVec3) -> bool {
-        let i = Self::linear(self.brick_res, c);
-        self.occupied[i / 64] >> (i % 64) & 1 != 0
+    pub fn occupied_at(&self, g: usize, c: IVec3) -> bool {
+        let n = self.grids[g].res as i32;
+        let i = ((c.z * n + c.y) * n + c.x) as usize;
+        self.occ[g - 1][i / 64] >> (i % 64) & 1 != 0
     }
 
     /// The occupied brick `c`.
@@ -262,7 +306,9 @@ impl<'a> Level<'a> {
     /// The index of voxel `v` of brick `b`, if it exists.
     #[inline]
     pub fn in_brick(b: &Brick, v: IVec3) -> Option<u32> {
-        let bit = morton3((v & 3).as_uvec3()) as u32;
+        // The Morton code of the voxel within its brick: two bits per axis.
+        let spread = |x: i32| ((x & 1) | ((x & 2) << 2)) as u32;
+        let bit = spread(v.x) | spread(v.y) << 1 | spread(v.z) << 2;
         (b.mask >> bit & 1 != 0).then(|| b.first + (b.mask & ((1u64 << bit) - 1)).count_ones())
     }
 

@@ -117,12 +117,19 @@ pub enum Shading {
     Reservoir {
         /// Primitives shaded per cone (1 or more).
         picks: u32,
+        /// Shade a cone whose total coverage weight W is below one only with probability W
+        /// (and weigh it by 1/W): still unbiased, and a cone grazing the aggregate's fringe is
+        /// shaded as often as a ray of the reference renderer hits there.
+        roulette: bool,
     },
 }
 
 impl Default for Shading {
     fn default() -> Self {
-        Shading::Reservoir { picks: 1 }
+        Shading::Reservoir {
+            picks: 1,
+            roulette: true,
+        }
     }
 }
 

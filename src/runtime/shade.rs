@@ -94,7 +94,7 @@ pub(crate) fn trace<S: Sampler + ?Sized>(
             }
             (sum, cov)
         }
-        Shading::Reservoir { picks } => {
+        Shading::Reservoir { picks, roulette } => {
             // Weighted reservoir sampling (one reservoir per pick) over bound weights ŵ_k
             // (|B|_ω replaced by a cheap upper bound): each reservoir keeps hit k with
             // probability ŵ_k / Σŵ; shading the kept one and scaling by Σŵ · w_k/ŵ_k is an
@@ -112,16 +112,22 @@ pub(crate) fn trace<S: Sampler + ?Sized>(
                     }
                 }
             }
-            let (mut sum, mut cov) = (Vec3::ZERO, 0.0f32);
-            for h in kept.iter().take(n).flatten() {
-                let k = hits.exact_factor(h);
-                if k > 0.0 {
-                    sum += shade(&h.voxel, wo, lights, settings.nee, sampler) * k;
-                    cov += k;
+            // Coverage roulette: shade with probability min(1, Σŵ).
+            let p = if roulette { wsum.min(1.0) } else { 1.0 };
+            if !(p > 0.0) || (p < 1.0 && sampler.next_1d() >= p) {
+                (Vec3::ZERO, 0.0)
+            } else {
+                let (mut sum, mut cov) = (Vec3::ZERO, 0.0f32);
+                for h in kept.iter().take(n).flatten() {
+                    let k = hits.exact_factor(h);
+                    if k > 0.0 {
+                        sum += shade(&h.voxel, wo, lights, settings.nee, sampler) * k;
+                        cov += k;
+                    }
                 }
+                let scale = wsum / (n as f32 * p);
+                (sum * scale, cov * scale)
             }
-            let scale = wsum / n as f32;
-            (sum * scale, cov * scale)
         }
     };
     ConeResult::compose(
