@@ -247,7 +247,8 @@ impl<'a> Level<'a> {
             }
             occ.push(bits);
         }
-        let mut faces = FastMap::default();
+        let mut faces =
+            FastMap::with_capacity_and_hasher(agg.counts(l).faces as usize, Default::default());
         for b in 0..nf {
             let block = agg.face_block(l, b).map_err(|e| e.to_string())?;
             for i in 0..block.len() {
