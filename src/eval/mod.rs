@@ -380,12 +380,17 @@ pub struct SpeedResult {
     /// The render loops alone, at equal spp.
     pub lod_render_seconds: f64,
     pub reference_render_seconds: f64,
+    /// CPU seconds (user + system, all threads) of the same whole commands: the figures the
+    /// ratios and the equal-time budget use, since wall time on a shared machine depends on
+    /// what else runs.
+    pub lod_cpu_seconds: f64,
+    pub reference_cpu_seconds: f64,
     /// The levels the LoD touched (resolutions).
     pub lod_levels: Vec<u32>,
     pub lod_rmse: f64,
     pub reference_rmse: f64,
-    /// Equal time: the reference's spp whose whole command takes the LoD's whole time (at
-    /// least 1), its time and RMSE.
+    /// Equal time: the reference's spp whose whole command takes the LoD's whole CPU time (at
+    /// least 1), its CPU time and RMSE.
     pub equal_time_reference_spp: u32,
     pub equal_time_reference_seconds: f64,
     pub equal_time_reference_rmse: f64,
@@ -424,18 +429,25 @@ pub fn speed_scene(
         bake_to_file(&scene, name, bake, input.agg, progress)?;
         bake_seconds = t.elapsed().as_secs_f64();
     }
+    let cpu = crate::util::cpu_seconds;
     // The reference: import, BVH, render — timed as one command.
     let t = Instant::now();
+    let c = cpu();
     let scene = crate::import::load(input.asset, Default::default())
         .with_context(|| format!("importing {}", input.asset.display()))?;
     let accel = Accel::build(&scene);
     let load_seconds = t.elapsed().as_secs_f64();
+    let load_cpu = cpu() - c;
     let view = study_view(&scene, res, spp);
     let (truth, _) = reference_render(&accel, &view, reference_spp, 7)?;
+    let c = cpu();
     let (ref_img, reference_render_seconds) = reference_render(&accel, &view, spp, 1)?;
+    let ref_render_cpu = cpu() - c;
     let reference_seconds = load_seconds + reference_render_seconds;
+    let reference_cpu_seconds = load_cpu + ref_render_cpu;
     // The LoD: open (lazily) and render, in a fresh scene so that level preparation counts.
     let t = Instant::now();
+    let c = cpu();
     let lod = LodScene::open(input.agg)?;
     let lights = view.lights()?;
     let (lod_img, stats) = crate::runtime::render(
@@ -448,6 +460,7 @@ pub fn speed_scene(
         &crate::util::no_progress,
     );
     let lod_seconds = t.elapsed().as_secs_f64();
+    let lod_cpu_seconds = cpu() - c;
     if let Some(e) = lod.first_error() {
         anyhow::bail!("{}: {e}", input.agg.display());
     }
@@ -460,17 +473,21 @@ pub fn speed_scene(
         .collect();
     let lod_rmse = compare(&lod_img, &truth).expect("same size").rmse;
     let reference_rmse = compare(&ref_img, &truth).expect("same size").rmse;
-    // Equal time: the reference's spp whose whole command fits the LoD's whole time, scaled
-    // from its render time per spp, then corrected once.
-    let per_spp = reference_render_seconds / spp as f64;
-    let budget = (lod_seconds - load_seconds).max(0.0);
+    // Equal time: the reference's spp whose whole command fits the LoD's whole CPU time,
+    // scaled from its render CPU time per spp, then corrected once.
+    let per_spp = ref_render_cpu.max(1e-6) / spp as f64;
+    let budget = (lod_cpu_seconds - load_cpu).max(0.0);
     let mut eq_spp = ((budget / per_spp).floor() as u32).max(1);
-    let (mut eq_img, mut eq_render) = reference_render(&accel, &view, eq_spp, 3)?;
+    let c = cpu();
+    let (mut eq_img, _) = reference_render(&accel, &view, eq_spp, 3)?;
+    let mut eq_render = cpu() - c;
     if eq_render > budget * 1.25 && eq_spp > 1 {
         eq_spp = ((eq_spp as f64 * budget / eq_render).floor() as u32).max(1);
-        (eq_img, eq_render) = reference_render(&accel, &view, eq_spp, 3)?;
+        let c = cpu();
+        (eq_img, _) = reference_render(&accel, &view, eq_spp, 3)?;
+        eq_render = cpu() - c;
     }
-    let eq_secs = load_seconds + eq_render;
+    let eq_secs = load_cpu + eq_render;
     let eq_rmse = compare(&eq_img, &truth).expect("same size").rmse;
     let k = (256 / res).max(1);
     let side = res * k;
@@ -479,15 +496,15 @@ pub fn speed_scene(
         vec![format!("reference {reference_spp} spp"), String::new()],
         vec![
             format!("lod {spp} spp"),
-            format!("{lod_seconds:.2} s rmse {lod_rmse:.4}"),
+            format!("{lod_cpu_seconds:.2} cpu s rmse {lod_rmse:.4}"),
         ],
         vec![
             format!("reference {spp} spp"),
-            format!("{reference_seconds:.2} s rmse {reference_rmse:.4}"),
+            format!("{reference_cpu_seconds:.2} cpu s rmse {reference_rmse:.4}"),
         ],
         vec![
             format!("reference {eq_spp} spp"),
-            format!("{eq_secs:.2} s rmse {eq_rmse:.4}"),
+            format!("{eq_secs:.2} cpu s rmse {eq_rmse:.4}"),
         ],
     ];
     let tiles: Vec<Vec<u8>> = [&truth, &lod_img, &ref_img, &eq_img]
@@ -520,6 +537,8 @@ pub fn speed_scene(
         reference_seconds,
         lod_render_seconds: stats.seconds,
         reference_render_seconds,
+        lod_cpu_seconds,
+        reference_cpu_seconds,
         lod_levels,
         lod_rmse,
         reference_rmse,
@@ -533,17 +552,18 @@ pub fn speed_scene(
 
 /// The speed table in Markdown.
 pub fn speed_table(rows: &[SpeedResult]) -> String {
-    let mut s = String::from("| scene | triangles | image | bake | spp | LoD s | reference s | LoD / reference | render only | LoD levels | LoD RMSE | reference RMSE | equal-time reference spp (s) | its RMSE |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    let mut s = String::from("| scene | triangles | image | bake | spp | LoD cpu s | reference cpu s | LoD / reference (cpu) | (wall) | render only (wall) | LoD levels | LoD RMSE | reference RMSE | equal-time reference spp (cpu s) | its RMSE |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     for r in rows {
         s += &format!(
-            "| {} | {} | {}² | {}³ | {} | {:.2} | {:.2} | {:.2}× | {:.2}× | {:?} | {:.4} | {:.4} | {} ({:.2}) | {:.4} |\n",
+            "| {} | {} | {}² | {}³ | {} | {:.2} | {:.2} | {:.2}× | {:.2}× | {:.2}× | {:?} | {:.4} | {:.4} | {} ({:.2}) | {:.4} |\n",
             r.scene,
             r.triangles,
             r.res,
             r.bake_res,
             r.spp,
-            r.lod_seconds,
-            r.reference_seconds,
+            r.lod_cpu_seconds,
+            r.reference_cpu_seconds,
+            r.lod_cpu_seconds / r.reference_cpu_seconds.max(1e-9),
             r.lod_seconds / r.reference_seconds.max(1e-9),
             r.lod_render_seconds / r.reference_render_seconds.max(1e-9),
             r.lod_levels,

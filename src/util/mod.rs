@@ -7,3 +7,19 @@ pub mod progress;
 
 pub use atomic::write_atomic;
 pub use progress::{no_progress, Progress, TerminalProgress};
+
+/// CPU seconds this process has spent so far (user + system, all threads): the figure to
+/// compare on a shared machine, where wall-clock time depends on what else runs. Zero where
+/// the platform does not report it.
+pub fn cpu_seconds() -> f64 {
+    #[cfg(unix)]
+    {
+        // SAFETY: getrusage writes one plain struct we own.
+        let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+        if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) } == 0 {
+            let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+            return tv(u.ru_utime) + tv(u.ru_stime);
+        }
+    }
+    0.0
+}
