@@ -69,6 +69,20 @@ pub struct Hits<'s> {
     t_switch: f32,
 }
 
+/// tan(θ/2) of a cone's aperture θ: a pixel's cone is a few milliradians wide, where the
+/// series x + x³/3 + 2x⁵/15 is exact to f32 precision (relative error below 2·10⁻⁷ for
+/// x < 0.05; 2% of a cone's time went to `tanf` in the profile); `tan` above.
+#[inline]
+fn half_tan(aperture: f32) -> f32 {
+    let x = 0.5 * aperture;
+    if x.abs() < 0.05 {
+        let x2 = x * x;
+        x * (1.0 + x2 * (1.0 / 3.0 + x2 * (2.0 / 15.0)))
+    } else {
+        x.tan()
+    }
+}
+
 impl LodScene {
     /// The primitives `cone` meets, in order (see [`Hit`]); once exhausted,
     /// [`Hits::transmittance`] is the background's weight.
@@ -78,7 +92,7 @@ impl LodScene {
             scene: self,
             cone: *cone,
             inv,
-            tan_half: (0.5 * cone.aperture).tan(),
+            tan_half: half_tan(cone.aperture),
             settings: *settings,
             t_end: 0.0,
             li: 0,
@@ -398,6 +412,21 @@ impl<'s> Iterator for Hits<'s> {
                     weight,
                 });
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn half_tan_matches_tan() {
+        for i in 0..=2000 {
+            let a = i as f32 * 1e-4 * std::f32::consts::PI;
+            let (got, want) = (super::half_tan(a), (0.5 * a as f64).tan() as f32);
+            assert!(
+                (got - want).abs() <= 4e-7 * want.abs().max(1e-6),
+                "{a}: {got} vs {want}"
+            );
         }
     }
 }
