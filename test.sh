@@ -12,6 +12,9 @@ python3 -m pip install --quiet --disable-pip-version-check -r tests/python/requi
 echo "== cargo test"
 cargo test
 
+echo "== C ABI: the committed header matches cbindgen's (integrations/c)"
+cargo test -p aggtool-capi
+
 echo "== examples/host.rs (a host renderer shading hits with its own code)"
 cargo run --quiet --example host -- -o "${TMPDIR:-/tmp}/aggtool-host-ci.ppm"
 

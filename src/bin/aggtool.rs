@@ -108,7 +108,7 @@ enum Command {
         #[arg(long)]
         save_view: Option<PathBuf>,
     },
-    /// Compare two EXR images: RMSE and relative MSE on linear values.
+    /// Compare two images (EXR, PFM, HDR): RMSE and relative MSE on linear values.
     Compare {
         a: PathBuf,
         /// The reference.
@@ -982,8 +982,8 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Compare { a, b, diff, json } => {
-            let ia = Image::read_exr(&a)?;
-            let ib = Image::read_exr(&b)?;
+            let ia = Image::read_any(&a)?;
+            let ib = Image::read_any(&b)?;
             let c = compare(&ia, &ib).map_err(anyhow::Error::msg)?;
             if let Some(d) = diff {
                 let (img, scale) = difference_image(&ia, &ib, None);

@@ -91,7 +91,65 @@ impl Image {
         })
     }
 
-    /// Reads an environment or image file: `.exr`, `.hdr` (linear), or an 8-bit format
+    /// Reads a colour PFM (`PF`, linear floats, rows bottom to top; either byte order), as C
+    /// hosts write them.
+    pub fn read_pfm(path: &Path) -> Result<Image, ImageError> {
+        let err = |message: &str| ImageError::Read {
+            path: path.to_path_buf(),
+            message: message.to_string(),
+        };
+        let bytes = std::fs::read(path).map_err(|e| err(&e.to_string()))?;
+        // Three whitespace-separated header lines: "PF", "W H", scale (negative: little-endian).
+        let mut fields = Vec::new();
+        let mut at = 0;
+        while fields.len() < 4 && at < bytes.len() {
+            while at < bytes.len() && bytes[at].is_ascii_whitespace() {
+                at += 1;
+            }
+            let start = at;
+            while at < bytes.len() && !bytes[at].is_ascii_whitespace() {
+                at += 1;
+            }
+            fields.push(String::from_utf8_lossy(&bytes[start..at]).into_owned());
+        }
+        at += 1; // the single whitespace byte after the scale
+        if fields.len() < 4 || fields[0] != "PF" {
+            return Err(err("not a colour PFM (PF)"));
+        }
+        let parse = |s: &str| s.parse::<u32>().map_err(|_| err("bad PFM size"));
+        let (width, height) = (parse(&fields[1])?, parse(&fields[2])?);
+        let scale: f32 = fields[3].parse().map_err(|_| err("bad PFM scale"))?;
+        let n = width as usize * height as usize;
+        if width == 0 || height == 0 || bytes.len() < at || bytes.len() - at < 12 * n {
+            return Err(err("truncated PFM"));
+        }
+        let little = scale < 0.0;
+        let f = |i: usize| {
+            let b: [u8; 4] = bytes[at + 4 * i..at + 4 * i + 4]
+                .try_into()
+                .expect("4 bytes");
+            if little {
+                f32::from_le_bytes(b)
+            } else {
+                f32::from_be_bytes(b)
+            }
+        };
+        let mut pixels = vec![Vec3::ZERO; n];
+        for y in 0..height as usize {
+            let row = height as usize - 1 - y;
+            for x in 0..width as usize {
+                let i = 3 * (row * width as usize + x);
+                pixels[y * width as usize + x] = Vec3::new(f(i), f(i + 1), f(i + 2));
+            }
+        }
+        Ok(Image {
+            width,
+            height,
+            pixels,
+        })
+    }
+
+    /// Reads an environment or image file: `.exr`, `.hdr` (linear), `.pfm`, or an 8-bit format
     /// (sRGB-decoded).
     pub fn read_any(path: &Path) -> Result<Image, ImageError> {
         let ext = path
@@ -101,6 +159,9 @@ impl Image {
             .unwrap_or_default();
         if ext == "exr" {
             return Image::read_exr(path);
+        }
+        if ext == "pfm" {
+            return Image::read_pfm(path);
         }
         let err = |message: String| ImageError::Read {
             path: path.to_path_buf(),

@@ -323,6 +323,23 @@ impl LodScene {
         r.as_ref().ok()
     }
 
+    /// The voxel with Morton key `key` at level `l` (0 = finest), as [`Hit::voxel`] hands it
+    /// out: for hosts that keep (level, key) pairs, such as the C ABI's hit records. `None`
+    /// when there is no such voxel or the level failed to prepare.
+    pub fn voxel(&self, l: usize, key: u64) -> Option<VoxelHandle<'_>> {
+        let data = self.level(l)?;
+        let c = crate::spatial::demorton3(key);
+        if key >> 63 != 0 || c.max_element() >= data.grid.res {
+            return None;
+        }
+        let idx = data.find(c.as_ivec3())?;
+        Some(VoxelHandle {
+            data,
+            idx,
+            level: l,
+        })
+    }
+
     /// Traces one cone with the runtime's lights and shading (Algorithm 1, Eq. 30).
     pub fn trace<S: Sampler + ?Sized>(
         &self,

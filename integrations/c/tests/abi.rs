@@ -1,0 +1,239 @@
+//! The C ABI's contract, called from Rust through the rlib: bad input gives an error code and
+//! a message, never a panic or a crash; good input traces the same as the Rust API.
+
+use std::ffi::{CStr, CString};
+
+use aggtool_capi::*;
+
+fn last_error() -> String {
+    unsafe { CStr::from_ptr(agg_last_error()) }
+        .to_string_lossy()
+        .into_owned()
+}
+
+/// A small baked tree in a temporary folder.
+fn baked() -> (tempfile::TempDir, CString) {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = aggtool::gen::generate(
+        "foliage",
+        &aggtool::gen::GenSettings {
+            triangles: 1500,
+            ..Default::default()
+        },
+    )
+    .unwrap()
+    .to_scene();
+    let p = dir.path().join("t.agg");
+    let settings = aggtool::bake::BakeSettings {
+        max_res: 16,
+        min_res: 4,
+        samples: 4,
+        aiv_rays: 4,
+        aiv_res: 8,
+        abv_res: 8,
+        ..Default::default()
+    };
+    aggtool::bake::bake_to_file(&scene, "t", &settings, &p, &aggtool::util::no_progress).unwrap();
+    let c = CString::new(p.to_str().unwrap()).unwrap();
+    (dir, c)
+}
+
+#[test]
+fn bad_input_is_an_error_code_with_a_message() {
+    unsafe {
+        assert!(agg_open(std::ptr::null()).is_null());
+        assert!(last_error().contains("path"));
+        let missing = CString::new("/nonexistent/x.agg").unwrap();
+        assert!(agg_open(missing.as_ptr()).is_null());
+        assert!(
+            last_error().contains("/nonexistent/x.agg"),
+            "{}",
+            last_error()
+        );
+        let (dir, path) = baked();
+        // A truncated copy is refused when opened.
+        let bytes = std::fs::read(path.to_str().unwrap()).unwrap();
+        let cut = dir.path().join("cut.agg");
+        std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+        let cut = CString::new(cut.to_str().unwrap()).unwrap();
+        assert!(agg_open(cut.as_ptr()).is_null());
+        assert!(!last_error().is_empty());
+
+        let scene = agg_open(path.as_ptr());
+        assert!(!scene.is_null(), "{}", last_error());
+        let lights = agg_lights_new();
+        let (mut lo, mut hi) = ([0f32; 3], [0f32; 3]);
+        assert_eq!(
+            agg_bounds(std::ptr::null(), lo.as_mut_ptr(), hi.as_mut_ptr()),
+            AGG_ERR_ARGUMENT
+        );
+        assert_eq!(
+            agg_bounds(scene, std::ptr::null_mut(), hi.as_mut_ptr()),
+            AGG_ERR_ARGUMENT
+        );
+        assert_eq!(agg_bounds(scene, lo.as_mut_ptr(), hi.as_mut_ptr()), AGG_OK);
+        // A lights pointer passed as a scene is refused, not dereferenced as one.
+        assert_eq!(
+            agg_bounds(lights as *const AggScene, lo.as_mut_ptr(), hi.as_mut_ptr()),
+            AGG_ERR_ARGUMENT
+        );
+        let nan = [f32::NAN; 3];
+        assert_eq!(agg_lights_set_constant(lights, nan.as_ptr()), AGG_ERR_VALUE);
+        assert_eq!(
+            agg_lights_set_sun(lights, [0.0f32; 3].as_ptr(), [1.0f32; 3].as_ptr()),
+            AGG_ERR_VALUE
+        );
+        assert_eq!(
+            agg_lights_set_environment(lights, [1.0f32; 3].as_ptr(), 0, 1, 1.0, 0.0),
+            AGG_ERR_VALUE
+        );
+        let centre = [
+            0.5 * (lo[0] + hi[0]),
+            0.5 * (lo[1] + hi[1]),
+            0.5 * (lo[2] + hi[2]),
+        ];
+        let good = AggCone {
+            origin: [centre[0], centre[1], centre[2] + 3.0 * (hi[2] - lo[2])],
+            dir: [0.0, 0.0, -1.0],
+            aperture: 0.01,
+        };
+        let bad = AggCone {
+            dir: [f32::NAN, 0.0, 0.0],
+            ..good
+        };
+        let mut out = [0f32; 8];
+        assert_eq!(
+            agg_trace_cones(scene, lights, [good, bad].as_ptr(), 2, 1, out.as_mut_ptr()),
+            AGG_ERR_VALUE
+        );
+        assert!(last_error().contains("cone 1"), "{}", last_error());
+        assert_eq!(
+            agg_trace_cones(scene, lights, std::ptr::null(), 0, 1, std::ptr::null_mut()),
+            AGG_OK
+        );
+        assert_eq!(
+            agg_trace_cones(scene, lights, std::ptr::null(), 2, 1, out.as_mut_ptr()),
+            AGG_ERR_ARGUMENT
+        );
+        assert_eq!(
+            agg_voxel_eval(
+                scene,
+                0,
+                u64::MAX,
+                [0.0, 1.0, 0.0f32].as_ptr(),
+                [0.0, 0.0, 1.0f32].as_ptr(),
+                out.as_mut_ptr()
+            ),
+            AGG_ERR_NOT_FOUND
+        );
+        assert_eq!(
+            agg_voxel_eval(
+                scene,
+                99,
+                0,
+                [0.0, 1.0, 0.0f32].as_ptr(),
+                [0.0, 0.0, 1.0f32].as_ptr(),
+                out.as_mut_ptr()
+            ),
+            AGG_ERR_NOT_FOUND
+        );
+        agg_lights_free(lights);
+        agg_close(scene);
+        agg_close(std::ptr::null_mut());
+        agg_lights_free(std::ptr::null_mut());
+    }
+}
+
+#[test]
+fn cones_and_hits_agree_with_the_rust_api() {
+    unsafe {
+        let (_dir, path) = baked();
+        let scene = agg_open(path.as_ptr());
+        assert!(!scene.is_null(), "{}", last_error());
+        let lights = agg_lights_new();
+        let (mut lo, mut hi) = ([0f32; 3], [0f32; 3]);
+        assert_eq!(agg_bounds(scene, lo.as_mut_ptr(), hi.as_mut_ptr()), AGG_OK);
+        let c = [
+            0.5 * (lo[0] + hi[0]),
+            0.5 * (lo[1] + hi[1]),
+            0.5 * (lo[2] + hi[2]),
+        ];
+        let cone = AggCone {
+            origin: [c[0], c[1], c[2] + 3.0 * (hi[2] - lo[2])],
+            dir: [0.0, 0.0, -1.0],
+            aperture: 0.004,
+        };
+        // Radiance: the C call against the Rust API with the same cone and random stream.
+        let mut out = [0f32; 4];
+        assert_eq!(
+            agg_trace_cones(scene, lights, &cone, 1, 5, out.as_mut_ptr()),
+            AGG_OK
+        );
+        let rust =
+            aggtool::runtime::LodScene::open(std::path::Path::new(path.to_str().unwrap())).unwrap();
+        let r = rust.trace(
+            &aggtool::runtime::Cone::new(cone.origin.into(), cone.dir.into(), cone.aperture),
+            &aggtool::runtime::Lights::constant(glam::Vec3::ONE),
+            &Default::default(),
+            &mut aggtool::math::rng::Pcg32::new(5, 0),
+        );
+        assert_eq!(
+            out,
+            [r.radiance.x, r.radiance.y, r.radiance.z, r.transmittance]
+        );
+        // Hits: the count, a second call with room for all, each voxel answering eval and
+        // visibility, and coverage + transmittance ≈ 1 for a cone through the middle.
+        let (mut n, mut t) = (0usize, 0f32);
+        assert_eq!(
+            agg_hits(scene, &cone, std::ptr::null_mut(), 0, &mut n, &mut t),
+            AGG_OK
+        );
+        assert!(n > 0, "the centre cone met nothing");
+        let mut hits = vec![AggHit::default(); n];
+        let mut n2 = 0usize;
+        assert_eq!(
+            agg_hits(scene, &cone, hits.as_mut_ptr(), n, &mut n2, &mut t),
+            AGG_OK
+        );
+        assert_eq!(n, n2);
+        for h in &hits {
+            let mut rgb = [0f32; 3];
+            let (wi, wo) = ([0.0f32, 1.0, 0.0], [0.0f32, 0.0, 1.0]);
+            assert_eq!(
+                agg_voxel_eval(
+                    scene,
+                    h.level,
+                    h.key,
+                    wi.as_ptr(),
+                    wo.as_ptr(),
+                    rgb.as_mut_ptr()
+                ),
+                AGG_OK,
+                "{}",
+                last_error()
+            );
+            assert!(rgb.iter().all(|x| x.is_finite() && *x >= 0.0));
+            let (mut aiv, mut inc) = (0f32, 0f32);
+            assert_eq!(
+                agg_voxel_visibility(scene, h.level, h.key, wi.as_ptr(), &mut aiv, &mut inc),
+                AGG_OK
+            );
+            assert!((0.0..=1.0).contains(&aiv) && (0.0..=1.0).contains(&inc));
+            let (mut wi2, mut val, mut pdf) = ([0f32; 3], [0f32; 3], 0f32);
+            let code = agg_voxel_sample(
+                scene,
+                h.level,
+                h.key,
+                wo.as_ptr(),
+                [0.3f32, 0.6, 0.2].as_ptr(),
+                wi2.as_mut_ptr(),
+                val.as_mut_ptr(),
+                &mut pdf,
+            );
+            assert!(code == AGG_OK || code == AGG_ERR_NOT_FOUND);
+        }
+        assert!((0.0..=1.0).contains(&t));
+        agg_lights_free(lights);
+        agg_close(scene);
+    }
+}
