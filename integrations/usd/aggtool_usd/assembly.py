@@ -1,0 +1,201 @@
+"""Assemblies: a manifest as a `kind = assembly` stage with one `UsdGeom.PointInstancer`, and any
+USD stage's PointInstancers and referenced aggtool assets back as a manifest.
+
+`write_assembly` writes `CITY.usda` and, beside it in `CITY_assets/`, one asset layer per
+manifest asset (see `asset.py`); the instancer's prototypes reference those layers.
+`read_manifest` walks a composed stage: each PointInstancer instance (mask honoured) of a
+prototype holding aggtool assets, and each aggtool asset prim outside prototypes, becomes a
+manifest instance with its world transform (every enclosing transform composed).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Kind, Sdf, Tf, Usd, UsdGeom, Vt
+
+from .asset import DEFAULT_IMAGE_ASPECT, DEFAULT_IMAGE_WIDTH, anchored, write_asset
+from .errors import UsdToolError
+from .manifest import Asset, Instance, Manifest, decompose, dumps, load_manifest, manifest_json
+from .staging import Staging
+
+#: The attribute that marks an asset prim written by `write_asset`.
+SOURCE_ATTR = "aggtool:source"
+SIDECAR_ATTR = "aggtool:sidecar"
+
+
+def _to_numpy(m: Gf.Matrix4d) -> np.ndarray:
+    """USD's row-vector matrix as a column-vector one (p' = M p)."""
+    return np.array(m, dtype=float).T
+
+
+def write_assembly(manifest_path: Path, out: Path, *, image_width: int = DEFAULT_IMAGE_WIDTH,
+                   image_aspect: float = DEFAULT_IMAGE_ASPECT) -> Path:
+    """Writes the assembly layer `out` and its asset layers; all land together or none does."""
+    manifest_path, out = Path(manifest_path).resolve(), Path(out).resolve()
+    m = load_manifest(manifest_path)
+    if not m.instances:
+        raise UsdToolError(f"{manifest_path}: the manifest places no instances")
+    ids = list(m.assets)
+    # Every transform must fit a PointInstancer (translation, rotation, scale) before any work.
+    trs = [decompose(inst.matrix, f"instance {i}") for i, inst in enumerate(m.instances)]
+    used = {inst.asset for inst in m.instances}
+    ids = [k for k in ids if k in used]
+    assets_dir = f"{out.stem}_assets"
+    with Staging(out.parent) as staging:
+        layers = {}
+        for key in ids:
+            a = m.assets[key]
+            name = Tf.MakeValidIdentifier(key)
+            try:
+                layers[key] = write_asset(a.source, a.aggregate, out.parent / assets_dir / f"{name}.usda",
+                                          staging=staging, image_width=image_width, image_aspect=image_aspect)
+            except UsdToolError as e:
+                raise UsdToolError(f"asset '{key}': {e}") from None
+
+        stage = Usd.Stage.CreateNew(str(staging.path(out.name)), load=Usd.Stage.LoadNone)
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+        root_name = Tf.MakeValidIdentifier(out.stem)
+        root = UsdGeom.Xform.Define(stage, f"/{root_name}").GetPrim()
+        stage.SetDefaultPrim(root)
+        Usd.ModelAPI(root).SetKind(Kind.Tokens.assembly)
+        Usd.ModelAPI(root).SetAssetName(root_name)
+        root.SetCustomDataByKey("aggtool:manifest", anchored(manifest_path, out.parent))
+        pi = UsdGeom.PointInstancer.Define(stage, f"/{root_name}/instancer")
+        protos = UsdGeom.Scope.Define(stage, pi.GetPath().AppendChild("prototypes")).GetPath()
+        targets = []
+        for key in ids:
+            p = UsdGeom.Xform.Define(stage, protos.AppendChild(Tf.MakeValidIdentifier(key))).GetPrim()
+            p.GetReferences().AddReference(anchored(layers[key].layer, out.parent))
+            targets.append(p.GetPath())
+        pi.CreatePrototypesRel().SetTargets(targets)
+        index = {k: i for i, k in enumerate(ids)}
+        pi.CreateProtoIndicesAttr(Vt.IntArray([index[inst.asset] for inst in m.instances]))
+        pi.CreatePositionsAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, t)) for t, _, _ in trs]))
+        # Float quaternions (orientationsf): half precision would move a point 100 m away by ~10 cm.
+        pi.CreateOrientationsfAttr(Vt.QuatfArray([Gf.Quatf(float(q[3]), *map(float, q[:3])) for _, q, _ in trs]))
+        pi.CreateScalesAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, s)) for _, _, s in trs]))
+        pi.CreateIdsAttr(Vt.Int64Array(list(range(len(m.instances)))))
+        # Extent: the aggregates' bounds carried by every instance.
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for inst in m.instances:
+            blo, bhi = layers[inst.asset].bounds
+            corners = np.array([[x, y, z, 1.0] for x in (blo[0], bhi[0]) for y in (blo[1], bhi[1])
+                                for z in (blo[2], bhi[2])])
+            w = (inst.matrix @ corners.T).T[:, :3]
+            lo, hi = np.minimum(lo, w.min(0)), np.maximum(hi, w.max(0))
+        pi.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+        stage.GetRootLayer().Save()
+        staging.commit()
+    return out
+
+
+def _asset_of(prim: Usd.Prim, stage_path: Path) -> tuple[str, Asset]:
+    """The manifest asset (id, source and aggregate) of an aggtool asset prim."""
+    src = prim.GetAttribute(SOURCE_ATTR).Get()
+    if not isinstance(src, Sdf.AssetPath) or not src.resolvedPath:
+        raise UsdToolError(f"{stage_path}: {prim.GetPath()}: {SOURCE_ATTR} @{getattr(src, 'path', src)}@ does not resolve to a file")
+    agg = None
+    for p in Usd.PrimRange(prim, Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)):
+        a = p.GetAttribute(SIDECAR_ATTR)
+        if a and a.HasValue():
+            v = a.Get()
+            # A missing sidecar is no error here: the manifest names where it is to be baked.
+            agg = Path(v.resolvedPath) if v.resolvedPath else Path(
+                Sdf.ComputeAssetPathRelativeToLayer(a.GetPropertyStack()[0].layer, v.path))
+            break
+    source = Path(src.resolvedPath).resolve()
+    name = Usd.ModelAPI(prim).GetAssetName() or prim.GetName()
+    return name, Asset(source, agg.resolve() if agg else source.with_suffix(".agg"))
+
+
+def _assets_under(root: Usd.Prim) -> list[Usd.Prim]:
+    """The aggtool asset prims at or under `root` (not looking inside an asset)."""
+    found = []
+    it = iter(Usd.PrimRange(root, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
+    for p in it:
+        if p.HasAttribute(SOURCE_ATTR):
+            found.append(p)
+            it.PruneChildren()
+    return found
+
+
+def read_manifest(stage_path: Path) -> Manifest:
+    """Every aggtool asset placed on the stage, by PointInstancer or by reference, as a manifest."""
+    stage_path = Path(stage_path).resolve()
+    if not stage_path.is_file():
+        raise UsdToolError(f"{stage_path}: no such stage")
+    try:
+        stage = Usd.Stage.Open(str(stage_path), load=Usd.Stage.LoadNone)
+    except Tf.ErrorException as e:
+        raise UsdToolError(f"{stage_path}: cannot open the stage ({str(e).strip().splitlines()[-1]})") from None
+    if not stage:
+        raise UsdToolError(f"{stage_path}: cannot open the stage")
+    m = Manifest()
+    keys: dict[tuple[Path, Path], str] = {}
+    cache = UsdGeom.XformCache()
+
+    def key_of(prim: Usd.Prim) -> str:
+        name, asset = _asset_of(prim, stage_path)
+        ident = (asset.source, asset.aggregate)
+        if ident not in keys:
+            key, n = name, 2
+            while key in m.assets:
+                key, n = f"{name}_{n}", n + 1
+            keys[ident] = key
+            m.assets[key] = asset
+        return keys[ident]
+
+    instancers = 0
+    it = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
+    for prim in it:
+        if prim.IsA(UsdGeom.PointInstancer):
+            instancers += 1
+            it.PruneChildren()  # prototypes are placed by the instancer only
+            pi = UsdGeom.PointInstancer(prim)
+            protos = pi.GetPrototypesRel().GetTargets()
+            # Each prototype's assets and their transforms relative to the prototype's root frame.
+            contents = []
+            for path in protos:
+                proto = stage.GetPrimAtPath(path)
+                if not proto:
+                    raise UsdToolError(f"{stage_path}: {prim.GetPath()}: prototype {path} does not exist")
+                nested = [p for p in Usd.PrimRange(proto) if p.IsA(UsdGeom.PointInstancer)]
+                if nested:
+                    raise UsdToolError(f"{stage_path}: {path}: nested PointInstancers ({nested[0].GetPath()}) are not supported")
+                found = _assets_under(proto)
+                if not found:
+                    raise UsdToolError(f"{stage_path}: prototype {path} of {prim.GetPath()} has no resolvable geometry "
+                                       f"(no asset layer written by `aggtool_usd asset` under it)")
+                root_inv = cache.GetLocalToWorldTransform(proto).GetInverse()
+                contents.append([(key_of(a), cache.GetLocalToWorldTransform(a) * root_inv) for a in found])
+            xfs = pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+            indices = pi.GetProtoIndicesAttr().Get() or []
+            mask = pi.ComputeMaskAtTime(Usd.TimeCode.Default())
+            world = cache.GetLocalToWorldTransform(prim)
+            for i, xf in enumerate(xfs):
+                if mask and not mask[i]:
+                    continue
+                if not 0 <= indices[i] < len(contents):
+                    raise UsdToolError(f"{stage_path}: {prim.GetPath()}: instance {i} has protoIndex {indices[i]} "
+                                       f"but there are {len(contents)} prototypes")
+                for key, rel in contents[indices[i]]:
+                    m.instances.append(Instance(key, _to_numpy(rel * xf * world)))
+        elif prim.HasAttribute(SOURCE_ATTR):
+            it.PruneChildren()
+            m.instances.append(Instance(key_of(prim), _to_numpy(cache.GetLocalToWorldTransform(prim))))
+    if not m.instances:
+        what = "no PointInstancer" if not instancers else "PointInstancers with no instances"
+        raise UsdToolError(f"{stage_path}: {what} and no aggtool asset placed on the stage")
+    return m
+
+
+def write_manifest(stage_path: Path, out: Path) -> Path:
+    """`read_manifest` written as JSON at `out` (paths relative to its folder), atomically."""
+    out = Path(out).resolve()
+    doc = manifest_json(read_manifest(stage_path), out.parent)
+    with Staging(out.parent) as staging:
+        staging.path(out.name).write_text(dumps(doc))
+        staging.commit()
+    return out
