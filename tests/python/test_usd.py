@@ -46,11 +46,11 @@ def usd_ok(*args, cwd):
 
 
 def usd_fails(*args, cwd, words):
-    """The command fails with status 1 and one error line naming `words`."""
+    """The command fails with status 1, and stderr is one error line naming `words`."""
     r = usd_tool(*args, cwd=cwd)
     assert r.returncode == 1, (r.stdout, r.stderr)
-    lines = [l for l in r.stderr.splitlines() if l.startswith("aggtool_usd: error:")]
-    assert len(lines) == 1 and words in lines[0], r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("aggtool_usd: error:") and words in lines[0], r.stderr
     return r
 
 
@@ -233,10 +233,10 @@ def manifest_matrices(doc):
 CITY = {
     "version": 1,
     "assets": {"tree": {"source": "../scene/foliage.glb"},
-               "block": {"source": "../scene/buildings.glb", "aggregate": "../scene/buildings.agg"}},
+               "city-block": {"source": "../scene/buildings.glb", "aggregate": "../scene/buildings.agg"}},
     "instances": [
         {"asset": "tree", "translation": [0, 0, 0], "rotation": [0, 0, 0, 1], "scale": [1, 1, 1]},
-        {"asset": "block", "matrix": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 12, 0, -4, 1]},
+        {"asset": "city-block", "matrix": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 12, 0, -4, 1]},
         {"asset": "tree", "translation": [3.5, 0.25, -7], "rotation": [0, 0.3826834, 0, 0.9238795], "scale": [2, 2, 2]},
         {"asset": "tree", "translation": [-100, 2, 40], "rotation": [0.5, 0.5, 0.5, 0.5], "scale": [0.5, 1.5, -1]},
     ],
@@ -273,7 +273,8 @@ def test_assembly_round_trip(assets):
     usd_ok("manifest", city, "-o", "city/back.json", cwd=assets)
     back = json.loads((assets / "city" / "back.json").read_text())
     assert back["version"] == 1
-    assert {a["source"] for a in back["assets"].values()} == {"../scene/foliage.glb", "../scene/buildings.glb"}
+    assert {k: a["source"] for k, a in back["assets"].items()} == \
+           {"tree": "../scene/foliage.glb", "city-block": "../scene/buildings.glb"}  # ids kept in assetInfo
     assert all("aggregate" not in a for a in back["assets"].values())  # both are the default .agg
     got, want = manifest_matrices(back), manifest_matrices(CITY)
     assert [s for s, _ in got] == [s for s, _ in want]
@@ -357,6 +358,33 @@ def test_prototype_without_geometry(assets, foliage_layer):
     assert old.read_text() == "previous\n" and no_leftovers(assets / "bad")
 
 
+def test_prototype_with_missing_layer(assets):
+    """A prototype referencing a layer that does not exist has no resolvable geometry either."""
+    path = assets / "bad" / "missing.usda"
+    path.parent.mkdir(exist_ok=True)
+    stage = Usd.Stage.CreateNew(str(path))
+    pi = UsdGeom.PointInstancer.Define(stage, "/World/trees")
+    proto = UsdGeom.Xform.Define(stage, "/World/trees/Prototypes/tree")
+    proto.GetPrim().GetReferences().AddReference("./no_such_tree.usda")
+    pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
+    pi.CreateProtoIndicesAttr([0])
+    pi.CreatePositionsAttr([Gf.Vec3f(0, 0, 0)])
+    stage.GetRootLayer().Save()
+    r = usd_fails("manifest", path, "-o", "bad/missing.json", cwd=assets, words="has no resolvable geometry")
+    assert "no_such_tree.usda" in r.stderr  # the composition error says why
+    assert not (assets / "bad" / "missing.json").exists()
+
+
+def test_not_a_stage(assets):
+    """A file that USD cannot open, and a missing stage."""
+    bad = assets / "bad" / "text.usda"
+    bad.parent.mkdir(exist_ok=True)
+    bad.write_text("hello")
+    usd_fails("manifest", bad, "-o", "bad/text.json", cwd=assets, words="cannot open the stage")
+    usd_fails("manifest", "bad/none.usda", "-o", "bad/text.json", cwd=assets, words="no such stage")
+    assert not (assets / "bad" / "text.json").exists() and no_leftovers(assets / "bad")
+
+
 @pytest.mark.parametrize("change, words", [
     (lambda d: d.update(version=2), "version 2"),
     (lambda d: d["instances"].append({"asset": "ghost"}), "instance 4: unknown asset 'ghost'"),
@@ -365,7 +393,7 @@ def test_prototype_without_geometry(assets, foliage_layer):
     (lambda d: d["instances"][1].update(matrix=[1, 0, 0, 0, 1, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]), "instance 1: the transform has shear"),
     (lambda d: d["instances"][0].update(rotation=[0, 0, 0, 2]), "instance 0 rotation: not a unit quaternion"),
     (lambda d: d["assets"]["tree"].update(source="../scene/nothing.glb"), "asset 'tree': missing source"),
-    (lambda d: d["assets"]["block"].update(aggregate="../scene/nothing.agg"), "asset 'block': missing aggregate"),
+    (lambda d: d["assets"]["city-block"].update(aggregate="../scene/nothing.agg"), "asset 'city-block': missing aggregate"),
 ])
 def test_bad_manifests(assets, change, words):
     """Each broken manifest fails with a line naming the asset or instance; no city layer, no

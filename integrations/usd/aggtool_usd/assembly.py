@@ -9,6 +9,10 @@ manifest instance with its world transform (every enclosing transform composed).
 """
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -41,15 +45,25 @@ def write_assembly(manifest_path: Path, out: Path, *, image_width: int = DEFAULT
     trs = [decompose(inst.matrix, f"instance {i}") for i, inst in enumerate(m.instances)]
     used = {inst.asset for inst in m.instances}
     ids = [k for k in ids if k in used]
+    for key in ids:
+        if not m.assets[key].aggregate.is_file():
+            raise UsdToolError(f"asset '{key}': missing aggregate {m.assets[key].aggregate}: bake it with `aggtool convert`")
+    # Prim and file names: ids made valid identifiers, kept distinct ("a-b" and "a_b").
+    names: dict[str, str] = {}
+    for key in ids:
+        name, n = Tf.MakeValidIdentifier(key), 2
+        while name in names.values():
+            name, n = f"{Tf.MakeValidIdentifier(key)}_{n}", n + 1
+        names[key] = name
     assets_dir = f"{out.stem}_assets"
     with Staging(out.parent) as staging:
         layers = {}
         for key in ids:
             a = m.assets[key]
-            name = Tf.MakeValidIdentifier(key)
             try:
-                layers[key] = write_asset(a.source, a.aggregate, out.parent / assets_dir / f"{name}.usda",
-                                          staging=staging, image_width=image_width, image_aspect=image_aspect)
+                layers[key] = write_asset(a.source, a.aggregate, out.parent / assets_dir / f"{names[key]}.usda",
+                                          staging=staging, image_width=image_width, image_aspect=image_aspect,
+                                          asset_name=key)
             except UsdToolError as e:
                 raise UsdToolError(f"asset '{key}': {e}") from None
 
@@ -66,7 +80,7 @@ def write_assembly(manifest_path: Path, out: Path, *, image_width: int = DEFAULT
         protos = UsdGeom.Scope.Define(stage, pi.GetPath().AppendChild("prototypes")).GetPath()
         targets = []
         for key in ids:
-            p = UsdGeom.Xform.Define(stage, protos.AppendChild(Tf.MakeValidIdentifier(key))).GetPrim()
+            p = UsdGeom.Xform.Define(stage, protos.AppendChild(names[key])).GetPrim()
             p.GetReferences().AddReference(anchored(layers[key].layer, out.parent))
             targets.append(p.GetPath())
         pi.CreatePrototypesRel().SetTargets(targets)
@@ -121,15 +135,37 @@ def _assets_under(root: Usd.Prim) -> list[Usd.Prim]:
     return found
 
 
+@contextlib.contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """Silences USD's own diagnostics on the process's stderr (file descriptor 2): the errors
+    that matter are read from the stage and reported in the one error line."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _tf_message(e: Exception) -> str:
+    """The quoted message of a Tf error, without its source location."""
+    text = " ".join(str(e).split())
+    return text.rsplit(" : ", 1)[-1].strip("'")
+
+
 def read_manifest(stage_path: Path) -> Manifest:
     """Every aggtool asset placed on the stage, by PointInstancer or by reference, as a manifest."""
     stage_path = Path(stage_path).resolve()
     if not stage_path.is_file():
         raise UsdToolError(f"{stage_path}: no such stage")
     try:
-        stage = Usd.Stage.Open(str(stage_path), load=Usd.Stage.LoadNone)
+        with _quiet_stderr():
+            stage = Usd.Stage.Open(str(stage_path), load=Usd.Stage.LoadNone)
     except Tf.ErrorException as e:
-        raise UsdToolError(f"{stage_path}: cannot open the stage ({str(e).strip().splitlines()[-1]})") from None
+        raise UsdToolError(f"{stage_path}: cannot open the stage ({_tf_message(e)})") from None
     if not stage:
         raise UsdToolError(f"{stage_path}: cannot open the stage")
     m = Manifest()
@@ -166,8 +202,9 @@ def read_manifest(stage_path: Path) -> Manifest:
                     raise UsdToolError(f"{stage_path}: {path}: nested PointInstancers ({nested[0].GetPath()}) are not supported")
                 found = _assets_under(proto)
                 if not found:
+                    why = [str(e).strip() for e in stage.GetCompositionErrors() if f"<{path}" in str(e)]
                     raise UsdToolError(f"{stage_path}: prototype {path} of {prim.GetPath()} has no resolvable geometry "
-                                       f"(no asset layer written by `aggtool_usd asset` under it)")
+                                       f"({why[0] if why else 'no asset layer written by `aggtool_usd asset` under it'})")
                 root_inv = cache.GetLocalToWorldTransform(proto).GetInverse()
                 contents.append([(key_of(a), cache.GetLocalToWorldTransform(a) * root_inv) for a in found])
             xfs = pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())

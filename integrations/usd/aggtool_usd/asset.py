@@ -194,10 +194,13 @@ def _write_geometry(layer_path: Path, scene: dict[str, Any], buf: bytes, texture
 
 
 def write_asset(asset: Path, agg: Path | None, out: Path, *, staging: Staging | None = None,
-                image_width: int = DEFAULT_IMAGE_WIDTH, image_aspect: float = DEFAULT_IMAGE_ASPECT) -> AssetLayer:
+                image_width: int = DEFAULT_IMAGE_WIDTH, image_aspect: float = DEFAULT_IMAGE_ASPECT,
+                asset_name: str | None = None) -> AssetLayer:
     """Writes `out` (ASSET.usda) and its payload and textures beside it; see the module
     documentation. With `staging`, the files are staged there (under paths relative to its
-    root) and left for the caller to commit; otherwise they land together or not at all."""
+    root) and left for the caller to commit; otherwise they land together or not at all.
+    `asset_name` (default: the layer's stem) is the assetInfo name, which manifests read back
+    as the asset's id."""
     asset = Path(asset).resolve()
     out = Path(out).resolve()
     agg = Path(agg).resolve() if agg else asset.with_suffix(".agg")
@@ -240,7 +243,7 @@ def write_asset(asset: Path, agg: Path | None, out: Path, *, staging: Staging | 
         stage.SetDefaultPrim(root)
         model = Usd.ModelAPI(root)
         model.SetKind(Kind.Tokens.component)
-        model.SetAssetName(name)
+        model.SetAssetName(asset_name or name)
         model.SetAssetIdentifier(Sdf.AssetPath(f"./{out.name}"))
         root.CreateAttribute("aggtool:source", Sdf.ValueTypeNames.Asset, custom=True).Set(
             Sdf.AssetPath(anchored(asset, out.parent)))
