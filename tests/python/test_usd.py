@@ -137,6 +137,25 @@ def test_asset_layer_composes(assets, foliage_layer):
     assert lod.GetChild("full").IsActive() and not lod.GetChild("aggregate").IsActive()
 
 
+def test_instanced_meshes_compose(assets):
+    """The generated buildings place 13 meshes 1219 times: meshes placed more than once become
+    instanceable references to one prototype each, and the composed full level has every
+    placed triangle and the world bounds of `aggtool info` (the transforms are read the right
+    way round)."""
+    usd_ok("asset", "scene/buildings.glb", "-o", "layers/buildings.usda", cwd=assets)
+    stage = Usd.Stage.Open(str(assets / "layers" / "buildings.usda"))
+    full = stage.GetPrimAtPath("/buildings/lod/full")
+    imported = json.loads(run("info", assets / "scene" / "buildings.glb", "--json", cwd=assets))
+    placed = [p for p in Usd.PrimRange(full, Usd.TraverseInstanceProxies()) if p.IsA(UsdGeom.Mesh)]
+    assert len(placed) == imported["instances"]
+    assert sum(p.IsInstance() for p in placed) > 0 and len(stage.GetPrototypes()) <= imported["meshes"]
+    assert sum(len(UsdGeom.Mesh(p).GetFaceVertexCountsAttr().Get()) for p in placed) == imported["instanced_triangles"]
+    for p in placed:
+        assert UsdShade.MaterialBindingAPI(p).ComputeBoundMaterial()[0], p.GetPath()
+    bound = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default"]).ComputeWorldBound(full).ComputeAlignedRange()
+    assert np.allclose([bound.GetMin(), bound.GetMax()], imported["bounds"], atol=1e-4)
+
+
 def test_compute_lod_switches_where_the_finest_voxel_reaches_a_pixel(assets, foliage_layer):
     """ComputeLOD picks the full mesh (0) for a near camera and the aggregate (1) for a far one;
     the switch lies between the distances where a finest-level voxel covers 2 pixels and half a

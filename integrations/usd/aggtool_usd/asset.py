@@ -252,8 +252,9 @@ def write_asset(asset: Path, agg: Path | None, out: Path, *, staging: Staging | 
         lod_api = UsdLod.RootAPI.Apply(lod)
         full = UsdGeom.Xform.Define(stage, f"/{name}/lod/full").GetPrim()
         full.GetPayloads().AddPayload(f"./{payload_name}")
-        # Typed by the codeless schema (resources/); the attributes stay custom so that tools
-        # without the schema read the same layer.
+        # Typed by the codeless schema (resources/). Created as custom attributes, they are
+        # written as the schema's own where it is registered; tools without the schema read
+        # the same names and values on an untyped prim.
         side = stage.DefinePrim(f"/{name}/lod/aggregate", AGGREGATE_TYPE)
         attr = lambda n, t, v: side.CreateAttribute(n, t, custom=True).Set(v)  # noqa: E731
         attr("aggtool:sidecar", Sdf.ValueTypeNames.Asset, Sdf.AssetPath(anchored(agg, out.parent)))
