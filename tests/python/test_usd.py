@@ -303,8 +303,8 @@ def test_assembly_round_trip(assets):
 
 def test_manifest_composes_nested_transforms(assets, foliage_layer):
     """A hand-made stage: a PointInstancer under a moved Xform whose prototype holds the asset
-    under its own transform, and the asset referenced directly under a scaled Xform. Every
-    enclosing transform is composed into the manifest's instances."""
+    under its own transform, and the asset placed directly (behind a payload) under a scaled
+    Xform. Every enclosing transform is composed into the manifest's instances."""
     path = assets / "layers" / "nested.usda"
     stage = Usd.Stage.CreateNew(str(path))
     world = UsdGeom.Xform.Define(stage, "/World")
@@ -320,7 +320,7 @@ def test_manifest_composes_nested_transforms(assets, foliage_layer):
     pi.CreateInvisibleIdsAttr([])
     single = UsdGeom.Xform.Define(stage, "/World/Big")
     single.AddScaleOp().Set(Gf.Vec3f(3, 3, 3))
-    single.GetPrim().GetReferences().AddReference("./foliage.usda")
+    single.GetPrim().GetPayloads().AddPayload("./foliage.usda")  # a set dressed behind a payload
     stage.GetRootLayer().Save()
 
     usd_ok("manifest", path, "-o", "layers/nested.json", cwd=assets)

@@ -156,6 +156,24 @@ def _tf_message(e: Exception) -> str:
     return text.rsplit(" : ", 1)[-1].strip("'")
 
 
+def _load_payloads_outside_assets(stage: Usd.Stage) -> None:
+    """Loads the payloads that may hold assets (a set dressed behind payloads), level by level,
+    but none inside an aggtool asset: its `full` level's geometry is not needed."""
+    while True:
+        pending = []
+        it = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)))
+        for p in it:
+            if p.HasAttribute(SOURCE_ATTR):
+                it.PruneChildren()
+            elif p.HasAuthoredPayloads() and not p.IsLoaded():
+                pending.append(p.GetPath())
+                it.PruneChildren()
+        if not pending:
+            return
+        with _quiet_stderr():
+            stage.LoadAndUnload(pending, [], Usd.LoadWithoutDescendants)
+
+
 def read_manifest(stage_path: Path) -> Manifest:
     """Every aggtool asset placed on the stage, by PointInstancer or by reference, as a manifest."""
     stage_path = Path(stage_path).resolve()
@@ -168,6 +186,7 @@ def read_manifest(stage_path: Path) -> Manifest:
         raise UsdToolError(f"{stage_path}: cannot open the stage ({_tf_message(e)})") from None
     if not stage:
         raise UsdToolError(f"{stage_path}: cannot open the stage")
+    _load_payloads_outside_assets(stage)
     m = Manifest()
     keys: dict[tuple[Path, Path], str] = {}
     cache = UsdGeom.XformCache()
