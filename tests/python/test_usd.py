@@ -348,6 +348,12 @@ def test_missing_aggregate_writes_nothing(assets):
     assert sorted(p.name for p in out.parent.iterdir()) == ["lonely.glb"]
 
 
+def test_aggregate_of_another_asset_warns(assets):
+    """An .agg baked from another source still makes a layer, with a warning naming both."""
+    r = usd_ok("asset", "scene/buildings.glb", "--agg", "scene/foliage.agg", "-o", "bad/mixed.usda", cwd=assets)
+    assert "baked from foliage.glb, not buildings.glb" in r.stderr
+
+
 def test_stage_without_instancers(assets):
     """A stage with no PointInstancer and no aggtool asset: an error, no manifest."""
     path = assets / "bad" / "empty.usda"

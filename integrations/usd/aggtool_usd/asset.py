@@ -214,6 +214,9 @@ def write_asset(asset: Path, agg: Path | None, out: Path, *, staging: Staging | 
     if not levels or not all(math.isfinite(x) for x in lo + hi) or not all(h > l for l, h in zip(lo, hi)):
         raise UsdToolError(f"{agg}: the aggregate has no levels or empty bounds")
     threshold = screen_threshold(lo, hi, max(levels), image_width, image_aspect)
+    baked_from = Path(str(info.get("source") or "")).name
+    if baked_from and baked_from != asset.name:
+        print(f"warning: {agg} was baked from {baked_from}, not {asset.name}", file=sys.stderr)
 
     own = staging is None
     stage_root = staging.root if staging else out.parent
