@@ -5,6 +5,7 @@ import json
 import math
 import os
 import shutil
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -182,6 +183,54 @@ def test_compute_lod_switches_where_the_finest_voxel_reaches_a_pixel(assets, fol
     assert heuristic.ComputeLOD(lod_frustum(100 * distance_for(1.0), fov_y, aspect, centre), world) == 1
 
 
+def with_texture_transform(glb, out, offset, rotation, scale):
+    """A copy of a GLB whose base-colour textures carry a KHR_texture_transform."""
+    data = glb.read_bytes()
+    (n, _), rest = struct.unpack_from("<II", data, 12), 20
+    doc = json.loads(data[rest:rest + n])
+    for m in doc["materials"]:
+        t = m.get("pbrMetallicRoughness", {}).get("baseColorTexture")
+        if t is not None:
+            t["extensions"] = {"KHR_texture_transform": {"offset": offset, "rotation": rotation, "scale": scale}}
+    doc["extensionsUsed"] = sorted(set(doc.get("extensionsUsed", [])) | {"KHR_texture_transform"})
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    binary = data[rest + n:]
+    out.write_bytes(struct.pack("<4sII", b"glTF", 2, 20 + len(text) + len(binary))
+                    + struct.pack("<II", len(text), 0x4E4F534A) + text + binary)
+    return out
+
+
+def test_texture_transform_becomes_usdtransform2d(assets):
+    """KHR_texture_transform (offset, rotation, scale in glTF's v-down space) is carried as a
+    UsdTransform2d on st = (u, 1 − v) that maps every point where the glTF transform does."""
+    if str(USD_PACKAGE) not in sys.path:
+        sys.path.insert(0, str(USD_PACKAGE))
+    import aggtool_usd.asset as usd_asset  # (registers the schema in this process: harmless here)
+
+    offset, rotation, scale = [0.5, 0.25], 0.3, [2.0, -1.5]
+    glb = with_texture_transform(assets / "scene" / "foliage.glb", assets / "scene" / "moved.glb", offset, rotation, scale)
+    shutil.copy(assets / "scene" / "foliage.agg", assets / "scene" / "moved.agg")
+    usd_ok("asset", glb, "-o", "layers/moved.usda", cwd=assets)
+    stage = Usd.Stage.Open(str(assets / "layers" / "moved.usda"))
+    xfs = [UsdShade.Shader(p) for p in stage.Traverse() if p.GetName() == "baseColorTextureTransform"]
+    assert len(xfs) == 1 and xfs[0].GetIdAttr().Get() == "UsdTransform2d"
+    tex = UsdShade.Shader(xfs[0].GetPrim().GetParent().GetChild("baseColorTexture"))
+    assert tex.GetInput("st").GetConnectedSources()[0][0].source.GetPrim() == xfs[0].GetPrim()
+    s_ = np.array(xfs[0].GetInput("scale").Get())
+    a = math.radians(xfs[0].GetInput("rotation").Get())
+    t_ = np.array(xfs[0].GetInput("translation").Get())
+    c, sn = math.cos(rotation), math.sin(rotation)
+    # src/scene/material.rs: M = T · R · S with R's columns (c, −s) and (s, c).
+    m = np.array([[1, 0, offset[0]], [0, 1, offset[1]], [0, 0, 1]]) @ np.array([[c, sn, 0], [-sn, c, 0], [0, 0, 1]]) \
+        @ np.diag([scale[0], scale[1], 1])
+    for u, v in np.random.default_rng(1).uniform(-2, 2, (20, 2)):
+        want = m @ [u, v, 1]
+        got = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]) @ (s_ * [u, 1 - v]) + t_
+        assert np.allclose(got, [want[0], 1 - want[1]], atol=1e-5)
+    assert usd_asset.st_transform([1, 0, 0, 1, 1, 0, 0, 0, 1]) is None  # shear: left out with a warning
+
+
 def test_every_asset_path_resolves(assets, foliage_layer):
     """Every layer, payload, reference and asset-valued attribute (source, sidecar, textures)
     of the asset layer resolves to a file."""
@@ -201,7 +250,7 @@ def test_every_asset_path_resolves(assets, foliage_layer):
 def test_codeless_schema_types_the_sidecar(foliage_layer):
     """With the package's plugInfo.json on PXR_PLUGINPATH_NAME, any USD process knows the
     sidecar prim's type (a Boundable, as UsdVol's field assets are) and its documented
-    properties; this test process, without it, reads the same attributes untyped."""
+    properties; a process without it reads the same attributes on an untyped prim."""
     code = (
         "import json, sys\n"
         "from pxr import Usd, UsdGeom\n"
@@ -209,19 +258,22 @@ def test_codeless_schema_types_the_sidecar(foliage_layer):
         "p = stage.GetPrimAtPath('/foliage/lod/aggregate')\n"
         "d = Usd.SchemaRegistry().FindConcretePrimDefinition('AggtoolAggregate')\n"
         "print(json.dumps({'type': str(p.GetTypeName()), 'boundable': p.IsA(UsdGeom.Boundable),\n"
-        "    'doc': d.GetPropertyMetadata('aggtool:sidecar', 'documentation'),\n"
-        "    'extent': len(UsdGeom.Boundable(p).GetExtentAttr().Get())}))\n"
+        "    'doc': d.GetPropertyMetadata('aggtool:sidecar', 'documentation') if d else None,\n"
+        "    'sidecar': p.GetAttribute('aggtool:sidecar').Get().path,\n"
+        "    'extent': len(p.GetAttribute('extent').Get())}))\n"
     )
-    env = dict(os.environ, PXR_PLUGINPATH_NAME=str(USD_PACKAGE / "aggtool_usd" / "resources"))
-    r = subprocess.run([sys.executable, "-c", code, str(foliage_layer)], env=env, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    got = json.loads(r.stdout)
-    assert got == {"type": "AggtoolAggregate", "boundable": True, "extent": 2,
-                   "doc": "The .agg file (anchored to the layer that authors it)."}
-    stage = Usd.Stage.Open(str(foliage_layer))
-    side = stage.GetPrimAtPath("/foliage/lod/aggregate")
-    assert side.GetTypeName() == "AggtoolAggregate" and not side.IsA(UsdGeom.Boundable)
-    assert side.GetAttribute("aggtool:sidecar").Get().path == "../scene/foliage.agg"
+    def probe(schema):
+        env = {k: v for k, v in os.environ.items() if k != "PXR_PLUGINPATH_NAME"}
+        if schema:
+            env["PXR_PLUGINPATH_NAME"] = str(USD_PACKAGE / "aggtool_usd" / "resources")
+        r = subprocess.run([sys.executable, "-c", code, str(foliage_layer)], env=env, capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        return json.loads(r.stdout)
+
+    assert probe(True) == {"type": "AggtoolAggregate", "boundable": True, "extent": 2, "sidecar": "../scene/foliage.agg",
+                           "doc": "The .agg file (anchored to the layer that authors it)."}
+    assert probe(False) == {"type": "AggtoolAggregate", "boundable": False, "extent": 2, "sidecar": "../scene/foliage.agg",
+                            "doc": None}
 
 
 def write_manifest(path, doc):

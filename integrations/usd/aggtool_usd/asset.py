@@ -78,15 +78,53 @@ def _view(buf: bytes, view: dict[str, Any] | None, dtype: str, per: int) -> np.n
     return a.reshape(-1, per) if per > 1 else a
 
 
+IDENTITY_UV = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+#: Shear in a texture transform smaller than this is dropped (UsdTransform2d has none).
+SHEAR_TOLERANCE = 1e-5
+
+
+def st_transform(uv: list[float]) -> tuple[tuple[float, float], float, tuple[float, float]] | None:
+    """A glTF texture-coordinate transform (column-major 3×3 acting on (u, v), v down) as the
+    UsdTransform2d inputs (scale, rotation in degrees, translation) acting on USD's
+    st = (u, 1 − v): with F the flip, st' = F M F st, whose linear part D A D (D = diag(1, −1))
+    is split as R(rotation) · diag(scale) and whose offset is D (A e + b) + e, e = (0, 1).
+    None when that part has shear, which UsdTransform2d cannot hold."""
+    a = np.array([[uv[0], uv[3]], [uv[1], uv[4]]])
+    b = np.array([uv[6], uv[7]])
+    d, e = np.diag([1.0, -1.0]), np.array([0.0, 1.0])
+    lin, off = d @ a @ d, d @ (a @ e + b) + e
+    sx = float(np.linalg.norm(lin[:, 0]))
+    angle = math.atan2(lin[1, 0], lin[0, 0])
+    rot = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    rest = rot.T @ lin  # diag(sx, sy) when there is no shear
+    if sx == 0 or abs(rest[0, 1]) > SHEAR_TOLERANCE * max(1.0, abs(rest[1, 1])) or abs(rest[1, 0]) > SHEAR_TOLERANCE:
+        return None
+    return (sx, float(rest[1, 1])), math.degrees(angle), (float(off[0]), float(off[1]))
+
+
 def _texture(stage: Usd.Stage, mat_path: Sdf.Path, name: str, ref: dict[str, Any], reader: UsdShade.Shader,
              textures: str, raw: bool, scale: Gf.Vec4f) -> UsdShade.Shader:
-    """A UsdUVTexture reading `ref`'s file through the `st` reader, scaled by the factors."""
-    if ref["uv_transform"] != [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]:
-        print(f"warning: {ref['file']}: its KHR_texture_transform is not carried into USD", file=sys.stderr)
+    """A UsdUVTexture reading `ref`'s file through the `st` reader (and a UsdTransform2d for a
+    KHR_texture_transform), scaled by the factors."""
+    st_source = reader.ConnectableAPI(), "result"
+    if ref["uv_transform"] != IDENTITY_UV:
+        trs = st_transform(ref["uv_transform"])
+        if trs is None:
+            print(f"warning: {ref['file']}: its texture transform has shear, which UsdTransform2d cannot hold; "
+                  f"left out", file=sys.stderr)
+        else:
+            xf = UsdShade.Shader.Define(stage, mat_path.AppendChild(f"{name}Transform"))
+            xf.CreateIdAttr("UsdTransform2d")
+            xf.CreateInput("in", Sdf.ValueTypeNames.Float2).ConnectToSource(*st_source)
+            xf.CreateInput("scale", Sdf.ValueTypeNames.Float2).Set(Gf.Vec2f(*trs[0]))
+            xf.CreateInput("rotation", Sdf.ValueTypeNames.Float).Set(trs[1])
+            xf.CreateInput("translation", Sdf.ValueTypeNames.Float2).Set(Gf.Vec2f(*trs[2]))
+            xf.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+            st_source = xf.ConnectableAPI(), "result"
     tex = UsdShade.Shader.Define(stage, mat_path.AppendChild(name))
     tex.CreateIdAttr("UsdUVTexture")
     tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(f"./{textures}/{ref['file']}"))
-    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(*st_source)
     tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw" if raw else "sRGB")
     tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set("repeat")
     tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("repeat")
