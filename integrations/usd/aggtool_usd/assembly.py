@@ -20,7 +20,7 @@ from pxr import Gf, Kind, Sdf, Tf, Usd, UsdGeom, Vt
 
 from .asset import DEFAULT_IMAGE_ASPECT, DEFAULT_IMAGE_WIDTH, anchored, write_asset
 from .errors import UsdToolError
-from .manifest import Asset, Instance, Manifest, decompose, dumps, load_manifest, manifest_json
+from .manifest import Asset, Instance, Manifest, decompose_many, dumps, load_manifest, manifest_json
 from .staging import Staging
 
 #: The attribute that marks an asset prim written by `write_asset`.
@@ -42,7 +42,7 @@ def write_assembly(manifest_path: Path, out: Path, *, image_width: int = DEFAULT
         raise UsdToolError(f"{manifest_path}: the manifest places no instances")
     ids = list(m.assets)
     # Every transform must fit a PointInstancer (translation, rotation, scale) before any work.
-    trs = [decompose(inst.matrix, f"instance {i}") for i, inst in enumerate(m.instances)]
+    positions, orientations, scales = decompose_many(np.stack([inst.matrix for inst in m.instances]))
     used = {inst.asset for inst in m.instances}
     ids = [k for k in ids if k in used]
     for key in ids:
@@ -86,11 +86,12 @@ def write_assembly(manifest_path: Path, out: Path, *, image_width: int = DEFAULT
         pi.CreatePrototypesRel().SetTargets(targets)
         index = {k: i for i, k in enumerate(ids)}
         pi.CreateProtoIndicesAttr(Vt.IntArray([index[inst.asset] for inst in m.instances]))
-        pi.CreatePositionsAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, t)) for t, _, _ in trs]))
+        pi.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(positions.astype(np.float32)))
         # Float quaternions (orientationsf): half precision would move a point 100 m away by ~10 cm.
-        pi.CreateOrientationsfAttr(Vt.QuatfArray([Gf.Quatf(float(q[3]), *map(float, q[:3])) for _, q, _ in trs]))
-        pi.CreateScalesAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, s)) for _, _, s in trs]))
-        pi.CreateIdsAttr(Vt.Int64Array(list(range(len(m.instances)))))
+        # GfQuatf's memory is (i, j, k, real): the manifest's [x, y, z, w] order.
+        pi.CreateOrientationsfAttr(Vt.QuatfArray.FromNumpy(orientations.astype(np.float32)))
+        pi.CreateScalesAttr(Vt.Vec3fArray.FromNumpy(scales.astype(np.float32)))
+        pi.CreateIdsAttr(Vt.Int64Array.FromNumpy(np.arange(len(m.instances), dtype=np.int64)))
         # Extent: the aggregates' bounds carried by every instance.
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         for inst in m.instances:
