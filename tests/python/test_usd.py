@@ -356,7 +356,8 @@ def test_assembly_round_trip(assets):
 def test_manifest_composes_nested_transforms(assets, foliage_layer):
     """A hand-made stage: a PointInstancer under a moved Xform whose prototype holds the asset
     under its own transform, and the asset placed directly (behind a payload) under a scaled
-    Xform. Every enclosing transform is composed into the manifest's instances."""
+    Xform. Every enclosing transform is composed into the manifest's instances; invisible and
+    inactive instances are left out."""
     path = assets / "layers" / "nested.usda"
     stage = Usd.Stage.CreateNew(str(path))
     world = UsdGeom.Xform.Define(stage, "/World")
@@ -367,9 +368,11 @@ def test_manifest_composes_nested_transforms(assets, foliage_layer):
     inner.AddTranslateOp().Set(Gf.Vec3d(0, 1, 0))
     inner.GetPrim().GetReferences().AddReference("./foliage.usda")
     pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
-    pi.CreateProtoIndicesAttr([0, 0])
-    pi.CreatePositionsAttr([Gf.Vec3f(0, 0, 0), Gf.Vec3f(0, 0, 5)])
-    pi.CreateInvisibleIdsAttr([])
+    pi.CreateProtoIndicesAttr([0, 0, 0, 0])
+    pi.CreatePositionsAttr([Gf.Vec3f(0, 0, 0), Gf.Vec3f(0, 0, 5), Gf.Vec3f(9, 9, 9), Gf.Vec3f(8, 8, 8)])
+    pi.CreateIdsAttr([10, 11, 12, 13])
+    pi.CreateInvisibleIdsAttr([12])  # not drawn, so not in the manifest
+    pi.DeactivateId(13)  # inactive: likewise
     single = UsdGeom.Xform.Define(stage, "/World/Big")
     single.AddScaleOp().Set(Gf.Vec3f(3, 3, 3))
     single.GetPrim().GetPayloads().AddPayload("./foliage.usda")  # a set dressed behind a payload

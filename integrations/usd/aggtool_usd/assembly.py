@@ -229,10 +229,13 @@ def read_manifest(stage_path: Path) -> Manifest:
                 contents.append([(key_of(a), cache.GetLocalToWorldTransform(a) * root_inv) for a in found])
             xfs = pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
             indices = pi.GetProtoIndicesAttr().Get() or []
+            # Inactive (the mask) and invisible instances are not drawn: they are left out.
             mask = pi.ComputeMaskAtTime(Usd.TimeCode.Default())
+            ids = pi.GetIdsAttr().Get()
+            invisible = set(pi.GetInvisibleIdsAttr().Get() or [])
             world = cache.GetLocalToWorldTransform(prim)
             for i, xf in enumerate(xfs):
-                if mask and not mask[i]:
+                if (mask and not mask[i]) or (invisible and (ids[i] if ids else i) in invisible):
                     continue
                 if not 0 <= indices[i] < len(contents):
                     raise UsdToolError(f"{stage_path}: {prim.GetPath()}: instance {i} has protoIndex {indices[i]} "
