@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from pxr import Tf
+
 from .asset import DEFAULT_IMAGE_ASPECT, DEFAULT_IMAGE_WIDTH, write_asset
 from .assembly import write_assembly, write_manifest
 from .errors import UsdToolError
@@ -57,6 +59,12 @@ def main(argv: list[str] | None = None) -> int:
             out = write_manifest(args.stage, args.output)
     except UsdToolError as e:
         print(f"aggtool_usd: error: {e}", file=sys.stderr)
+        return 1
+    except OSError as e:  # unwritable folder, full disk: nothing was renamed into place
+        print(f"aggtool_usd: error: {e}", file=sys.stderr)
+        return 1
+    except Tf.ErrorException as e:  # USD refused to write or read a layer
+        print(f"aggtool_usd: error: {' '.join(str(e).split())}", file=sys.stderr)
         return 1
     print(f"output: {out}")
     return 0
