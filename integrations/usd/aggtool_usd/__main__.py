@@ -14,7 +14,11 @@ from .errors import UsdToolError
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m aggtool_usd", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m aggtool_usd",
+        description="USD layers for aggtool: assets whose UsdLod root switches between the mesh and its "
+                    ".agg aggregate, PointInstancer assemblies from manifests, and manifests from stages. "
+                    "Errors print one line and exit with status 1, writing nothing.")
     sub = p.add_subparsers(dest="command", required=True)
 
     def image_options(q: argparse.ArgumentParser) -> None:
