@@ -23,9 +23,10 @@ import numpy as np  # noqa: E402
 from aggtool_cli import ROOT, find_aggtool, run  # noqa: E402
 
 USD_PACKAGE = ROOT / "integrations" / "usd"
-SHARED = ROOT.parent.parent / "shared" / "assets"  # /work/shared/assets beside the checkout
-if not SHARED.is_dir():
-    SHARED = Path("/work/shared/assets")
+#: ../shared/assets beside the checkout (as tests/common/mod.rs finds it), or beside the checkout
+#: that holds this one as a worktree.
+SHARED = next((p for p in (ROOT.parent / "shared" / "assets", ROOT.parent.parent / "shared" / "assets")
+               if p.is_dir()), ROOT.parent / "shared" / "assets")
 #: Tiny bakes: the tests check structure and paths, not appearance.
 BAKE = ["--max-res", 8, "--min-res", 2, "--samples", 4, "--aiv-rays", 4, "--aiv-res", 8, "--abv-res", 8]
 #: Instance transforms survive float32 positions/scales and float quaternions to this.
