@@ -193,3 +193,61 @@ fn closed_stdout_is_not_a_panic() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!err.contains("panicked"), "{err}");
 }
+
+/// `aggtool export` writes every mesh once with views inside geometry.bin, every instance, and
+/// the textures its materials name; a bad asset fails and leaves the folder empty.
+#[test]
+fn export_writes_views_instances_and_textures() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    ok(&aggtool(
+        &["gen", "buildings", "-o", ".", "--triangles", "800"],
+        p,
+    ));
+    ok(&aggtool(
+        &["gen", "foliage", "-o", ".", "--triangles", "800"],
+        p,
+    ));
+    for (asset, dir) in [("buildings.glb", "b"), ("foliage.glb", "f")] {
+        let out = ok(&aggtool(&["export", asset, "-o", dir], p));
+        assert!(out.contains("output:"), "{out}");
+        let info: serde_json::Value =
+            serde_json::from_str(&ok(&aggtool(&["info", asset, "--json"], p))).unwrap();
+        let scene: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(p.join(dir).join("scene.json")).unwrap())
+                .unwrap();
+        let bin = std::fs::metadata(p.join(dir).join("geometry.bin"))
+            .unwrap()
+            .len();
+        let meshes = scene["meshes"].as_array().unwrap();
+        assert_eq!(meshes.len() as u64, info["meshes"].as_u64().unwrap());
+        assert_eq!(
+            scene["instances"].as_array().unwrap().len() as u64,
+            info["instances"].as_u64().unwrap()
+        );
+        let mut triangles = 0;
+        for m in meshes {
+            for (key, per) in [
+                ("positions", 12),
+                ("normals", 12),
+                ("uvs", 8),
+                ("indices", 4),
+            ] {
+                if let Some(v) = m[key].as_object() {
+                    let end = v["offset"].as_u64().unwrap() + per * v["count"].as_u64().unwrap();
+                    assert!(end <= bin, "{key} view ends at {end}, past {bin} bytes");
+                }
+            }
+            triangles += m["indices"]["count"].as_u64().unwrap() / 3;
+        }
+        assert_eq!(triangles, info["triangles"].as_u64().unwrap());
+        for mat in scene["materials"].as_array().unwrap() {
+            if let Some(t) = mat["base_color_texture"].as_object() {
+                assert!(p.join(dir).join(t["file"].as_str().unwrap()).exists());
+            }
+        }
+    }
+    std::fs::write(p.join("bad.obj"), "v 0 0 0\nv 1 0 0\nf 1 2 9\n").unwrap();
+    fails_with(&aggtool(&["export", "bad.obj", "-o", "x"], p), "bad.obj");
+    assert!(!p.join("x").join("scene.json").exists());
+}

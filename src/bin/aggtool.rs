@@ -279,6 +279,15 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Write an asset as plain data for tools without a glTF/OBJ reader (the USD integration):
+    /// scene.json (meshes, instances, materials), geometry.bin (positions, normals, UVs,
+    /// indices) and the textures as PNG.
+    Export {
+        asset: PathBuf,
+        /// Output folder (created if needed).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
 }
 
 #[derive(Subcommand)]
@@ -1162,6 +1171,20 @@ fn run(cli: Cli) -> Result<()> {
         Command::Flatten { asset, output } => {
             let scene = load_scene(&asset, false)?;
             flatten(&scene, &output)
+        }
+        Command::Export { asset, output } => {
+            let scene = load_scene(&asset, false)?;
+            let stats = aggtool::scene::export::export(&scene, &output)?;
+            println!(
+                "output: {} ({} meshes, {} instances, {} materials, {} textures, {} of geometry)",
+                output.display(),
+                stats.meshes,
+                stats.instances,
+                stats.materials,
+                stats.textures,
+                mib(stats.geometry_bytes as u64)
+            );
+            Ok(())
         }
     }
 }

@@ -4,6 +4,7 @@
 //! Geometry is stored once per [`Mesh`] and placed by [`Instance`]s, so that a mesh used by
 //! several glTF nodes (or by `EXT_mesh_gpu_instancing`) is never copied.
 
+pub mod export;
 pub mod material;
 pub mod texture;
 
