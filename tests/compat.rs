@@ -1,0 +1,92 @@
+//! Files of earlier minor versions, committed under tests/data/, still open, verify and render
+//! as they did when they were written (schema/CHANGES.md: a reader of 1.m reads any 1.x file).
+//!
+//! - `foliage-1.3.agg`: `aggtool gen foliage --triangles 400`, baked by the 1.3 build
+//!   (21f8d27) with `aggtool convert foliage.glb --max-res 8 --min-res 2 --samples 8
+//!   --max-samples 64 --aiv-res 8 --aiv-rays 4 --abv-res 8 --abv-rays 1`.
+//!
+//! The expected figures were printed by this test on the 1.3 build (AGGTOOL_PRINT=1 prints
+//! them again); the render is deterministic (fixed seed, per-pixel streams).
+
+use std::path::Path;
+
+use aggtool::format::Aggregate;
+use aggtool::render::View;
+use aggtool::runtime::{LodScene, TraceSettings};
+use aggtool::util::no_progress;
+use glam::Vec3;
+
+/// A committed file, opened with full verification.
+fn open(name: &str) -> Aggregate {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name);
+    Aggregate::open(&p).unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+/// The mean radiance of a 16×16, 4-spp render framing the file's bounds under a constant sky
+/// and a sun, and three of its pixels.
+fn render(agg: Aggregate) -> (Vec3, [Vec3; 3]) {
+    let (lo, hi) = agg.bounds();
+    let mut v = View::framing(0.5 * (lo + hi), 0.5 * (hi - lo).length(), 16, 16, 4);
+    v.environment = Some(aggtool::render::view::EnvironmentDesc::Constant {
+        constant: aggtool::render::view::Rgb::Rgb([0.4, 0.5, 0.7]),
+    });
+    v.sun = Some(aggtool::render::view::SunDesc {
+        direction: [0.3, 1.0, 0.5],
+        irradiance: aggtool::render::view::Rgb::Scalar(2.0),
+    });
+    let lights = v.lights().unwrap();
+    let lod = LodScene::new(agg);
+    let (img, stats) = aggtool::runtime::render(
+        &lod,
+        &v.camera(),
+        &lights,
+        4,
+        1,
+        &TraceSettings::default(),
+        &no_progress,
+    );
+    assert_eq!((stats.invalid_samples, stats.non_finite), (0, 0));
+    let mean = img.pixels.iter().copied().sum::<Vec3>() / img.pixels.len() as f32;
+    let px = |x: usize, y: usize| img.pixels[y * 16 + x];
+    (mean, [px(8, 8), px(5, 10), px(10, 4)])
+}
+
+/// Relative agreement within 1e-4 (the same code path reads the same floats; the margin is
+/// for summation order only).
+fn close(a: Vec3, b: [f32; 3]) -> bool {
+    let b = Vec3::from_array(b);
+    (a - b).abs().max_element() <= 1e-4 * b.abs().max_element().max(1e-3)
+}
+
+#[test]
+fn format_1_3_file_still_reads_and_renders_the_same() {
+    let agg = open("foliage-1.3.agg");
+    assert_eq!((agg.header().major, agg.header().minor), (1, 3));
+    assert_eq!(agg.level_count(), 3);
+    let counts: Vec<(u64, u64)> = (0..3)
+        .map(|l| (agg.counts(l).voxels, agg.counts(l).faces))
+        .collect();
+    assert_eq!(counts, [(133, 220), (37, 80), (8, 24)]);
+    assert!(aggtool::format::read::exercise(&agg) > 0);
+    let (mean, px) = render(agg);
+    if std::env::var_os("AGGTOOL_PRINT").is_some() {
+        eprintln!(
+            "mean {:?} pixels {:?}",
+            mean.to_array(),
+            px.map(|p| p.to_array())
+        );
+    }
+    // Printed by the 1.3 build (21f8d27); the second pixel sees the sky past the foliage.
+    let want_mean = [0.36749336, 0.47101167, 0.6389608];
+    let want_px = [
+        [0.24420556, 0.3868246, 0.4096083],
+        [0.4, 0.5, 0.7],
+        [0.16582578, 0.32755318, 0.26213473],
+    ];
+    assert!(close(mean, want_mean), "mean {mean}");
+    for (p, w) in px.iter().zip(want_px) {
+        assert!(close(*p, w), "pixel {p} against {w:?}");
+    }
+}
