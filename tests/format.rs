@@ -114,9 +114,9 @@ fn check_rejection(bytes: &[u8], agg: &Aggregate) {
 }
 
 /// The largest error quantization may add to a visibility value of an `n`² map: half a step
-/// of 1/65534 per detail, three details per level (math::haar::QNode), plus f32 rounding.
+/// of 1/254 per detail, three details per level (math::haar::QNode), plus f32 rounding.
 fn tree_tolerance(n: u32) -> f32 {
-    3.0 * n.trailing_zeros() as f32 / (2.0 * 65534.0) + 1e-6
+    3.0 * n.trailing_zeros() as f32 / (2.0 * aggtool::math::haar::Q_DETAIL) + 1e-6
 }
 
 /// A quantized level read back against the float level baked in memory: records, keys,

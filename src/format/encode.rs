@@ -165,7 +165,7 @@ fn haar_node(n: &Node) -> fb::HaarNode {
 }
 
 fn qhaar_node(n: &QNode) -> fb::QHaarNode {
-    fb::QHaarNode::new(n.q[0], n.q[1], n.q[2], n.links)
+    fb::QHaarNode::new(n.links, n.q[0], n.q[1], n.q[2])
 }
 
 /// A block's trees, collected in both layouts until one does not fit the quantized one (a map

@@ -105,8 +105,8 @@ fn qnode(n: &fb::QHaarNode) -> QNode {
 
 /// Bytes of one `HaarNode` struct (schema: three floats, a uint, a ubyte, padding).
 const NODE_BYTES: usize = 20;
-/// Bytes of one `QHaarNode` struct (1.4: three shorts and the links).
-const QNODE_BYTES: usize = 8;
+/// Bytes of one `QHaarNode` struct (1.4: the links, three bytes, a pad byte).
+const QNODE_BYTES: usize = 6;
 
 /// A block's tree nodes, in the float layout (1.0–1.3, and 1.4 `--lossless`) or the
 /// fixed-point one (1.4).
@@ -202,10 +202,9 @@ fn node_at(tree: &[u8], i: usize) -> Node {
 #[inline]
 fn qnode_at(tree: &[u8], i: usize, size: u32) -> Node {
     let b = &tree[i * QNODE_BYTES..(i + 1) * QNODE_BYTES];
-    let s = |o: usize| i16::from_le_bytes([b[o], b[o + 1]]);
     QNode {
-        q: [s(0), s(2), s(4)],
-        links: u16::from_le_bytes([b[6], b[7]]),
+        q: [b[2] as i8, b[3] as i8, b[4] as i8],
+        links: u16::from_le_bytes([b[0], b[1]]),
     }
     .node(size)
 }

@@ -346,7 +346,7 @@ class Block(object):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(30))
         if o != 0:
             x = self._tab.Vector(o)
-            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 8
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 6
             from aggtool.format.QHaarNode import QHaarNode
             obj = QHaarNode()
             obj.Init(self._tab.Bytes, x)
@@ -371,7 +371,7 @@ class Block(object):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(32))
         if o != 0:
             x = self._tab.Vector(o)
-            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 8
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 6
             from aggtool.format.QHaarNode import QHaarNode
             obj = QHaarNode()
             obj.Init(self._tab.Bytes, x)
@@ -553,7 +553,7 @@ def AddAivQnodes(builder, aivQnodes):
     BlockAddAivQnodes(builder, aivQnodes)
 
 def BlockStartAivQnodesVector(builder, numElems):
-    return builder.StartVector(8, numElems, 2)
+    return builder.StartVector(6, numElems, 2)
 
 def StartAivQnodesVector(builder, numElems):
     return BlockStartAivQnodesVector(builder, numElems)
@@ -565,7 +565,7 @@ def AddAbvQnodes(builder, abvQnodes):
     BlockAddAbvQnodes(builder, abvQnodes)
 
 def BlockStartAbvQnodesVector(builder, numElems):
-    return builder.StartVector(8, numElems, 2)
+    return builder.StartVector(6, numElems, 2)
 
 def StartAbvQnodesVector(builder, numElems):
     return BlockStartAbvQnodesVector(builder, numElems)
