@@ -501,12 +501,26 @@ fn writer_is_atomic() {
 fn damaged_files_never_panic() {
     let dir = tempfile::tempdir().unwrap();
     let (bytes, _) = bake(&scene("foliage", 300, false), &small(), dir.path(), "f.agg");
-    let good = Aggregate::from_bytes(bytes.clone()).unwrap();
+    // The quantized bake, then the committed files of each layout (1.3 floats, 1.4 quantized).
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    let files = [
+        (bytes, 3000),
+        (std::fs::read(data.join("foliage-1.3.agg")).unwrap(), 1000),
+        (std::fs::read(data.join("foliage-1.4.agg")).unwrap(), 1000),
+    ];
+    for (bytes, runs) in files {
+        damage(&bytes, runs);
+    }
+}
+
+/// `runs` copies of `bytes` with one to four random bytes damaged, read without checksums.
+fn damage(bytes: &[u8], runs: usize) {
+    let good = Aggregate::from_bytes(bytes.to_vec()).unwrap();
     assert!(aggtool::format::read::exercise(&good) > 0);
     let mut rng = aggtool::math::rng::Pcg32::new(7, 1);
     let (mut refused, mut read) = (0, 0);
-    for _ in 0..3000 {
-        let mut b = bytes.clone();
+    for _ in 0..runs {
+        let mut b = bytes.to_vec();
         for _ in 0..1 + rng.next_u32() % 4 {
             let i = HEADER_SIZE + (rng.next_u32() as usize % (b.len() - HEADER_SIZE));
             b[i] = match rng.next_u32() % 3 {
