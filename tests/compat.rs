@@ -4,6 +4,11 @@
 //! - `foliage-1.3.agg`: `aggtool gen foliage --triangles 400`, baked by the 1.3 build
 //!   (21f8d27) with `aggtool convert foliage.glb --max-res 8 --min-res 2 --samples 8
 //!   --max-samples 64 --aiv-res 8 --aiv-rays 4 --abv-res 8 --abv-rays 1`.
+//! - `foliage-1.0.agg`, `foliage-1.1.agg`, `foliage-1.2.agg`: the same asset and command,
+//!   baked by builds of the last commit writing each version (aa840f1, 8e562ba, bf5b976; each
+//!   built in a temporary worktree). Their expected figures were printed by the 1.4 build,
+//!   whose float path renders the 1.3 file as the 1.3 build did (the test below) and renders
+//!   these three exactly as a 1.3 reader does (`aggtool render` on a 32² view: RMSE 0).
 //!
 //! - `foliage-1.4.agg`: the same voxels and faces in format 1.4's quantized layout, written
 //!   from `foliage-1.3.agg` by `cargo run --example requantize -- tests/data/foliage-1.3.agg
@@ -93,6 +98,75 @@ fn format_1_3_file_still_reads_and_renders_the_same() {
     assert!(close(mean, want_mean), "mean {mean}");
     for (p, w) in px.iter().zip(want_px) {
         assert!(close(*p, w), "pixel {p} against {w:?}");
+    }
+}
+
+/// The committed 1.0, 1.1 and 1.2 files open, verify and render as they did.
+#[test]
+fn format_1_0_to_1_2_files_still_read_and_render_the_same() {
+    // (file, minor, voxels and faces per level, mean, three pixels)
+    type Want = (&'static str, u16, [(u64, u64); 3], [f32; 3], [[f32; 3]; 3]);
+    let files: [Want; 3] = [
+        (
+            "foliage-1.0.agg",
+            0,
+            [(133, 220), (37, 80), (8, 24)],
+            [0.36441395, 0.46542525, 0.6347367],
+            [
+                [0.24736932, 0.3996995, 0.41191754],
+                [0.4, 0.5, 0.7],
+                [0.17371549, 0.28764126, 0.28823206],
+            ],
+        ),
+        (
+            "foliage-1.1.agg",
+            1,
+            [(133, 220), (37, 80), (8, 24)],
+            [0.3649963, 0.46681148, 0.635222],
+            [
+                [0.24805515, 0.40240857, 0.41264743],
+                [0.4, 0.5, 0.7],
+                [0.17578194, 0.2962691, 0.29060358],
+            ],
+        ),
+        (
+            "foliage-1.2.agg",
+            2,
+            [(133, 220), (37, 80), (8, 24)],
+            [0.36498737, 0.46678042, 0.635192],
+            [
+                [0.24172811, 0.3776389, 0.4055235],
+                [0.4, 0.5, 0.7],
+                [0.17623562, 0.29802662, 0.29112718],
+            ],
+        ),
+    ];
+    let print = std::env::var_os("AGGTOOL_PRINT").is_some();
+    for (name, minor, counts, want_mean, want_px) in files {
+        let agg = open(name);
+        assert_eq!(
+            (agg.header().major, agg.header().minor),
+            (1, minor),
+            "{name}"
+        );
+        let got: Vec<(u64, u64)> = (0..agg.level_count())
+            .map(|l| (agg.counts(l).voxels, agg.counts(l).faces))
+            .collect();
+        assert!(aggtool::format::read::exercise(&agg) > 0);
+        let (mean, px) = render(agg);
+        if print {
+            eprintln!(
+                "{name}: counts {got:?} mean {:?} pixels {:?}",
+                mean.to_array(),
+                px.map(|p| p.to_array())
+            );
+            continue;
+        }
+        assert_eq!(got, counts, "{name}");
+        assert!(close(mean, want_mean), "{name}: mean {mean}");
+        for (p, w) in px.iter().zip(want_px) {
+            assert!(close(*p, w), "{name}: pixel {p} against {w:?}");
+        }
     }
 }
 
