@@ -1389,7 +1389,13 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
     for l in &level_info {
         println!(
             "{:>5}³ {:>10} {:>10} {:>7} {:>7} {:>12}",
-            l["res"], l["voxels"], l["faces"], l["voxel_blocks"], l["face_blocks"], l["bytes"]
+            // As numbers: serde_json's Display ignores the widths.
+            l["res"].as_u64().unwrap_or(0),
+            l["voxels"].as_u64().unwrap_or(0),
+            l["faces"].as_u64().unwrap_or(0),
+            l["voxel_blocks"].as_u64().unwrap_or(0),
+            l["face_blocks"].as_u64().unwrap_or(0),
+            l["bytes"].as_u64().unwrap_or(0)
         );
     }
     println!("bytes per component (payloads, without FlatBuffers headers and padding):");
@@ -1402,7 +1408,7 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
         let u = |k: &str| c[k].as_u64().unwrap_or(0);
         println!(
             "{:>5}³ {:>10} {:>10} {:>10} {:>11} {:>10} {:>11} {:>9}  {}",
-            l["res"],
+            l["res"].as_u64().unwrap_or(0),
             u("voxels"),
             u("lobes"),
             u("moments") + u("dielectric_moments"),
