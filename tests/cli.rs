@@ -251,3 +251,72 @@ fn export_writes_views_instances_and_textures() {
     fails_with(&aggtool(&["export", "bad.obj", "-o", "x"], p), "bad.obj");
     assert!(!p.join("x").join("scene.json").exists());
 }
+
+/// `convert` writes format 1.4 quantized by default and the float layout with `--lossless`;
+/// `--no-cpca` is accepted and changes nothing (CPCA is not implemented); `inspect --json`
+/// gives each level's bytes per component and layout, and the quantized file is smaller in
+/// every node, lobe and moment component.
+#[test]
+fn lossless_and_quantized_layouts() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    ok(&aggtool(
+        &["gen", "foliage", "-o", ".", "--triangles", "400"],
+        p,
+    ));
+    let bake = |extra: &[&str], out: &str| {
+        let mut args = vec![
+            "convert",
+            "foliage.glb",
+            "--max-res",
+            "8",
+            "--min-res",
+            "4",
+            "--samples",
+            "8",
+            "--aiv-res",
+            "8",
+            "--abv-res",
+            "8",
+            "-o",
+            out,
+        ];
+        args.extend_from_slice(extra);
+        ok(&aggtool(&args, p));
+        let j = ok(&aggtool(&["inspect", out, "--json"], p));
+        serde_json::from_str::<serde_json::Value>(&j).unwrap()
+    };
+    let q = bake(&[], "q.agg");
+    bake(&["--no-cpca"], "n.agg");
+    let l = bake(&["--lossless"], "l.agg");
+    assert_eq!(
+        std::fs::read(p.join("q.agg")).unwrap(),
+        std::fs::read(p.join("n.agg")).unwrap(),
+        "--no-cpca changes nothing"
+    );
+    assert_eq!(q["format"], "1.4");
+    assert_eq!(q["settings"]["lossless"], false);
+    assert_eq!(l["settings"]["lossless"], true);
+    for (a, b) in q["levels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(l["levels"].as_array().unwrap())
+    {
+        assert_eq!(
+            (a["quantized"].as_bool(), b["quantized"].as_bool()),
+            (Some(true), Some(false))
+        );
+        let (ca, cb) = (&a["components"], &b["components"]);
+        for k in ["lobes", "dielectric_moments", "aiv_nodes", "abv_nodes"] {
+            let (x, y) = (ca[k].as_u64().unwrap(), cb[k].as_u64().unwrap());
+            assert!(x < y || y == 0, "{k}: {x} quantized vs {y} lossless");
+        }
+        assert_eq!(ca["voxels"], cb["voxels"]);
+    }
+    let text = ok(&aggtool(&["inspect", "q.agg"], p));
+    assert!(
+        text.contains("bytes per component") && text.contains("quantized"),
+        "{text}"
+    );
+}

@@ -65,11 +65,160 @@ fn with_version(bytes: &[u8], major: u16, minor: u16) -> Vec<u8> {
     out
 }
 
+/// Every truncated prefix, trailing bytes, a wrong identifier, an unknown major version and a
+/// flipped bit anywhere are refused; a newer minor version is read.
+fn check_rejection(bytes: &[u8], agg: &Aggregate) {
+    // Every truncated prefix fails cleanly.
+    for n in 0..bytes.len() {
+        match Aggregate::from_bytes(bytes[..n].to_vec()) {
+            Err(FormatError::Truncated { .. }) => {}
+            Err(e) => panic!("prefix {n}: unexpected error {e}"),
+            Ok(_) => panic!("prefix {n} accepted"),
+        }
+    }
+    // Trailing bytes.
+    let mut t = bytes.to_vec();
+    t.extend_from_slice(b"xx");
+    assert!(matches!(
+        Aggregate::from_bytes(t),
+        Err(FormatError::Trailing { extra: 2, .. })
+    ));
+    // Wrong identifier.
+    let mut w = bytes.to_vec();
+    w[1] = b'X';
+    assert!(matches!(
+        Aggregate::from_bytes(w),
+        Err(FormatError::NotAggregate)
+    ));
+    assert!(matches!(
+        Aggregate::from_bytes(b"glTF....".to_vec()),
+        Err(FormatError::NotAggregate)
+    ));
+    // An unknown major version is refused; a newer minor version is read.
+    let e = Aggregate::from_bytes(with_version(bytes, MAJOR + 1, 0))
+        .err()
+        .unwrap();
+    assert!(matches!(e, FormatError::UnsupportedMajor { found } if found == MAJOR + 1));
+    assert!(e.to_string().contains("not supported"));
+    let newer = Aggregate::from_bytes(with_version(bytes, MAJOR, MINOR + 3)).unwrap();
+    assert_eq!(newer.header().minor, MINOR + 3);
+    assert_eq!(newer.read_level(0), agg.read_level(0));
+    // A flipped bit anywhere after the header is caught (checksums), and so is one in the
+    // header; stepping through the file in strides keeps this quick.
+    let step = (bytes.len() / 997).max(1);
+    for i in (0..bytes.len()).step_by(step) {
+        let mut c = bytes.to_vec();
+        c[i] ^= 0x10;
+        assert!(Aggregate::from_bytes(c).is_err(), "flip at {i} accepted");
+    }
+}
+
+/// The largest error quantization may add to a visibility value of an `n`² map: half a step
+/// of 1/254 per detail, three details per level (math::haar::QNode), plus f32 rounding.
+fn tree_tolerance(n: u32) -> f32 {
+    3.0 * n.trailing_zeros() as f32 / (2.0 * aggtool::math::haar::Q_DETAIL) + 1e-6
+}
+
+/// A quantized level read back against the float level baked in memory: records, keys,
+/// ellipsoids, exposures and faces exact; every AIV and ABV cell within [`tree_tolerance`];
+/// lobes' SGGX matrices within 1e-3 of their largest entry, α and moments within binary16's
+/// relative 2^-11, weights within 1e-5.
+fn assert_quantized_close(read: &aggtool::format::LevelData, mem: &aggtool::format::LevelData) {
+    assert_eq!(read.grid, mem.grid);
+    assert_eq!(read.voxels.len(), mem.voxels.len());
+    assert_eq!(read.faces.len(), mem.faces.len());
+    let close = |a: f32, b: f32, rel: f32| (a - b).abs() <= rel * a.abs().max(b.abs()) + 6e-8;
+    let trees = |a: &aggtool::math::haar::SparseHaar, b: &aggtool::math::haar::SparseHaar| {
+        assert_eq!(
+            (a.n, a.scaling, a.nodes.len()),
+            (b.n, b.scaling, b.nodes.len())
+        );
+        let tol = tree_tolerance(a.n);
+        for y in 0..a.n {
+            for x in 0..a.n {
+                let (u, v) = (a.eval(x, y), b.eval(x, y));
+                assert!(
+                    u.is_finite() && (u - v).abs() <= tol,
+                    "({x}, {y}): {u} vs {v}"
+                );
+            }
+        }
+    };
+    for (a, b) in read.voxels.iter().zip(&mem.voxels) {
+        assert_eq!(
+            (a.key, a.area, a.coverage, a.ellipsoid, a.exposure),
+            (b.key, b.area, b.coverage, b.ellipsoid, b.exposure)
+        );
+        let (pa, pb) = (&a.appearance, &b.appearance);
+        assert_eq!(
+            (pa.roughness_mean, pa.roughness_variance, pa.lobes.len()),
+            (pb.roughness_mean, pb.roughness_variance, pb.lobes.len())
+        );
+        for (la, lb) in pa.lobes.iter().zip(&pb.lobes) {
+            assert!((la.weight - lb.weight).abs() <= 1e-5);
+            assert!(close(la.alpha.x, lb.alpha.x, 4.9e-4) && close(la.alpha.y, lb.alpha.y, 4.9e-4));
+            let (sa, sb) = (
+                aggtool::math::sggx::Sggx::from_frame_roughness(la.frame, la.alpha),
+                aggtool::math::sggx::Sggx::from_frame_roughness(lb.frame, lb.alpha),
+            );
+            let big = sb.xx.max(sb.yy).max(sb.zz);
+            for (u, v) in [
+                (sa.xx, sb.xx),
+                (sa.yy, sb.yy),
+                (sa.zz, sb.zz),
+                (sa.xy, sb.xy),
+                (sa.xz, sb.xz),
+                (sa.yz, sb.yz),
+            ] {
+                assert!((u - v).abs() <= 1e-3 * big, "SGGX {u} vs {v}");
+            }
+        }
+        let sets = |m: &aggtool::absdf::Moments| -> Vec<aggtool::absdf::MaterialMoments> {
+            match m {
+                aggtool::absdf::Moments::Constant(c) => vec![*c],
+                aggtool::absdf::Moments::Directional {
+                    diffuse, specular, ..
+                } => diffuse.iter().chain(specular).copied().collect(),
+            }
+        };
+        let (ma, mb) = (sets(&pa.moments), sets(&pb.moments));
+        assert_eq!(ma.len(), mb.len());
+        for (x, y) in ma.iter().zip(&mb) {
+            let (u, v) = (
+                [
+                    x.c.to_array(),
+                    x.mc.to_array(),
+                    [x.s, x.ms, x.m],
+                    [x.f90, x.mf90, 0.0],
+                ],
+                [
+                    y.c.to_array(),
+                    y.mc.to_array(),
+                    [y.s, y.ms, y.m],
+                    [y.f90, y.mf90, 0.0],
+                ],
+            );
+            for (p, q) in u.iter().flatten().zip(v.iter().flatten()) {
+                assert!(close(*p, *q, 4.9e-4), "moment {p} vs {q}");
+            }
+        }
+        trees(&a.aiv, &b.aiv);
+    }
+    for (a, b) in read.faces.iter().zip(&mem.faces) {
+        assert_eq!(a.face, b.face);
+        trees(&a.abv, &b.abv);
+    }
+}
+
 #[test]
 fn round_trip_and_rejection() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scene("foliage", 400, false);
-    let s = small();
+    // The float layout reads back exactly; the quantized one within its tolerances.
+    let s = BakeSettings {
+        lossless: true,
+        ..small()
+    };
     let (bytes, report) = bake(&sc, &s, dir.path(), "a.agg");
     assert_eq!(report.bytes as usize, bytes.len());
     let agg = Aggregate::open(&dir.path().join("a.agg")).unwrap();
@@ -105,50 +254,46 @@ fn round_trip_and_rejection() {
         }
     }
     assert!(agg.find_voxel(0, u64::MAX >> 2).is_none());
+    assert!(agg.settings().lossless && !agg.component_bytes(0).1);
+    check_rejection(&bytes, &agg);
 
-    // Every truncated prefix fails cleanly.
-    for n in 0..bytes.len() {
-        match Aggregate::from_bytes(bytes[..n].to_vec()) {
-            Err(FormatError::Truncated { .. }) => {}
-            Err(e) => panic!("prefix {n}: unexpected error {e}"),
-            Ok(_) => panic!("prefix {n} accepted"),
+    // Format 1.4's quantized layout (the default): within its tolerances at every level,
+    // smaller, and refused by the rejection checks alike.
+    let (qbytes, _) = bake(&sc, &small(), dir.path(), "q.agg");
+    let q = Aggregate::from_bytes(qbytes.clone()).unwrap();
+    assert_eq!(q.header().minor, 4);
+    assert!(!q.settings().lossless);
+    for l in 0..q.level_count() {
+        assert!(q.component_bytes(l).1, "level {l} not quantized");
+        assert_quantized_close(&q.read_level(l), &agg.read_level(l));
+        // The zero-copy look-ups agree with the decoded quantized trees.
+        let lv = q.read_level(l);
+        for (v, r) in lv.voxels.iter().zip(q.voxels(l)) {
+            for d in [Vec3::X, Vec3::NEG_Y, Vec3::new(0.3, 0.5, -0.8).normalize()] {
+                let cell = aggtool::math::sphere_maps::grid_cell(
+                    aggtool::math::sphere_maps::equal_area_sphere_to_square(d),
+                    s.aiv_res,
+                );
+                let want = v
+                    .aiv
+                    .eval(cell % s.aiv_res, cell / s.aiv_res)
+                    .clamp(0.0, 1.0);
+                assert!((r.aiv(d) - want).abs() < 1e-6);
+            }
         }
     }
-    // Trailing bytes.
-    let mut t = bytes.clone();
-    t.extend_from_slice(b"xx");
-    assert!(matches!(
-        Aggregate::from_bytes(t),
-        Err(FormatError::Trailing { extra: 2, .. })
-    ));
-    // Wrong identifier.
-    let mut w = bytes.clone();
-    w[1] = b'X';
-    assert!(matches!(
-        Aggregate::from_bytes(w),
-        Err(FormatError::NotAggregate)
-    ));
-    assert!(matches!(
-        Aggregate::from_bytes(b"glTF....".to_vec()),
-        Err(FormatError::NotAggregate)
-    ));
-    // An unknown major version is refused; a newer minor version is read.
-    let e = Aggregate::from_bytes(with_version(&bytes, MAJOR + 1, 0))
+    assert!(
+        qbytes.len() * 10 < bytes.len() * 7,
+        "{} vs {}",
+        qbytes.len(),
+        bytes.len()
+    );
+    check_rejection(&qbytes, &q);
+    // A file claiming an older minor version may not hold quantized arrays.
+    let e = Aggregate::from_bytes(with_version(&qbytes, MAJOR, 3))
         .err()
-        .unwrap();
-    assert!(matches!(e, FormatError::UnsupportedMajor { found } if found == MAJOR + 1));
-    assert!(e.to_string().contains("not supported"));
-    let newer = Aggregate::from_bytes(with_version(&bytes, MAJOR, MINOR + 3)).unwrap();
-    assert_eq!(newer.header().minor, MINOR + 3);
-    assert_eq!(newer.read_level(0), agg.read_level(0));
-    // A flipped bit anywhere after the header is caught (checksums), and so is one in the
-    // header; stepping through the file in strides keeps this quick.
-    let step = (bytes.len() / 997).max(1);
-    for i in (0..bytes.len()).step_by(step) {
-        let mut c = bytes.clone();
-        c[i] ^= 0x10;
-        assert!(Aggregate::from_bytes(c).is_err(), "flip at {i} accepted");
-    }
+        .expect("1.3 with quantized arrays refused");
+    assert!(e.to_string().contains("older than 1.4"), "{e}");
 }
 
 #[test]
@@ -356,12 +501,26 @@ fn writer_is_atomic() {
 fn damaged_files_never_panic() {
     let dir = tempfile::tempdir().unwrap();
     let (bytes, _) = bake(&scene("foliage", 300, false), &small(), dir.path(), "f.agg");
-    let good = Aggregate::from_bytes(bytes.clone()).unwrap();
+    // The quantized bake, then the committed files of each layout (1.3 floats, 1.4 quantized).
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    let files = [
+        (bytes, 3000),
+        (std::fs::read(data.join("foliage-1.3.agg")).unwrap(), 1000),
+        (std::fs::read(data.join("foliage-1.4.agg")).unwrap(), 1000),
+    ];
+    for (bytes, runs) in files {
+        damage(&bytes, runs);
+    }
+}
+
+/// `runs` copies of `bytes` with one to four random bytes damaged, read without checksums.
+fn damage(bytes: &[u8], runs: usize) {
+    let good = Aggregate::from_bytes(bytes.to_vec()).unwrap();
     assert!(aggtool::format::read::exercise(&good) > 0);
     let mut rng = aggtool::math::rng::Pcg32::new(7, 1);
     let (mut refused, mut read, mut lazy_read) = (0, 0, 0u32);
-    for _ in 0..3000 {
-        let mut b = bytes.clone();
+    for _ in 0..runs {
+        let mut b = bytes.to_vec();
         for _ in 0..1 + rng.next_u32() % 4 {
             let i = HEADER_SIZE + (rng.next_u32() as usize % (b.len() - HEADER_SIZE));
             b[i] = match rng.next_u32() % 3 {
@@ -409,4 +568,74 @@ fn fuzz_regressions_never_panic() {
         n += 1;
     }
     assert!(n >= 1);
+}
+
+/// Hard cases of quantization, each baked in both layouts and compared within the stated
+/// tolerances ([`assert_quantized_close`]): single-sample voxels (one surface sample each: one
+/// lobe at its narrowest), flat voxels and rank-deficient lobes (the 45° plane: one normal per
+/// voxel, α at its floor across it), all-visible and all-occluded maps beside trees (the
+/// buildings' closed walls and open roofs), and foliage's cut-outs. Every zero-copy visibility
+/// is finite and in [0, 1] and every decoded lobe is a unit frame with α in (0, 1].
+#[test]
+fn hard_cases_round_trip_quantized() {
+    let dir = tempfile::tempdir().unwrap();
+    let single = BakeSettings {
+        samples: 1,
+        max_samples: 1,
+        ..small()
+    };
+    let cases = [
+        ("plane45", 50, single.clone()),
+        ("plane45", 50, small()),
+        ("buildings", 600, single),
+        ("buildings", 600, small()),
+        ("foliage", 300, small()),
+    ];
+    let mut seen = aggtool::format::encode::Counts::default();
+    for (i, (name, tris, s)) in cases.into_iter().enumerate() {
+        let sc = scene(name, tris, false);
+        let lossless = BakeSettings {
+            lossless: true,
+            ..s.clone()
+        };
+        let (fb, _) = bake(&sc, &lossless, dir.path(), &format!("f{i}.agg"));
+        let (qb, _) = bake(&sc, &s, dir.path(), &format!("q{i}.agg"));
+        let (f, q) = (
+            Aggregate::from_bytes(fb).unwrap(),
+            Aggregate::from_bytes(qb).unwrap(),
+        );
+        let dirs = [
+            Vec3::X,
+            Vec3::NEG_Z,
+            Vec3::new(0.3, -0.5, 0.8).normalize(),
+            Vec3::new(-0.7, 0.7, 0.1).normalize(),
+        ];
+        for l in 0..q.level_count() {
+            seen.add(&q.counts(l));
+            assert_quantized_close(&q.read_level(l), &f.read_level(l));
+            for v in q.voxels(l) {
+                for d in dirs {
+                    let a = v.aiv(d);
+                    assert!((0.0..=1.0).contains(&a), "{name}: AIV {a}");
+                }
+                for lb in v.lobes() {
+                    assert!((lb.frame.determinant() - 1.0).abs() < 1e-3, "{name}");
+                    assert!(lb.alpha.min_element() > 0.0 && lb.alpha.max_element() <= 1.0);
+                }
+            }
+            for fc in q.faces(l) {
+                for d in dirs {
+                    let a = fc.abv(d);
+                    assert!((0.0..=1.0).contains(&a), "{name}: ABV {a}");
+                }
+            }
+        }
+    }
+    // The cases do hold what they are meant to.
+    assert!(
+        seen.aiv_all_visible > 0 && seen.aiv_all_occluded > 0,
+        "{seen:?}"
+    );
+    assert!(seen.aiv_trees > 0 && seen.cut_out > 0, "{seen:?}");
+    assert!(seen.abv_trees > 0 && seen.abv_trees < seen.faces);
 }

@@ -4,10 +4,11 @@
 //!
 //! ```text
 //! cargo install cargo-fuzz
-//! cargo +nightly fuzz run read_agg fuzz/corpus/read_agg -- -max_total_time=300
-//! RUSTC_BOOTSTRAP=1 cargo fuzz run read_agg fuzz/corpus/read_agg   # a stable toolchain
+//! cargo +nightly fuzz run read_agg fuzz/corpus/read_agg tests/data -- -max_total_time=300
+//! RUSTC_BOOTSTRAP=1 cargo fuzz run read_agg fuzz/corpus/read_agg tests/data   # a stable toolchain
 //! ```
-//! (seed the corpus with small bakes, e.g. `aggtool convert x.glb --max-res 8 -o fuzz/corpus/read_agg/x.agg`).
+//! (`tests/data` seeds it with a file of each format version: 1.0–1.3 floats, 1.4 quantized; more
+//! small bakes can go in the corpus, e.g. `aggtool convert x.glb --max-res 8 -o fuzz/corpus/read_agg/x.agg`).
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;

@@ -73,6 +73,8 @@ def describe(path):
         "aiv_res": s.AivRes(),
         "abv_res": s.AbvRes(),
         "abv_full_res": s.AbvFullRes(),
+        # 1.4: the float layout kept (--lossless); older files are float whatever it says.
+        "lossless": s.Lossless() if header["minor"] >= 4 else True,
         "effects_kept": ix.EffectsKept(),
         "tables_version": ix.TablesVersion(),
         "levels": levels,
@@ -92,7 +94,8 @@ def main(argv):
         print(json.dumps(d, indent=2))
         return 0
     print(f"{d['file']}: aggtool format {d['format']}, {d['bytes']} bytes, written by {d['generator']}")
-    print(f"source: {d['source']}; max-res {d['max_res']}, AIV {d['aiv_res']}², ABV {d['abv_res']}²; effects 0x{d['effects_kept']:x}; tables v{d['tables_version']}")
+    layout = "float" if d["lossless"] else "quantized (1.4)"
+    print(f"source: {d['source']}; max-res {d['max_res']}, AIV {d['aiv_res']}², ABV {d['abv_res']}²; effects 0x{d['effects_kept']:x}; tables v{d['tables_version']}; layout {layout}")
     print(f"{'level':>6} {'voxels':>10} {'faces':>10} {'vblocks':>7} {'fblocks':>7} {'bytes':>12}")
     for l in d["levels"]:
         print(f"{l['res']:>5}³ {l['voxels']:>10} {l['faces']:>10} {l['voxel_blocks']:>7} {l['face_blocks']:>7} {l['bytes']:>12}")

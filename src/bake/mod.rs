@@ -54,6 +54,10 @@ pub struct BakeSettings {
     /// Store every effect in full even where the asset does not need it (for measuring what
     /// effect detection saves; renders are the same).
     pub keep_all_effects: bool,
+    /// Keep the float layout of format 1.0–1.3 (f32 Haar nodes, lobes and moments) instead of
+    /// format 1.4's quantized one (`format::quantize`, `math::haar::QNode`), for measuring
+    /// what quantization costs; renders differ by the quantization error only.
+    pub lossless: bool,
 }
 
 impl Default for BakeSettings {
@@ -74,6 +78,7 @@ impl Default for BakeSettings {
             energy: 0.95,
             denoise: true,
             keep_all_effects: false,
+            lossless: false,
         }
     }
 }
@@ -162,6 +167,7 @@ impl BakeSettings {
             keep_all_effects: self.keep_all_effects,
             denoise: self.denoise,
             aiv_weighting: crate::format::AivWeighting::ProjectedArea,
+            lossless: self.lossless,
         }
     }
 

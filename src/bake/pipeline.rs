@@ -167,6 +167,7 @@ pub fn bake_to_file(
                 li as u32,
                 &voxels,
                 settings.keep_all_effects,
+                settings.lossless,
                 &mut counts,
                 &mut components,
             );
@@ -204,7 +205,13 @@ pub fn bake_to_file(
             let data: Vec<_> = baked.into_iter().map(|b| b.0).collect();
             sec.faces += t.elapsed().as_secs_f64();
             let t = Instant::now();
-            let blob = encode::face_block(li as u32, &data, &mut counts, &mut components);
+            let blob = encode::face_block(
+                li as u32,
+                &data,
+                settings.lossless,
+                &mut counts,
+                &mut components,
+            );
             bytes += blob.len() as u64;
             let r = writer
                 .write_blob(

@@ -2310,6 +2310,1051 @@ impl<'a> Face {
 
 }
 
+/// 1.4: three 16-bit floats (IEEE 754 binary16 bit patterns).
+// struct Vec3h, aligned to 2
+#[repr(transparent)]
+#[derive(Clone, Copy, PartialEq)]
+pub struct Vec3h(pub [u8; 6]);
+impl Default for Vec3h { 
+  fn default() -> Self { 
+    Self([0; 6])
+  }
+}
+impl ::core::fmt::Debug for Vec3h {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    f.debug_struct("Vec3h")
+      .field("x", &self.x())
+      .field("y", &self.y())
+      .field("z", &self.z())
+      .finish()
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for Vec3h {}
+impl<'a> ::flatbuffers::Follow<'a> for Vec3h {
+  type Inner = &'a Vec3h;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { <&'a Vec3h>::follow(buf, loc) }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for &'a Vec3h {
+  type Inner = &'a Vec3h;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { ::flatbuffers::follow_cast_ref::<Vec3h>(buf, loc) }
+  }
+}
+impl<'b> ::flatbuffers::Push for Vec3h {
+    type Output = Vec3h;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        let src = unsafe { ::core::slice::from_raw_parts(self as *const Vec3h as *const u8, <Self as ::flatbuffers::Push>::size()) };
+        dst.copy_from_slice(src);
+    }
+    #[inline]
+    fn alignment() -> ::flatbuffers::PushAlignment {
+        ::flatbuffers::PushAlignment::new(2)
+    }
+}
+
+impl<'a> ::flatbuffers::Verifiable for Vec3h {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.in_buffer::<Self>(pos)
+  }
+}
+
+impl<'a> Vec3h {
+  #[allow(clippy::too_many_arguments)]
+  pub fn new(
+    x: u16,
+    y: u16,
+    z: u16,
+  ) -> Self {
+    let mut s = Self([0; 6]);
+    s.set_x(x);
+    s.set_y(y);
+    s.set_z(z);
+    s
+  }
+
+  pub fn x(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[0..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_x(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[0..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn y(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[2..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_y(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[2..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn z(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[4..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_z(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[4..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+}
+
+/// 1.4: a `HaarNode` in 6 bytes (5 and a pad). `links`: bits 0–11 the subtree's node count,
+/// bits 12–15 the child mask (`HaarNode.children`); trees of maps up to 64² (at most 1365
+/// nodes) fit, larger maps keep `HaarNode`. The details in 8-bit fixed point relative to the
+/// node's block size s (n for the root, halving per level): h = q_h · s / 254 (likewise v,
+/// d), so ±127 is a pixel contribution h/s of ±1/2, the most a map in [0, 1] has; a value
+/// is off by at most 3 · log2(n) / 508 (0.035 on a 64² map; measured on the maple at 64³:
+/// 0.012 at most, 0.002 RMS, far below the maps' Monte Carlo noise).
+// struct QHaarNode, aligned to 2
+#[repr(transparent)]
+#[derive(Clone, Copy, PartialEq)]
+pub struct QHaarNode(pub [u8; 6]);
+impl Default for QHaarNode { 
+  fn default() -> Self { 
+    Self([0; 6])
+  }
+}
+impl ::core::fmt::Debug for QHaarNode {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    f.debug_struct("QHaarNode")
+      .field("links", &self.links())
+      .field("h", &self.h())
+      .field("v", &self.v())
+      .field("d", &self.d())
+      .finish()
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for QHaarNode {}
+impl<'a> ::flatbuffers::Follow<'a> for QHaarNode {
+  type Inner = &'a QHaarNode;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { <&'a QHaarNode>::follow(buf, loc) }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for &'a QHaarNode {
+  type Inner = &'a QHaarNode;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { ::flatbuffers::follow_cast_ref::<QHaarNode>(buf, loc) }
+  }
+}
+impl<'b> ::flatbuffers::Push for QHaarNode {
+    type Output = QHaarNode;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        let src = unsafe { ::core::slice::from_raw_parts(self as *const QHaarNode as *const u8, <Self as ::flatbuffers::Push>::size()) };
+        dst.copy_from_slice(src);
+    }
+    #[inline]
+    fn alignment() -> ::flatbuffers::PushAlignment {
+        ::flatbuffers::PushAlignment::new(2)
+    }
+}
+
+impl<'a> ::flatbuffers::Verifiable for QHaarNode {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.in_buffer::<Self>(pos)
+  }
+}
+
+impl<'a> QHaarNode {
+  #[allow(clippy::too_many_arguments)]
+  pub fn new(
+    links: u16,
+    h: i8,
+    v: i8,
+    d: i8,
+  ) -> Self {
+    let mut s = Self([0; 6]);
+    s.set_links(links);
+    s.set_h(h);
+    s.set_v(v);
+    s.set_d(d);
+    s
+  }
+
+  pub fn links(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[0..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_links(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[0..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn h(&self) -> i8 {
+    let mut mem = ::core::mem::MaybeUninit::<<i8 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[2..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<i8 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_h(&mut self, x: i8) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[2..].as_mut_ptr(),
+        ::core::mem::size_of::<<i8 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn v(&self) -> i8 {
+    let mut mem = ::core::mem::MaybeUninit::<<i8 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[3..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<i8 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_v(&mut self, x: i8) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[3..].as_mut_ptr(),
+        ::core::mem::size_of::<<i8 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn d(&self) -> i8 {
+    let mut mem = ::core::mem::MaybeUninit::<<i8 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[4..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<i8 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_d(&mut self, x: i8) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[4..].as_mut_ptr(),
+        ::core::mem::size_of::<<i8 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+}
+
+/// 1.4: a `Lobe` in 14 bytes. The eigenframe [t b n] as a unit quaternion (x, y, z, w) ·
+/// 32767 with w ≥ 0 (a frame of determinant −1 has its t negated first: the SGGX matrix does
+/// not change); the weight as unorm16 (weight · 65535); αx, αy as binary16 in [0, 1].
+// struct QLobe, aligned to 2
+#[repr(transparent)]
+#[derive(Clone, Copy, PartialEq)]
+pub struct QLobe(pub [u8; 14]);
+impl Default for QLobe { 
+  fn default() -> Self { 
+    Self([0; 14])
+  }
+}
+impl ::core::fmt::Debug for QLobe {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    f.debug_struct("QLobe")
+      .field("qx", &self.qx())
+      .field("qy", &self.qy())
+      .field("qz", &self.qz())
+      .field("qw", &self.qw())
+      .field("weight", &self.weight())
+      .field("alpha_x", &self.alpha_x())
+      .field("alpha_y", &self.alpha_y())
+      .finish()
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for QLobe {}
+impl<'a> ::flatbuffers::Follow<'a> for QLobe {
+  type Inner = &'a QLobe;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { <&'a QLobe>::follow(buf, loc) }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for &'a QLobe {
+  type Inner = &'a QLobe;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { ::flatbuffers::follow_cast_ref::<QLobe>(buf, loc) }
+  }
+}
+impl<'b> ::flatbuffers::Push for QLobe {
+    type Output = QLobe;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        let src = unsafe { ::core::slice::from_raw_parts(self as *const QLobe as *const u8, <Self as ::flatbuffers::Push>::size()) };
+        dst.copy_from_slice(src);
+    }
+    #[inline]
+    fn alignment() -> ::flatbuffers::PushAlignment {
+        ::flatbuffers::PushAlignment::new(2)
+    }
+}
+
+impl<'a> ::flatbuffers::Verifiable for QLobe {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.in_buffer::<Self>(pos)
+  }
+}
+
+impl<'a> QLobe {
+  #[allow(clippy::too_many_arguments)]
+  pub fn new(
+    qx: i16,
+    qy: i16,
+    qz: i16,
+    qw: i16,
+    weight: u16,
+    alpha_x: u16,
+    alpha_y: u16,
+  ) -> Self {
+    let mut s = Self([0; 14]);
+    s.set_qx(qx);
+    s.set_qy(qy);
+    s.set_qz(qz);
+    s.set_qw(qw);
+    s.set_weight(weight);
+    s.set_alpha_x(alpha_x);
+    s.set_alpha_y(alpha_y);
+    s
+  }
+
+  pub fn qx(&self) -> i16 {
+    let mut mem = ::core::mem::MaybeUninit::<<i16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[0..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<i16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_qx(&mut self, x: i16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[0..].as_mut_ptr(),
+        ::core::mem::size_of::<<i16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn qy(&self) -> i16 {
+    let mut mem = ::core::mem::MaybeUninit::<<i16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[2..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<i16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_qy(&mut self, x: i16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[2..].as_mut_ptr(),
+        ::core::mem::size_of::<<i16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn qz(&self) -> i16 {
+    let mut mem = ::core::mem::MaybeUninit::<<i16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[4..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<i16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_qz(&mut self, x: i16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[4..].as_mut_ptr(),
+        ::core::mem::size_of::<<i16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn qw(&self) -> i16 {
+    let mut mem = ::core::mem::MaybeUninit::<<i16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[6..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<i16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_qw(&mut self, x: i16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[6..].as_mut_ptr(),
+        ::core::mem::size_of::<<i16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn weight(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[8..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_weight(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[8..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn alpha_x(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[10..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_alpha_x(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[10..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn alpha_y(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[12..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_alpha_y(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[12..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+}
+
+/// 1.4: `Moments` as binary16, each in [0, 65504].
+// struct QMoments, aligned to 2
+#[repr(transparent)]
+#[derive(Clone, Copy, PartialEq)]
+pub struct QMoments(pub [u8; 22]);
+impl Default for QMoments { 
+  fn default() -> Self { 
+    Self([0; 22])
+  }
+}
+impl ::core::fmt::Debug for QMoments {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    f.debug_struct("QMoments")
+      .field("base", &self.base())
+      .field("metal_base", &self.metal_base())
+      .field("specular", &self.specular())
+      .field("metal_specular", &self.metal_specular())
+      .field("metallic", &self.metallic())
+      .field("f90", &self.f90())
+      .field("metal_f90", &self.metal_f90())
+      .finish()
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for QMoments {}
+impl<'a> ::flatbuffers::Follow<'a> for QMoments {
+  type Inner = &'a QMoments;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { <&'a QMoments>::follow(buf, loc) }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for &'a QMoments {
+  type Inner = &'a QMoments;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { ::flatbuffers::follow_cast_ref::<QMoments>(buf, loc) }
+  }
+}
+impl<'b> ::flatbuffers::Push for QMoments {
+    type Output = QMoments;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        let src = unsafe { ::core::slice::from_raw_parts(self as *const QMoments as *const u8, <Self as ::flatbuffers::Push>::size()) };
+        dst.copy_from_slice(src);
+    }
+    #[inline]
+    fn alignment() -> ::flatbuffers::PushAlignment {
+        ::flatbuffers::PushAlignment::new(2)
+    }
+}
+
+impl<'a> ::flatbuffers::Verifiable for QMoments {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.in_buffer::<Self>(pos)
+  }
+}
+
+impl<'a> QMoments {
+  #[allow(clippy::too_many_arguments)]
+  pub fn new(
+    base: &Vec3h,
+    metal_base: &Vec3h,
+    specular: u16,
+    metal_specular: u16,
+    metallic: u16,
+    f90: u16,
+    metal_f90: u16,
+  ) -> Self {
+    let mut s = Self([0; 22]);
+    s.set_base(base);
+    s.set_metal_base(metal_base);
+    s.set_specular(specular);
+    s.set_metal_specular(metal_specular);
+    s.set_metallic(metallic);
+    s.set_f90(f90);
+    s.set_metal_f90(metal_f90);
+    s
+  }
+
+  pub fn base(&self) -> &Vec3h {
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid struct in this slot
+    unsafe { &*(self.0[0..].as_ptr() as *const Vec3h) }
+  }
+
+  #[allow(clippy::identity_op)]
+  pub fn set_base(&mut self, x: &Vec3h) {
+    self.0[0..0 + 6].copy_from_slice(&x.0)
+  }
+
+  pub fn metal_base(&self) -> &Vec3h {
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid struct in this slot
+    unsafe { &*(self.0[6..].as_ptr() as *const Vec3h) }
+  }
+
+  #[allow(clippy::identity_op)]
+  pub fn set_metal_base(&mut self, x: &Vec3h) {
+    self.0[6..6 + 6].copy_from_slice(&x.0)
+  }
+
+  pub fn specular(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[12..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_specular(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[12..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn metal_specular(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[14..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_metal_specular(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[14..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn metallic(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[16..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_metallic(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[16..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn f90(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[18..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_f90(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[18..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn metal_f90(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[20..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_metal_f90(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[20..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+}
+
+/// 1.4: `DielectricMoments` as binary16, each in [0, 65504].
+// struct QDielectricMoments, aligned to 2
+#[repr(transparent)]
+#[derive(Clone, Copy, PartialEq)]
+pub struct QDielectricMoments(pub [u8; 10]);
+impl Default for QDielectricMoments { 
+  fn default() -> Self { 
+    Self([0; 10])
+  }
+}
+impl ::core::fmt::Debug for QDielectricMoments {
+  fn fmt(&self, f: &mut ::core::fmt::Formatter) -> ::core::fmt::Result {
+    f.debug_struct("QDielectricMoments")
+      .field("base", &self.base())
+      .field("specular", &self.specular())
+      .field("f90", &self.f90())
+      .finish()
+  }
+}
+
+impl ::flatbuffers::SimpleToVerifyInSlice for QDielectricMoments {}
+impl<'a> ::flatbuffers::Follow<'a> for QDielectricMoments {
+  type Inner = &'a QDielectricMoments;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { <&'a QDielectricMoments>::follow(buf, loc) }
+  }
+}
+impl<'a> ::flatbuffers::Follow<'a> for &'a QDielectricMoments {
+  type Inner = &'a QDielectricMoments;
+  #[inline]
+  unsafe fn follow(buf: &'a [u8], loc: usize) -> Self::Inner {
+    unsafe { ::flatbuffers::follow_cast_ref::<QDielectricMoments>(buf, loc) }
+  }
+}
+impl<'b> ::flatbuffers::Push for QDielectricMoments {
+    type Output = QDielectricMoments;
+    #[inline]
+    unsafe fn push(&self, dst: &mut [u8], _written_len: usize) {
+        let src = unsafe { ::core::slice::from_raw_parts(self as *const QDielectricMoments as *const u8, <Self as ::flatbuffers::Push>::size()) };
+        dst.copy_from_slice(src);
+    }
+    #[inline]
+    fn alignment() -> ::flatbuffers::PushAlignment {
+        ::flatbuffers::PushAlignment::new(2)
+    }
+}
+
+impl<'a> ::flatbuffers::Verifiable for QDielectricMoments {
+  #[inline]
+  fn run_verifier(
+    v: &mut ::flatbuffers::Verifier, pos: usize
+  ) -> Result<(), ::flatbuffers::InvalidFlatbuffer> {
+    v.in_buffer::<Self>(pos)
+  }
+}
+
+impl<'a> QDielectricMoments {
+  #[allow(clippy::too_many_arguments)]
+  pub fn new(
+    base: &Vec3h,
+    specular: u16,
+    f90: u16,
+  ) -> Self {
+    let mut s = Self([0; 10]);
+    s.set_base(base);
+    s.set_specular(specular);
+    s.set_f90(f90);
+    s
+  }
+
+  pub fn base(&self) -> &Vec3h {
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid struct in this slot
+    unsafe { &*(self.0[0..].as_ptr() as *const Vec3h) }
+  }
+
+  #[allow(clippy::identity_op)]
+  pub fn set_base(&mut self, x: &Vec3h) {
+    self.0[0..0 + 6].copy_from_slice(&x.0)
+  }
+
+  pub fn specular(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[6..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_specular(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[6..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+  pub fn f90(&self) -> u16 {
+    let mut mem = ::core::mem::MaybeUninit::<<u16 as ::flatbuffers::EndianScalar>::Scalar>::uninit();
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    ::flatbuffers::EndianScalar::from_little_endian(unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        self.0[8..].as_ptr(),
+        mem.as_mut_ptr() as *mut u8,
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+      mem.assume_init()
+    })
+  }
+
+  pub fn set_f90(&mut self, x: u16) {
+    let x_le = ::flatbuffers::EndianScalar::to_little_endian(x);
+    // Safety:
+    // Created from a valid Table for this object
+    // Which contains a valid value in this slot
+    unsafe {
+      ::core::ptr::copy_nonoverlapping(
+        &x_le as *const _ as *const u8,
+        self.0[8..].as_mut_ptr(),
+        ::core::mem::size_of::<<u16 as ::flatbuffers::EndianScalar>::Scalar>(),
+      );
+    }
+  }
+
+}
+
 pub enum BakeSettingsOffset {}
 #[derive(Copy, Clone, PartialEq)]
 
@@ -2342,6 +3387,7 @@ impl<'a> BakeSettings<'a> {
   pub const VT_DENOISE: ::flatbuffers::VOffsetT = 30;
   pub const VT_AIV_WEIGHTING: ::flatbuffers::VOffsetT = 32;
   pub const VT_ABV_FULL_RES: ::flatbuffers::VOffsetT = 34;
+  pub const VT_LOSSLESS: ::flatbuffers::VOffsetT = 36;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -2366,6 +3412,7 @@ impl<'a> BakeSettings<'a> {
     builder.add_max_samples(args.max_samples);
     builder.add_samples(args.samples);
     builder.add_max_res(args.max_res);
+    builder.add_lossless(args.lossless);
     builder.add_aiv_weighting(args.aiv_weighting);
     builder.add_denoise(args.denoise);
     builder.add_keep_all_effects(args.keep_all_effects);
@@ -2493,6 +3540,16 @@ impl<'a> BakeSettings<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u32>(BakeSettings::VT_ABV_FULL_RES, Some(0)).unwrap()}
   }
+  /// Added in 1.4: true when the bake kept the 1.0–1.3 float layout (`--lossless`); false
+  /// (also absent, in older files) otherwise. Older files are float whatever it says: the
+  /// arrays a block stores tell its layout.
+  #[inline]
+  pub fn lossless(&self) -> bool {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<bool>(BakeSettings::VT_LOSSLESS, Some(false)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for BakeSettings<'_> {
@@ -2517,6 +3574,7 @@ impl ::flatbuffers::Verifiable for BakeSettings<'_> {
      .visit_field::<bool>("denoise", Self::VT_DENOISE, false)?
      .visit_field::<AivWeighting>("aiv_weighting", Self::VT_AIV_WEIGHTING, false)?
      .visit_field::<u32>("abv_full_res", Self::VT_ABV_FULL_RES, false)?
+     .visit_field::<bool>("lossless", Self::VT_LOSSLESS, false)?
      .finish();
     Ok(())
   }
@@ -2538,6 +3596,7 @@ pub struct BakeSettingsArgs {
     pub denoise: bool,
     pub aiv_weighting: AivWeighting,
     pub abv_full_res: u32,
+    pub lossless: bool,
 }
 impl<'a> Default for BakeSettingsArgs {
   #[inline]
@@ -2559,6 +3618,7 @@ impl<'a> Default for BakeSettingsArgs {
       denoise: false,
       aiv_weighting: AivWeighting::Area,
       abv_full_res: 0,
+      lossless: false,
     }
   }
 }
@@ -2633,6 +3693,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> BakeSettingsBuilder<'a, 'b, A
     self.fbb_.push_slot::<u32>(BakeSettings::VT_ABV_FULL_RES, abv_full_res, 0);
   }
   #[inline]
+  pub fn add_lossless(&mut self, lossless: bool) {
+    self.fbb_.push_slot::<bool>(BakeSettings::VT_LOSSLESS, lossless, false);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> BakeSettingsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     BakeSettingsBuilder {
@@ -2666,6 +3730,7 @@ impl ::core::fmt::Debug for BakeSettings<'_> {
       ds.field("denoise", &self.denoise());
       ds.field("aiv_weighting", &self.aiv_weighting());
       ds.field("abv_full_res", &self.abv_full_res());
+      ds.field("lossless", &self.lossless());
       ds.finish()
   }
 }
@@ -3451,6 +4516,11 @@ impl<'a> Block<'a> {
   pub const VT_FACES: ::flatbuffers::VOffsetT = 18;
   pub const VT_ABV_NODES: ::flatbuffers::VOffsetT = 20;
   pub const VT_EXPOSURE: ::flatbuffers::VOffsetT = 22;
+  pub const VT_QLOBES: ::flatbuffers::VOffsetT = 24;
+  pub const VT_QMOMENTS: ::flatbuffers::VOffsetT = 26;
+  pub const VT_QDIELECTRIC_MOMENTS: ::flatbuffers::VOffsetT = 28;
+  pub const VT_AIV_QNODES: ::flatbuffers::VOffsetT = 30;
+  pub const VT_ABV_QNODES: ::flatbuffers::VOffsetT = 32;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3462,6 +4532,11 @@ impl<'a> Block<'a> {
     args: &'args BlockArgs<'args>
   ) -> ::flatbuffers::WIPOffset<Block<'bldr>> {
     let mut builder = BlockBuilder::new(_fbb);
+    if let Some(x) = args.abv_qnodes { builder.add_abv_qnodes(x); }
+    if let Some(x) = args.aiv_qnodes { builder.add_aiv_qnodes(x); }
+    if let Some(x) = args.qdielectric_moments { builder.add_qdielectric_moments(x); }
+    if let Some(x) = args.qmoments { builder.add_qmoments(x); }
+    if let Some(x) = args.qlobes { builder.add_qlobes(x); }
     if let Some(x) = args.exposure { builder.add_exposure(x); }
     if let Some(x) = args.abv_nodes { builder.add_abv_nodes(x); }
     if let Some(x) = args.faces { builder.add_faces(x); }
@@ -3553,6 +4628,47 @@ impl<'a> Block<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, f32>>>(Block::VT_EXPOSURE, None)}
   }
+  /// 1.4, voxel blocks: the quantized forms. A block stores lobes either in `lobes` or in
+  /// `qlobes`, moments either in `moments` and `dielectric_moments` or in `qmoments` and
+  /// `qdielectric_moments`, and AIV trees either in `aiv_nodes` or in `aiv_qnodes`, never
+  /// both; the `Voxel` records' ranges index whichever is present. Readers of 1.3 and older
+  /// refuse a block with a quantized form (the float array they need is absent).
+  #[inline]
+  pub fn qlobes(&self) -> Option<::flatbuffers::Vector<'a, QLobe>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, QLobe>>>(Block::VT_QLOBES, None)}
+  }
+  #[inline]
+  pub fn qmoments(&self) -> Option<::flatbuffers::Vector<'a, QMoments>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, QMoments>>>(Block::VT_QMOMENTS, None)}
+  }
+  #[inline]
+  pub fn qdielectric_moments(&self) -> Option<::flatbuffers::Vector<'a, QDielectricMoments>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, QDielectricMoments>>>(Block::VT_QDIELECTRIC_MOMENTS, None)}
+  }
+  #[inline]
+  pub fn aiv_qnodes(&self) -> Option<::flatbuffers::Vector<'a, QHaarNode>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, QHaarNode>>>(Block::VT_AIV_QNODES, None)}
+  }
+  /// 1.4, face blocks: ABV trees quantized, instead of `abv_nodes`.
+  #[inline]
+  pub fn abv_qnodes(&self) -> Option<::flatbuffers::Vector<'a, QHaarNode>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, QHaarNode>>>(Block::VT_ABV_QNODES, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for Block<'_> {
@@ -3571,6 +4687,11 @@ impl ::flatbuffers::Verifiable for Block<'_> {
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, Face>>>("faces", Self::VT_FACES, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, HaarNode>>>("abv_nodes", Self::VT_ABV_NODES, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, f32>>>("exposure", Self::VT_EXPOSURE, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, QLobe>>>("qlobes", Self::VT_QLOBES, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, QMoments>>>("qmoments", Self::VT_QMOMENTS, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, QDielectricMoments>>>("qdielectric_moments", Self::VT_QDIELECTRIC_MOMENTS, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, QHaarNode>>>("aiv_qnodes", Self::VT_AIV_QNODES, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, QHaarNode>>>("abv_qnodes", Self::VT_ABV_QNODES, false)?
      .finish();
     Ok(())
   }
@@ -3586,6 +4707,11 @@ pub struct BlockArgs<'a> {
     pub faces: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, Face>>>,
     pub abv_nodes: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, HaarNode>>>,
     pub exposure: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, f32>>>,
+    pub qlobes: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, QLobe>>>,
+    pub qmoments: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, QMoments>>>,
+    pub qdielectric_moments: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, QDielectricMoments>>>,
+    pub aiv_qnodes: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, QHaarNode>>>,
+    pub abv_qnodes: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, QHaarNode>>>,
 }
 impl<'a> Default for BlockArgs<'a> {
   #[inline]
@@ -3601,6 +4727,11 @@ impl<'a> Default for BlockArgs<'a> {
       faces: None,
       abv_nodes: None,
       exposure: None,
+      qlobes: None,
+      qmoments: None,
+      qdielectric_moments: None,
+      aiv_qnodes: None,
+      abv_qnodes: None,
     }
   }
 }
@@ -3651,6 +4782,26 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> BlockBuilder<'a, 'b, A> {
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(Block::VT_EXPOSURE, exposure);
   }
   #[inline]
+  pub fn add_qlobes(&mut self, qlobes: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , QLobe>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(Block::VT_QLOBES, qlobes);
+  }
+  #[inline]
+  pub fn add_qmoments(&mut self, qmoments: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , QMoments>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(Block::VT_QMOMENTS, qmoments);
+  }
+  #[inline]
+  pub fn add_qdielectric_moments(&mut self, qdielectric_moments: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , QDielectricMoments>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(Block::VT_QDIELECTRIC_MOMENTS, qdielectric_moments);
+  }
+  #[inline]
+  pub fn add_aiv_qnodes(&mut self, aiv_qnodes: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , QHaarNode>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(Block::VT_AIV_QNODES, aiv_qnodes);
+  }
+  #[inline]
+  pub fn add_abv_qnodes(&mut self, abv_qnodes: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , QHaarNode>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(Block::VT_ABV_QNODES, abv_qnodes);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> BlockBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     BlockBuilder {
@@ -3678,6 +4829,11 @@ impl ::core::fmt::Debug for Block<'_> {
       ds.field("faces", &self.faces());
       ds.field("abv_nodes", &self.abv_nodes());
       ds.field("exposure", &self.exposure());
+      ds.field("qlobes", &self.qlobes());
+      ds.field("qmoments", &self.qmoments());
+      ds.field("qdielectric_moments", &self.qdielectric_moments());
+      ds.field("aiv_qnodes", &self.aiv_qnodes());
+      ds.field("abv_qnodes", &self.abv_qnodes());
       ds.finish()
   }
 }

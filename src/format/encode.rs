@@ -12,7 +12,7 @@ use super::settings::RecordedSettings;
 use super::{BLOCK_ID, INDEX_ID};
 use crate::absdf::{MaterialMoments, Moments};
 use crate::math::beta::MIN_VARIANCE;
-use crate::math::haar::Node;
+use crate::math::haar::{quantize_tree, Node, QNode, SparseHaar};
 use crate::spatial::morton3;
 
 /// What a level stores, counted while encoding.
@@ -164,6 +164,48 @@ fn haar_node(n: &Node) -> fb::HaarNode {
     )
 }
 
+fn qhaar_node(n: &QNode) -> fb::QHaarNode {
+    fb::QHaarNode::new(n.links, n.q[0], n.q[1], n.q[2])
+}
+
+/// A block's trees, collected in both layouts until one does not fit the quantized one (a map
+/// above 64²): format 1.4 stores `aiv_qnodes`/`abv_qnodes` unless `lossless` or a tree does
+/// not fit, then the float `HaarNode`s for the whole block.
+struct TreeNodes {
+    f32: Vec<fb::HaarNode>,
+    q16: Option<Vec<fb::QHaarNode>>,
+}
+
+impl TreeNodes {
+    fn new(lossless: bool) -> TreeNodes {
+        TreeNodes {
+            f32: Vec::new(),
+            q16: (!lossless).then(Vec::new),
+        }
+    }
+
+    fn len(&self) -> usize {
+        self.f32.len()
+    }
+
+    fn push(&mut self, t: &SparseHaar) {
+        self.f32.extend(t.nodes.iter().map(haar_node));
+        if let Some(q) = &mut self.q16 {
+            match quantize_tree(t) {
+                Some(qt) => q.extend(qt.iter().map(qhaar_node)),
+                None => self.q16 = None,
+            }
+        }
+    }
+
+    /// Bytes of the layout stored.
+    fn bytes(&self) -> u64 {
+        self.q16
+            .as_ref()
+            .map_or(bytes_of(&self.f32), |q| bytes_of(q))
+    }
+}
+
 fn has_metal(m: &MaterialMoments) -> bool {
     m.m != 0.0 || m.mf90 != 0.0 || m.ms != 0.0 || m.mc != Vec3::ZERO
 }
@@ -177,11 +219,14 @@ fn dielectric(m: &MaterialMoments) -> fb::DielectricMoments {
 }
 
 /// Encodes one block of voxels (sorted by key) of level `level`, adding to `counts`.
-/// With `keep_all`, every voxel stores the metallic moments even without metal.
+/// With `keep_all`, every voxel stores the metallic moments even without metal; with
+/// `lossless`, lobes, moments and trees keep the float layout of format 1.0–1.3 instead of
+/// 1.4's quantized one.
 pub fn voxel_block(
     level: u32,
     voxels: &[VoxelData],
     keep_all: bool,
+    lossless: bool,
     counts: &mut Counts,
     sizes: &mut ComponentBytes,
 ) -> Vec<u8> {
@@ -190,7 +235,10 @@ pub fn voxel_block(
     let mut lobes = Vec::new();
     let mut moments = Vec::new();
     let mut diel = Vec::new();
-    let mut nodes = Vec::new();
+    let mut nodes = TreeNodes::new(lossless);
+    let mut qlobes = Vec::new();
+    let mut qmoments = Vec::new();
+    let mut qdiel = Vec::new();
     let mut exposure = Vec::with_capacity(voxels.len());
     for v in voxels {
         let a = &v.appearance;
@@ -211,6 +259,7 @@ pub fn voxel_block(
                 l.alpha.x,
                 l.alpha.y,
             ));
+            qlobes.push(super::quantize::qlobe(l));
         }
         if a.lobes.len() > 1 {
             counts.multi_lobe += 1;
@@ -237,9 +286,11 @@ pub fn voxel_block(
             counts.metallic += 1;
             moment_start = moments.len() as u32;
             moments.extend(sets.iter().map(|m| full(m)));
+            qmoments.extend(sets.iter().map(|m| super::quantize::qmoments(m)));
         } else {
             moment_start = diel.len() as u32;
             diel.extend(sets.iter().map(|m| dielectric(m)));
+            qdiel.extend(sets.iter().map(|m| super::quantize::qdielectric_moments(m)));
         }
         // Roughness: the estimate stores a variance below the threshold (one microfacet lobe)
         // as exactly zero.
@@ -264,7 +315,7 @@ pub fn voxel_block(
             flags |= fb::VoxelFlags::AivTree;
             counts.aiv_trees += 1;
             counts.aiv_nodes += v.aiv.nodes.len() as u64;
-            nodes.extend(v.aiv.nodes.iter().map(haar_node));
+            nodes.push(&v.aiv);
         }
         let e = &v.ellipsoid;
         keys.push(v.key);
@@ -290,10 +341,16 @@ pub fn voxel_block(
     }
     sizes.keys += bytes_of(&keys);
     sizes.voxels += bytes_of(&recs);
-    sizes.lobes += bytes_of(&lobes);
-    sizes.moments += bytes_of(&moments);
-    sizes.dielectric_moments += bytes_of(&diel);
-    sizes.aiv_nodes += bytes_of(&nodes);
+    if lossless {
+        sizes.lobes += bytes_of(&lobes);
+        sizes.moments += bytes_of(&moments);
+        sizes.dielectric_moments += bytes_of(&diel);
+    } else {
+        sizes.lobes += bytes_of(&qlobes);
+        sizes.moments += bytes_of(&qmoments);
+        sizes.dielectric_moments += bytes_of(&qdiel);
+    }
+    sizes.aiv_nodes += nodes.bytes();
     // Only blocks with some closed surface store exposures.
     let exposure = if exposure.iter().any(|&e| e < 1.0) {
         sizes.exposure += bytes_of(&exposure);
@@ -306,10 +363,22 @@ pub fn voxel_block(
     );
     let keys = b.create_vector(&keys);
     let recs = b.create_vector(&recs);
-    let lobes = b.create_vector(&lobes);
-    let moments = b.create_vector(&moments);
-    let diel = b.create_vector(&diel);
-    let nodes = b.create_vector(&nodes);
+    let (lobes, qlobes) = if lossless {
+        (Some(b.create_vector(&lobes)), None)
+    } else {
+        (None, Some(b.create_vector(&qlobes)))
+    };
+    let (moments, diel, qmoments, qdiel) = if lossless {
+        let m = b.create_vector(&moments);
+        (Some(m), Some(b.create_vector(&diel)), None, None)
+    } else {
+        let m = b.create_vector(&qmoments);
+        (None, None, Some(m), Some(b.create_vector(&qdiel)))
+    };
+    let (aiv_nodes, aiv_qnodes) = match &nodes.q16 {
+        Some(q) => (None, Some(b.create_vector(q))),
+        None => (Some(b.create_vector(&nodes.f32)), None),
+    };
     let exposure = exposure.map(|e| b.create_vector(&e));
     let root = fb::Block::create(
         &mut b,
@@ -317,13 +386,16 @@ pub fn voxel_block(
             level,
             keys: Some(keys),
             voxels: Some(recs),
-            lobes: Some(lobes),
-            moments: Some(moments),
-            dielectric_moments: Some(diel),
-            aiv_nodes: Some(nodes),
-            faces: None,
-            abv_nodes: None,
+            lobes,
+            moments,
+            dielectric_moments: diel,
+            aiv_nodes,
             exposure,
+            qlobes,
+            qmoments,
+            qdielectric_moments: qdiel,
+            aiv_qnodes,
+            ..Default::default()
         },
     );
     b.finish(root, Some(BLOCK_ID));
@@ -339,22 +411,24 @@ pub fn face_key(f: &FaceData) -> u64 {
     ))
 }
 
-/// Encodes one block of boundary faces (sorted by [`face_key`], then direction).
+/// Encodes one block of boundary faces (sorted by [`face_key`], then direction); `lossless`
+/// keeps the float trees of format 1.0–1.3.
 pub fn face_block(
     level: u32,
     faces: &[FaceData],
+    lossless: bool,
     counts: &mut Counts,
     sizes: &mut ComponentBytes,
 ) -> Vec<u8> {
     let mut recs = Vec::with_capacity(faces.len());
-    let mut nodes = Vec::new();
+    let mut nodes = TreeNodes::new(lossless);
     for f in faces {
         counts.faces += 1;
         let start = nodes.len() as u32;
         if !f.abv.is_constant() {
             counts.abv_trees += 1;
             counts.abv_nodes += f.abv.nodes.len() as u64;
-            nodes.extend(f.abv.nodes.iter().map(haar_node));
+            nodes.push(&f.abv);
         }
         let v = f.face.voxel;
         recs.push(fb::Face::new(
@@ -368,16 +442,20 @@ pub fn face_block(
         ));
     }
     sizes.faces += bytes_of(&recs);
-    sizes.abv_nodes += bytes_of(&nodes);
+    sizes.abv_nodes += nodes.bytes();
     let mut b = FlatBufferBuilder::with_capacity(64 + recs.len() * 28 + nodes.len() * 20);
     let recs = b.create_vector(&recs);
-    let nodes = b.create_vector(&nodes);
+    let (abv_nodes, abv_qnodes) = match &nodes.q16 {
+        Some(q) => (None, Some(b.create_vector(q))),
+        None => (Some(b.create_vector(&nodes.f32)), None),
+    };
     let root = fb::Block::create(
         &mut b,
         &fb::BlockArgs {
             level,
             faces: Some(recs),
-            abv_nodes: Some(nodes),
+            abv_nodes,
+            abv_qnodes,
             ..Default::default()
         },
     );

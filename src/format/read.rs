@@ -18,13 +18,13 @@ use std::sync::OnceLock;
 
 use glam::{Mat3, UVec3, Vec2, Vec3};
 
-use super::encode::Counts;
+use super::encode::{ComponentBytes, Counts};
 use super::level::{FaceData, LevelData, VoxelData};
 use super::settings::RecordedSettings;
 use super::{fb, FormatError, Header, ALIGN, BLOCK_ID, HEADER_SIZE, INDEX_ID};
 use crate::absdf::{MaterialMoments, Moments, NdfLobe, VoxelAppearance};
 use crate::math::frame::Frame;
-use crate::math::haar::{eval_tree, validate_tree, Node, SparseHaar};
+use crate::math::haar::{dequantize_tree, eval_tree, validate_tree, Node, QNode, SparseHaar};
 use crate::math::sphere_maps::{
     concentric_hemisphere_to_square, equal_area_sphere_to_square, grid_cell,
 };
@@ -98,22 +98,97 @@ fn node(n: &fb::HaarNode) -> Node {
     }
 }
 
-/// Bytes of one `HaarNode` struct (schema: three floats, a uint, a ubyte, padding).
-const NODE_BYTES: usize = 20;
-
-/// The nodes `start..start + count` of a tree as raw bytes (verified to lie inside the vector).
-#[inline]
-fn tree_bytes<'a>(
-    nodes: flatbuffers::Vector<'a, fb::HaarNode>,
-    start: usize,
-    count: usize,
-) -> &'a [u8] {
-    let b = nodes.bytes();
-    let (a, e) = (start * NODE_BYTES, (start + count) * NODE_BYTES);
-    b.get(a..e).unwrap_or(&[])
+fn qnode(n: &fb::QHaarNode) -> QNode {
+    QNode {
+        q: [n.h(), n.v(), n.d()],
+        links: n.links(),
+    }
 }
 
-/// Node `i` of a tree's raw bytes, decoded (the look-ups' hot path: no accessor calls).
+/// Bytes of one `HaarNode` struct (schema: three floats, a uint, a ubyte, padding).
+const NODE_BYTES: usize = 20;
+/// Bytes of one `QHaarNode` struct (1.4: the links, three bytes, a pad byte).
+const QNODE_BYTES: usize = 6;
+
+/// A block's tree nodes, in the float layout (1.0–1.3, and 1.4 `--lossless`) or the
+/// fixed-point one (1.4).
+#[derive(Clone, Copy)]
+enum Nodes<'a> {
+    F32(flatbuffers::Vector<'a, fb::HaarNode>),
+    Q16(flatbuffers::Vector<'a, fb::QHaarNode>),
+}
+
+impl<'a> Nodes<'a> {
+    /// The AIV nodes of a verified voxel block.
+    fn aiv(b: &fb::Block<'a>) -> Nodes<'a> {
+        match b.aiv_qnodes() {
+            Some(q) => Nodes::Q16(q),
+            None => Nodes::F32(b.aiv_nodes().expect("verified")),
+        }
+    }
+
+    /// The ABV nodes of a verified face block.
+    fn abv(b: &fb::Block<'a>) -> Nodes<'a> {
+        match b.abv_qnodes() {
+            Some(q) => Nodes::Q16(q),
+            None => Nodes::F32(b.abv_nodes().expect("verified")),
+        }
+    }
+
+    fn len(&self) -> usize {
+        match self {
+            Nodes::F32(v) => v.len(),
+            Nodes::Q16(v) => v.len(),
+        }
+    }
+
+    /// Node `i`'s structure and (for the float layout) details: what [`validate_tree`] checks.
+    fn shape(&self, i: usize) -> Node {
+        match self {
+            Nodes::F32(v) => node(v.get(i)),
+            Nodes::Q16(v) => qnode(v.get(i)).node(1),
+        }
+    }
+
+    /// The nodes `start..start + count` of a tree as raw bytes (verified to lie inside the
+    /// vector).
+    #[inline]
+    fn tree(&self, start: usize, count: usize) -> Tree<'a> {
+        let (b, w) = match self {
+            Nodes::F32(v) => (v.bytes(), NODE_BYTES),
+            Nodes::Q16(v) => (v.bytes(), QNODE_BYTES),
+        };
+        let bytes = b.get(start * w..(start + count) * w).unwrap_or(&[]);
+        match self {
+            Nodes::F32(_) => Tree::F32(bytes),
+            Nodes::Q16(_) => Tree::Q16(bytes),
+        }
+    }
+
+    /// The tree `start..start + count` of an `n × n` map, decoded.
+    fn decode(&self, n: u32, scaling: f32, start: usize, count: usize) -> SparseHaar {
+        match self {
+            Nodes::F32(v) => SparseHaar {
+                n,
+                scaling,
+                nodes: (start..start + count).map(|i| node(v.get(i))).collect(),
+            },
+            Nodes::Q16(v) => {
+                let q: Vec<QNode> = (start..start + count).map(|i| qnode(v.get(i))).collect();
+                dequantize_tree(n, scaling, &q)
+            }
+        }
+    }
+}
+
+/// One tree's raw node bytes, in either layout.
+#[derive(Clone, Copy)]
+enum Tree<'a> {
+    F32(&'a [u8]),
+    Q16(&'a [u8]),
+}
+
+/// Node `i` of a float tree's raw bytes, decoded (the look-ups' hot path: no accessor calls).
 #[inline]
 fn node_at(tree: &[u8], i: usize) -> Node {
     let b = &tree[i * NODE_BYTES..(i + 1) * NODE_BYTES];
@@ -125,13 +200,101 @@ fn node_at(tree: &[u8], i: usize) -> Node {
     }
 }
 
-/// A verified tree's value at cell (x, y), walking one path ([`eval_tree`]); finite (a
+/// Node `i` of a fixed-point tree's raw bytes, of a block `size` pixels wide, decoded.
+#[inline]
+fn qnode_at(tree: &[u8], i: usize, size: u32) -> Node {
+    let b = &tree[i * QNODE_BYTES..(i + 1) * QNODE_BYTES];
+    QNode {
+        q: [b[2] as i8, b[3] as i8, b[4] as i8],
+        links: u16::from_le_bytes([b[0], b[1]]),
+    }
+    .node(size)
+}
+
+/// A verified tree's value at cell (x, y), walking one path ([`eval_tree`]); in [0, 1] (a
 /// non-finite value, which verification rules out, is counted and replaced).
 #[inline]
-fn eval_bytes(n: u32, scaling: f32, tree: &[u8], cell: u32) -> f32 {
-    let len = tree.len() / NODE_BYTES;
-    let v = eval_tree(n, scaling, len, |i| node_at(tree, i), cell % n, cell / n);
+fn eval_bytes(n: u32, scaling: f32, tree: Tree, cell: u32) -> f32 {
+    let (x, y) = (cell % n, cell / n);
+    let v = match tree {
+        Tree::F32(t) => eval_tree(n, scaling, t.len() / NODE_BYTES, |i, _| node_at(t, i), x, y),
+        Tree::Q16(t) => eval_tree(
+            n,
+            scaling,
+            t.len() / QNODE_BYTES,
+            |i, s| qnode_at(t, i, s),
+            x,
+            y,
+        ),
+    };
     crate::math::finite_or_zero(v).clamp(0.0, 1.0)
+}
+
+/// Moment set `i` of a verified voxel block: full (`metal`) or dielectric, in either layout.
+fn moments_at(b: &fb::Block, metal: bool, i: usize) -> MaterialMoments {
+    use super::quantize;
+    match (metal, b.qmoments(), b.qdielectric_moments()) {
+        (true, Some(q), _) => quantize::moments(q.get(i)),
+        (false, _, Some(q)) => quantize::dielectric_moments(q.get(i)),
+        (true, ..) => {
+            let x = b.moments().expect("verified").get(i);
+            MaterialMoments {
+                c: g(x.base()),
+                mc: g(x.metal_base()),
+                s: x.specular(),
+                ms: x.metal_specular(),
+                m: x.metallic(),
+                f90: x.f90(),
+                mf90: x.metal_f90(),
+            }
+        }
+        (false, ..) => {
+            let x = b.dielectric_moments().expect("verified").get(i);
+            MaterialMoments {
+                c: g(x.base()),
+                s: x.specular(),
+                f90: x.f90(),
+                ..Default::default()
+            }
+        }
+    }
+}
+
+/// A block's SGGX lobes, in either layout.
+#[derive(Clone, Copy)]
+enum Lobes<'a> {
+    F32(flatbuffers::Vector<'a, fb::Lobe>),
+    Q16(flatbuffers::Vector<'a, fb::QLobe>),
+}
+
+impl<'a> Lobes<'a> {
+    fn of(b: &fb::Block<'a>) -> Lobes<'a> {
+        match b.qlobes() {
+            Some(q) => Lobes::Q16(q),
+            None => Lobes::F32(b.lobes().expect("verified")),
+        }
+    }
+
+    fn len(&self) -> usize {
+        match self {
+            Lobes::F32(v) => v.len(),
+            Lobes::Q16(v) => v.len(),
+        }
+    }
+
+    fn get(&self, i: usize) -> NdfLobe {
+        match self {
+            Lobes::F32(v) => {
+                let l = v.get(i);
+                NdfLobe {
+                    weight: l.weight(),
+                    frame: Mat3::from_cols(g(l.t()), g(l.b()), g(l.n())),
+                    alpha: Vec2::new(l.alpha_x(), l.alpha_y()),
+                }
+            }
+            Lobes::Q16(v) => super::quantize::lobe(v.get(i)),
+        }
+    }
 }
 
 fn verifier_options() -> flatbuffers::VerifierOptions {
@@ -306,6 +469,37 @@ impl Aggregate {
         (sum(&lv.voxel_blobs), sum(&lv.face_blobs))
     }
 
+    /// Bytes of level `l` per component (the arrays' payloads, in whichever layout each block
+    /// stores), over its blocks that verify; and whether every tree, lobe and moment array is
+    /// in format 1.4's quantized layout.
+    pub fn component_bytes(&self, l: usize) -> (ComponentBytes, bool) {
+        let lv = &self.levels[l];
+        let mut c = ComponentBytes::default();
+        let mut quantized = true;
+        let n = |b: Option<&[u8]>| b.map_or(0, |b| b.len() as u64);
+        for i in lv.voxel_blobs.clone() {
+            let Ok(b) = self.check(i) else { continue };
+            c.keys += n(b.keys().map(|v| v.bytes()));
+            c.voxels += n(b.voxels().map(|v| v.bytes()));
+            c.lobes += n(b.lobes().map(|v| v.bytes())) + n(b.qlobes().map(|v| v.bytes()));
+            c.moments += n(b.moments().map(|v| v.bytes())) + n(b.qmoments().map(|v| v.bytes()));
+            c.dielectric_moments += n(b.dielectric_moments().map(|v| v.bytes()))
+                + n(b.qdielectric_moments().map(|v| v.bytes()));
+            c.aiv_nodes +=
+                n(b.aiv_nodes().map(|v| v.bytes())) + n(b.aiv_qnodes().map(|v| v.bytes()));
+            c.exposure += n(b.exposure().map(|v| v.bytes()));
+            quantized &= b.qlobes().is_some() && b.aiv_qnodes().is_some();
+        }
+        for i in lv.face_blobs.clone() {
+            let Ok(b) = self.check(i) else { continue };
+            c.faces += n(b.faces().map(|v| v.bytes()));
+            c.abv_nodes +=
+                n(b.abv_nodes().map(|v| v.bytes())) + n(b.abv_qnodes().map(|v| v.bytes()));
+            quantized &= b.abv_qnodes().is_some();
+        }
+        (c, quantized)
+    }
+
     /// Voxel and face blocks of level `l`.
     pub fn block_counts(&self, l: usize) -> (usize, usize) {
         let lv = &self.levels[l];
@@ -323,6 +517,7 @@ impl Aggregate {
                 self.levels.as_slice(),
                 self.checksums,
                 self.trees,
+                self.header.minor,
             )
         });
         match state {
@@ -364,7 +559,7 @@ impl Aggregate {
         let block = self.check(bi)?;
         Ok(FaceBlock {
             faces: block.faces().expect("verified"),
-            nodes: block.abv_nodes().expect("verified"),
+            nodes: Nodes::abv(&block),
             abv_res: self.settings.abv_res,
         })
     }
@@ -480,7 +675,7 @@ impl<'a> VoxelBlock<'a> {
 #[derive(Clone, Copy)]
 pub struct FaceBlock<'a> {
     faces: flatbuffers::Vector<'a, fb::Face>,
-    nodes: flatbuffers::Vector<'a, fb::HaarNode>,
+    nodes: Nodes<'a>,
     abv_res: u32,
 }
 
@@ -509,7 +704,7 @@ impl<'a> FaceBlock<'a> {
 #[derive(Clone, Copy)]
 pub struct FaceRef<'a> {
     rec: &'a fb::Face,
-    nodes: flatbuffers::Vector<'a, fb::HaarNode>,
+    nodes: Nodes<'a>,
     abv_res: u32,
 }
 
@@ -547,24 +742,20 @@ impl<'a> FaceRef<'a> {
             return (scaling / n as f32).clamp(0.0, 1.0);
         }
         let cell = grid_cell(concentric_hemisphere_to_square(local), n);
-        let tree = tree_bytes(
-            self.nodes,
-            self.rec.abv_start() as usize,
-            self.rec.abv_count() as usize,
-        );
+        let tree = self
+            .nodes
+            .tree(self.rec.abv_start() as usize, self.rec.abv_count() as usize);
         eval_bytes(n, scaling, tree, cell)
     }
 
     /// The decoded ABV tree.
     pub fn abv_tree(&self) -> SparseHaar {
-        let s = self.rec.abv_start() as usize;
-        SparseHaar {
-            n: self.abv_res,
-            scaling: self.rec.abv_scaling(),
-            nodes: (s..s + self.rec.abv_count() as usize)
-                .map(|i| node(self.nodes.get(i)))
-                .collect(),
-        }
+        self.nodes.decode(
+            self.abv_res,
+            self.rec.abv_scaling(),
+            self.rec.abv_start() as usize,
+            self.rec.abv_count() as usize,
+        )
     }
 }
 
@@ -627,8 +818,7 @@ impl<'a> VoxelRef<'a> {
             return (scaling / n.max(1) as f32).clamp(0.0, 1.0);
         }
         let cell = grid_cell(equal_area_sphere_to_square(d), n);
-        let nodes = self.block.aiv_nodes().expect("verified");
-        let tree = tree_bytes(nodes, r.aiv_start() as usize, r.aiv_count() as usize);
+        let tree = Nodes::aiv(&self.block).tree(r.aiv_start() as usize, r.aiv_count() as usize);
         // A visibility: truncated wavelets may ring slightly outside [0, 1].
         eval_bytes(n, scaling, tree, cell)
     }
@@ -636,29 +826,19 @@ impl<'a> VoxelRef<'a> {
     /// The decoded AIV tree.
     pub fn aiv_tree(&self) -> SparseHaar {
         let r = self.rec;
-        let nodes = self.block.aiv_nodes().expect("verified");
-        let s = r.aiv_start() as usize;
-        SparseHaar {
-            n: self.aiv_res,
-            scaling: r.aiv_scaling(),
-            nodes: (s..s + r.aiv_count() as usize)
-                .map(|i| node(nodes.get(i)))
-                .collect(),
-        }
+        Nodes::aiv(&self.block).decode(
+            self.aiv_res,
+            r.aiv_scaling(),
+            r.aiv_start() as usize,
+            r.aiv_count() as usize,
+        )
     }
 
     /// The voxel's SGGX lobes (Eq. 8), without allocating.
     pub fn lobes(&self) -> impl Iterator<Item = NdfLobe> + 'a {
         let r = self.rec;
-        let lobes = self.block.lobes().expect("verified");
-        (r.lobe_start()..r.lobe_start() + r.lobe_count()).map(move |i| {
-            let l = lobes.get(i as usize);
-            NdfLobe {
-                weight: l.weight(),
-                frame: Mat3::from_cols(g(l.t()), g(l.b()), g(l.n())),
-                alpha: Vec2::new(l.alpha_x(), l.alpha_y()),
-            }
-        })
+        let lobes = Lobes::of(&self.block);
+        (r.lobe_start()..r.lobe_start() + r.lobe_count()).map(move |i| lobes.get(i as usize))
     }
 
     /// The ABSDF inputs.
@@ -666,36 +846,8 @@ impl<'a> VoxelRef<'a> {
         let r = self.rec;
         let lobes = self.lobes().collect();
         let range = r.moment_start() as usize..(r.moment_start() + r.moment_count()) as usize;
-        let sets: Vec<MaterialMoments> = if r.flags().contains(fb::VoxelFlags::Metallic) {
-            let m = self.block.moments().expect("verified");
-            range
-                .map(|i| {
-                    let x = m.get(i);
-                    MaterialMoments {
-                        c: g(x.base()),
-                        mc: g(x.metal_base()),
-                        s: x.specular(),
-                        ms: x.metal_specular(),
-                        m: x.metallic(),
-                        f90: x.f90(),
-                        mf90: x.metal_f90(),
-                    }
-                })
-                .collect()
-        } else {
-            let m = self.block.dielectric_moments().expect("verified");
-            range
-                .map(|i| {
-                    let x = m.get(i);
-                    MaterialMoments {
-                        c: g(x.base()),
-                        s: x.specular(),
-                        f90: x.f90(),
-                        ..Default::default()
-                    }
-                })
-                .collect()
-        };
+        let metal = r.flags().contains(fb::VoxelFlags::Metallic);
+        let sets: Vec<MaterialMoments> = range.map(|i| moments_at(&self.block, metal, i)).collect();
         let moments = if r.flags().contains(fb::VoxelFlags::DirectionalMoments) {
             let cells = (r.moment_res() * r.moment_res()) as usize;
             Moments::Directional {
@@ -898,6 +1050,7 @@ fn check_blob(
     levels: &[LevelInfo],
     checksums: bool,
     trees: bool,
+    minor: u16,
 ) -> Result<(), String> {
     let inner = || -> Result<(), FormatError> {
         let b = &data[r.offset as usize..(r.offset + r.size) as usize];
@@ -912,11 +1065,11 @@ fn check_blob(
         match r.kind {
             BlobKind::Voxels(l) => {
                 let res = levels[l as usize].grid.res;
-                check_voxel_block(&block, r, l, res, settings.aiv_res, trees)?;
+                check_voxel_block(&block, r, l, res, settings.aiv_res, trees, minor)?;
             }
             BlobKind::Faces(l) => {
                 let res = levels[l as usize].grid.res;
-                check_face_block(&block, r, l, res, settings.abv_res, trees)?;
+                check_face_block(&block, r, l, res, settings.abv_res, trees, minor)?;
             }
             BlobKind::Reserved => {}
         }
@@ -935,21 +1088,42 @@ fn check_voxel_block(
     res: u32,
     aiv_res: u32,
     trees: bool,
+    minor: u16,
 ) -> Result<u64, FormatError> {
+    use super::quantize;
     let at = r.offset;
     let err = |s: &str| corrupt(format!("voxel block at {at}: {s}"));
     if b.level() != level {
         return Err(err("belongs to another level"));
     }
-    let (Some(keys), Some(recs), Some(lobes), Some(moments), Some(diel), Some(nodes)) = (
-        b.keys(),
-        b.voxels(),
-        b.lobes(),
+    let (Some(keys), Some(recs)) = (b.keys(), b.voxels()) else {
+        return Err(err("missing arrays"));
+    };
+    // Each component in exactly one layout; the quantized ones from 1.4 on.
+    let quantized =
+        b.qlobes().is_some() || b.qmoments().is_some() || b.qdielectric_moments().is_some();
+    if (quantized || b.aiv_qnodes().is_some()) && minor < 4 {
+        return Err(err("quantized arrays in a file older than 1.4"));
+    }
+    let lobes = match (b.lobes(), b.qlobes()) {
+        (Some(l), None) => Lobes::F32(l),
+        (None, Some(q)) => Lobes::Q16(q),
+        _ => return Err(err("lobes missing or in both layouts")),
+    };
+    let (n_moments, n_diel) = match (
         b.moments(),
         b.dielectric_moments(),
-        b.aiv_nodes(),
-    ) else {
-        return Err(err("missing arrays"));
+        b.qmoments(),
+        b.qdielectric_moments(),
+    ) {
+        (Some(m), Some(d), None, None) => (m.len(), d.len()),
+        (None, None, Some(m), Some(d)) => (m.len(), d.len()),
+        _ => return Err(err("moments missing or in both layouts")),
+    };
+    let nodes = match (b.aiv_nodes(), b.aiv_qnodes()) {
+        (Some(f), None) => Nodes::F32(f),
+        (None, Some(q)) => Nodes::Q16(q),
+        _ => return Err(err("AIV nodes missing or in both layouts")),
     };
     let n = keys.len();
     if recs.len() != n || n as u64 != r.count as u64 || n == 0 {
@@ -992,14 +1166,19 @@ fn check_voxel_block(
         if v.lobe_count() == 0 || v.lobe_count() > 16 || lobe_end > lobes.len() as u64 {
             return Err(err("lobe range"));
         }
-        for j in v.lobe_start()..lobe_end as u32 {
-            let l = lobes.get(j as usize);
-            if ![l.weight(), l.alpha_x(), l.alpha_y()]
-                .iter()
-                .all(|x| x.is_finite())
-                || ![l.t(), l.b(), l.n()].iter().all(|x| finite3(x))
-            {
-                return Err(err("non-finite lobe"));
+        for j in v.lobe_start() as usize..lobe_end as usize {
+            let ok = match lobes {
+                Lobes::F32(f) => {
+                    let l = f.get(j);
+                    [l.weight(), l.alpha_x(), l.alpha_y()]
+                        .iter()
+                        .all(|x| x.is_finite())
+                        && [l.t(), l.b(), l.n()].iter().all(|x| finite3(x))
+                }
+                Lobes::Q16(q) => quantize::lobe_ok(q.get(j)),
+            };
+            if !ok {
+                return Err(err("non-finite or out-of-range lobe"));
             }
         }
         let directional = v.flags().contains(fb::VoxelFlags::DirectionalMoments);
@@ -1014,13 +1193,17 @@ fn check_voxel_block(
         };
         let mend = v.moment_start() as u64 + v.moment_count() as u64;
         let metal = v.flags().contains(fb::VoxelFlags::Metallic);
-        let avail = if metal { moments.len() } else { diel.len() } as u64;
+        let avail = if metal { n_moments } else { n_diel } as u64;
         if v.moment_count() as u64 != expected || mend > avail {
             return Err(err("moment range"));
         }
         for j in v.moment_start() as usize..mend as usize {
-            let ok = if metal {
-                let m = moments.get(j);
+            let ok = if let (true, Some(q)) = (metal, b.qmoments()) {
+                quantize::moments_ok(q.get(j))
+            } else if let (false, Some(q)) = (metal, b.qdielectric_moments()) {
+                quantize::dielectric_moments_ok(q.get(j))
+            } else if metal {
+                let m = b.moments().expect("checked above").get(j);
                 finite3(m.base())
                     && finite3(m.metal_base())
                     && [
@@ -1033,7 +1216,7 @@ fn check_voxel_block(
                     .iter()
                     .all(|x| x.is_finite())
             } else {
-                let m = diel.get(j);
+                let m = b.dielectric_moments().expect("checked above").get(j);
                 finite3(m.base()) && m.specular().is_finite() && m.f90().is_finite()
             };
             if !ok {
@@ -1049,7 +1232,7 @@ fn check_voxel_block(
         if !trees {
             continue;
         }
-        validate_tree(aiv_res, v.aiv_count() as usize, |j| node(nodes.get(s + j)))
+        validate_tree(aiv_res, v.aiv_count() as usize, |j| nodes.shape(s + j))
             .map_err(|e| err(&format!("AIV tree: {e}")))?;
     }
     Ok(n as u64)
@@ -1062,14 +1245,21 @@ fn check_face_block(
     res: u32,
     abv_res: u32,
     trees: bool,
+    minor: u16,
 ) -> Result<u64, FormatError> {
     let at = r.offset;
     let err = |s: &str| corrupt(format!("face block at {at}: {s}"));
     if b.level() != level {
         return Err(err("belongs to another level"));
     }
-    let (Some(faces), Some(nodes)) = (b.faces(), b.abv_nodes()) else {
+    let Some(faces) = b.faces() else {
         return Err(err("missing arrays"));
+    };
+    let nodes = match (b.abv_nodes(), b.abv_qnodes()) {
+        (Some(f), None) => Nodes::F32(f),
+        (None, Some(q)) if minor >= 4 => Nodes::Q16(q),
+        (None, Some(_)) => return Err(err("quantized arrays in a file older than 1.4")),
+        _ => return Err(err("ABV nodes missing or in both layouts")),
     };
     if faces.len() as u64 != r.count as u64 {
         return Err(err("face count mismatch"));
@@ -1089,7 +1279,7 @@ fn check_face_block(
         if !trees {
             continue;
         }
-        validate_tree(abv_res, f.abv_count() as usize, |j| node(nodes.get(s + j)))
+        validate_tree(abv_res, f.abv_count() as usize, |j| nodes.shape(s + j))
             .map_err(|e| err(&format!("ABV tree: {e}")))?;
     }
     Ok(faces.len() as u64)

@@ -54,6 +54,10 @@ pub struct RecordedSettings {
     pub denoise: bool,
     /// What the AIV averages over.
     pub aiv_weighting: AivWeighting,
+    /// The 1.0–1.3 float layout was kept (`--lossless`, format 1.4); false in older files,
+    /// which are float whatever it says.
+    #[serde(default)]
+    pub lossless: bool,
 }
 
 impl RecordedSettings {
@@ -80,6 +84,7 @@ impl RecordedSettings {
             } else {
                 AivWeighting::Area
             },
+            lossless: s.lossless(),
         }
     }
 
@@ -105,6 +110,7 @@ impl RecordedSettings {
                 AivWeighting::ProjectedArea => fb::AivWeighting::ProjectedArea,
             },
             abv_full_res: self.abv_full_res,
+            lossless: self.lossless,
         }
     }
 }

@@ -219,7 +219,7 @@ impl SparseHaar {
             self.n,
             self.scaling,
             self.nodes.len(),
-            |i| self.nodes[i],
+            |i, _| self.nodes[i],
             x,
             y,
         )
@@ -228,14 +228,15 @@ impl SparseHaar {
 
 /// The value of pixel (x, y) of the `n × n` map whose tree has `len` nodes given by `node`
 /// (preorder), walking one root-to-leaf path: the storage-independent form of
-/// [`SparseHaar::eval`], used on trees read zero-copy from a file. The tree must have passed
-/// [`validate_tree`] (or be built by [`SparseHaar::new`]).
+/// [`SparseHaar::eval`], used on trees read zero-copy from a file. `node(i, s)` is node `i`,
+/// whose block is `s` pixels wide (fixed-point storage, [`QNode`], needs it to scale the
+/// details). The tree must have passed [`validate_tree`] (or be built by [`SparseHaar::new`]).
 #[inline]
 pub fn eval_tree(
     n: u32,
     scaling: f32,
     len: usize,
-    node: impl Fn(usize) -> Node,
+    node: impl Fn(usize, u32) -> Node,
     x: u32,
     y: u32,
 ) -> f32 {
@@ -245,7 +246,7 @@ pub fn eval_tree(
     let mut size = n;
     let (mut x0, mut y0) = (0u32, 0u32);
     while i < len && size > 1 {
-        let nd = node(i);
+        let nd = node(i, size);
         let half = size / 2;
         let right = x >= x0 + half;
         let bottom = y >= y0 + half;
@@ -261,7 +262,7 @@ pub fn eval_tree(
         let mut j = i + 1;
         for p in 0..q {
             if nd.children & (1 << p) != 0 && j < len {
-                j += node(j).subtree as usize;
+                j += node(j, half).subtree as usize;
             }
         }
         i = j;
@@ -347,6 +348,119 @@ pub fn validate_tree(n: u32, len: usize, node: impl Fn(usize) -> Node) -> Result
         return Err(format!("root spans {} of {len} nodes", node(0).subtree));
     }
     Ok(())
+}
+
+/// Fixed-point scale of format 1.4's quantized details ([`QNode`]): a detail h of a node whose
+/// block is s pixels wide is stored as round(h / s · 254) in a signed byte. By the transform's
+/// normalisation h / s is a half-difference of quadrant means, within ±1/2 for a map in
+/// [0, 1], so ±127 spans exactly the range a visibility needs. 16 bits were measured too (the
+/// maple at 64³: 4e-5 at most); 8 bits give 0.012 at most and 0.002 RMS, far below the
+/// maps' Monte Carlo noise, for 6 bytes a node instead of 8 (examples/requantize.rs).
+pub const Q_DETAIL: f32 = 254.0;
+
+/// Most nodes a quantized subtree count (12 bits) holds: a full tree of a 64² map has 1365.
+pub const Q_MAX_SUBTREE: u32 = 4095;
+
+/// A node in format 1.4's fixed point (the schema's `QHaarNode`): the three details as
+/// round(h / s · [`Q_DETAIL`]) and the links, subtree count in bits 0–11 and child mask in
+/// bits 12–15. Per pixel the error is at most 3 · depth / (2 · 254): 0.035 on a 64² map.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct QNode {
+    pub q: [i8; 3],
+    pub links: u16,
+}
+
+impl QNode {
+    /// The node of a block `size` pixels wide, in fixed point; `None` when its subtree is too
+    /// large for 12 bits. Details saturate at ±1/2 of a pixel (never reached by a map in
+    /// [0, 1]).
+    pub fn quantize(n: &Node, size: u32) -> Option<QNode> {
+        if n.subtree > Q_MAX_SUBTREE || n.children > 15 {
+            return None;
+        }
+        let k = Q_DETAIL / size.max(1) as f32;
+        let q = n.details.map(|d| {
+            let x = (d * k).round();
+            // NaN (never produced by the bake) maps to 0, like every non-finite coefficient.
+            if x.is_nan() {
+                0
+            } else {
+                x.clamp(-127.0, 127.0) as i8
+            }
+        });
+        Some(QNode {
+            q,
+            links: n.subtree as u16 | (n.children as u16) << 12,
+        })
+    }
+
+    /// The child mask.
+    #[inline]
+    pub fn children(&self) -> u8 {
+        (self.links >> 12) as u8
+    }
+
+    /// Nodes in the subtree, itself included.
+    #[inline]
+    pub fn subtree(&self) -> u32 {
+        (self.links & 0x0fff) as u32
+    }
+
+    /// The node of a block `size` pixels wide, decoded.
+    #[inline]
+    pub fn node(&self, size: u32) -> Node {
+        let k = size as f32 / Q_DETAIL;
+        Node {
+            details: self.q.map(|q| q as f32 * k),
+            children: self.children(),
+            subtree: self.subtree(),
+        }
+    }
+}
+
+/// The block width of each node of a well-shaped preorder tree of an `n × n` map (`n` for
+/// the root, halving per level), from each node's child mask and subtree count. Nodes the walk
+/// never reaches (only in a malformed tree) keep width 1.
+pub fn node_sizes(n: u32, len: usize, links: impl Fn(usize) -> (u8, u32)) -> Vec<u32> {
+    let mut sizes = vec![1u32; len];
+    let mut stack = vec![(0usize, n)];
+    while let Some((i, s)) = stack.pop() {
+        if i >= len || s < 2 {
+            continue;
+        }
+        sizes[i] = s;
+        let (children, _) = links(i);
+        let mut j = i + 1;
+        for q in 0..4 {
+            if children & (1 << q) != 0 && j < len {
+                stack.push((j, s / 2));
+                j += links(j).1.max(1) as usize;
+            }
+        }
+    }
+    sizes
+}
+
+/// A tree in format 1.4's fixed point; `None` when it does not fit (a map above 64²).
+pub fn quantize_tree(t: &SparseHaar) -> Option<Vec<QNode>> {
+    let sizes = node_sizes(t.n, t.nodes.len(), |i| {
+        (t.nodes[i].children, t.nodes[i].subtree)
+    });
+    t.nodes
+        .iter()
+        .zip(&sizes)
+        .map(|(nd, &s)| QNode::quantize(nd, s))
+        .collect()
+}
+
+/// A fixed-point tree of an `n × n` map with scaling coefficient `scaling`, decoded.
+pub fn dequantize_tree(n: u32, scaling: f32, q: &[QNode]) -> SparseHaar {
+    let sizes = node_sizes(n, q.len(), |i| (q[i].children(), q[i].subtree()));
+    SparseHaar {
+        n,
+        scaling,
+        nodes: q.iter().zip(&sizes).map(|(x, &s)| x.node(s)).collect(),
+    }
 }
 
 #[cfg(test)]
@@ -474,5 +588,38 @@ mod tests {
         let (c, d) = forward(&vec![1.0; 64], 8);
         let t = SparseHaar::new(c, &d, 8);
         assert!(t.is_constant() && (t.eval(3, 5) - 1.0).abs() < 1e-6);
+    }
+
+    /// Fixed point: every pixel of a quantized tree within 3 · depth / (2 · 254) of the
+    /// float tree's (the bound [`QNode`] states), full and truncated, and the same structure.
+    #[test]
+    fn quantized_trees_stay_within_their_bound() {
+        for n in [2usize, 8, 32, 64] {
+            let m = random_map(n, 11 + n as u64);
+            let (c, mut d) = forward(&m, n);
+            for truncated in [false, true] {
+                if truncated {
+                    truncate(c, &mut d, 0.10, 0.95);
+                }
+                let t = SparseHaar::new(c, &d, n);
+                let q = quantize_tree(&t).expect("fits");
+                let back = dequantize_tree(n as u32, c, &q);
+                assert_eq!(back.nodes.len(), t.nodes.len());
+                let bound = 3.0 * n.trailing_zeros() as f32 / (2.0 * Q_DETAIL) + 1e-6;
+                for y in 0..n as u32 {
+                    for x in 0..n as u32 {
+                        let e = (back.eval(x, y) - t.eval(x, y)).abs();
+                        assert!(e <= bound, "{n}² ({x}, {y}): {e} > {bound}");
+                        let via = eval_tree(n as u32, c, q.len(), |i, s| q[i].node(s), x, y);
+                        assert_eq!(via, back.eval(x, y));
+                    }
+                }
+                assert!(validate_tree(n as u32, q.len(), |i| q[i].node(1)).is_ok());
+            }
+        }
+        // A map above 64² does not fit 12-bit subtree counts.
+        let m = random_map(128, 3);
+        let (c, d) = forward(&m, 128);
+        assert!(quantize_tree(&SparseHaar::new(c, &d, 128)).is_none());
     }
 }

@@ -148,8 +148,18 @@ class BakeSettings(object):
             return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
         return 0
 
+    # Added in 1.4: true when the bake kept the 1.0–1.3 float layout (`--lossless`); false
+    # (also absent, in older files) otherwise. Older files are float whatever it says: the
+    # arrays a block stores tell its layout.
+    # BakeSettings
+    def Lossless(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(36))
+        if o != 0:
+            return bool(self._tab.Get(flatbuffers.number_types.BoolFlags, o + self._tab.Pos))
+        return False
+
 def BakeSettingsStart(builder):
-    builder.StartObject(16)
+    builder.StartObject(17)
 
 def Start(builder):
     BakeSettingsStart(builder)
@@ -249,6 +259,12 @@ def BakeSettingsAddAbvFullRes(builder, abvFullRes):
 
 def AddAbvFullRes(builder, abvFullRes):
     BakeSettingsAddAbvFullRes(builder, abvFullRes)
+
+def BakeSettingsAddLossless(builder, lossless):
+    builder.PrependBoolSlot(16, lossless, 0)
+
+def AddLossless(builder, lossless):
+    BakeSettingsAddLossless(builder, lossless)
 
 def BakeSettingsEnd(builder):
     return builder.EndObject()

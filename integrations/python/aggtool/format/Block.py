@@ -264,8 +264,134 @@ class Block(object):
         o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(22))
         return o == 0
 
+    # 1.4, voxel blocks: the quantized forms. A block stores lobes either in `lobes` or in
+    # `qlobes`, moments either in `moments` and `dielectric_moments` or in `qmoments` and
+    # `qdielectric_moments`, and AIV trees either in `aiv_nodes` or in `aiv_qnodes`, never
+    # both; the `Voxel` records' ranges index whichever is present. Readers of 1.3 and older
+    # refuse a block with a quantized form (the float array they need is absent).
+    # Block
+    def Qlobes(self, j):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        if o != 0:
+            x = self._tab.Vector(o)
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 14
+            from aggtool.format.QLobe import QLobe
+            obj = QLobe()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # Block
+    def QlobesLength(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # Block
+    def QlobesIsNone(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(24))
+        return o == 0
+
+    # Block
+    def Qmoments(self, j):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(26))
+        if o != 0:
+            x = self._tab.Vector(o)
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 22
+            from aggtool.format.QMoments import QMoments
+            obj = QMoments()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # Block
+    def QmomentsLength(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(26))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # Block
+    def QmomentsIsNone(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(26))
+        return o == 0
+
+    # Block
+    def QdielectricMoments(self, j):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(28))
+        if o != 0:
+            x = self._tab.Vector(o)
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 10
+            from aggtool.format.QDielectricMoments import QDielectricMoments
+            obj = QDielectricMoments()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # Block
+    def QdielectricMomentsLength(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(28))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # Block
+    def QdielectricMomentsIsNone(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(28))
+        return o == 0
+
+    # Block
+    def AivQnodes(self, j):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(30))
+        if o != 0:
+            x = self._tab.Vector(o)
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 6
+            from aggtool.format.QHaarNode import QHaarNode
+            obj = QHaarNode()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # Block
+    def AivQnodesLength(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(30))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # Block
+    def AivQnodesIsNone(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(30))
+        return o == 0
+
+    # 1.4, face blocks: ABV trees quantized, instead of `abv_nodes`.
+    # Block
+    def AbvQnodes(self, j):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(32))
+        if o != 0:
+            x = self._tab.Vector(o)
+            x += flatbuffers.number_types.UOffsetTFlags.py_type(j) * 6
+            from aggtool.format.QHaarNode import QHaarNode
+            obj = QHaarNode()
+            obj.Init(self._tab.Bytes, x)
+            return obj
+        return None
+
+    # Block
+    def AbvQnodesLength(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(32))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # Block
+    def AbvQnodesIsNone(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(32))
+        return o == 0
+
 def BlockStart(builder):
-    builder.StartObject(10)
+    builder.StartObject(15)
 
 def Start(builder):
     BlockStart(builder)
@@ -383,6 +509,66 @@ def BlockStartExposureVector(builder, numElems):
 
 def StartExposureVector(builder, numElems):
     return BlockStartExposureVector(builder, numElems)
+
+def BlockAddQlobes(builder, qlobes):
+    builder.PrependUOffsetTRelativeSlot(10, flatbuffers.number_types.UOffsetTFlags.py_type(qlobes), 0)
+
+def AddQlobes(builder, qlobes):
+    BlockAddQlobes(builder, qlobes)
+
+def BlockStartQlobesVector(builder, numElems):
+    return builder.StartVector(14, numElems, 2)
+
+def StartQlobesVector(builder, numElems):
+    return BlockStartQlobesVector(builder, numElems)
+
+def BlockAddQmoments(builder, qmoments):
+    builder.PrependUOffsetTRelativeSlot(11, flatbuffers.number_types.UOffsetTFlags.py_type(qmoments), 0)
+
+def AddQmoments(builder, qmoments):
+    BlockAddQmoments(builder, qmoments)
+
+def BlockStartQmomentsVector(builder, numElems):
+    return builder.StartVector(22, numElems, 2)
+
+def StartQmomentsVector(builder, numElems):
+    return BlockStartQmomentsVector(builder, numElems)
+
+def BlockAddQdielectricMoments(builder, qdielectricMoments):
+    builder.PrependUOffsetTRelativeSlot(12, flatbuffers.number_types.UOffsetTFlags.py_type(qdielectricMoments), 0)
+
+def AddQdielectricMoments(builder, qdielectricMoments):
+    BlockAddQdielectricMoments(builder, qdielectricMoments)
+
+def BlockStartQdielectricMomentsVector(builder, numElems):
+    return builder.StartVector(10, numElems, 2)
+
+def StartQdielectricMomentsVector(builder, numElems):
+    return BlockStartQdielectricMomentsVector(builder, numElems)
+
+def BlockAddAivQnodes(builder, aivQnodes):
+    builder.PrependUOffsetTRelativeSlot(13, flatbuffers.number_types.UOffsetTFlags.py_type(aivQnodes), 0)
+
+def AddAivQnodes(builder, aivQnodes):
+    BlockAddAivQnodes(builder, aivQnodes)
+
+def BlockStartAivQnodesVector(builder, numElems):
+    return builder.StartVector(6, numElems, 2)
+
+def StartAivQnodesVector(builder, numElems):
+    return BlockStartAivQnodesVector(builder, numElems)
+
+def BlockAddAbvQnodes(builder, abvQnodes):
+    builder.PrependUOffsetTRelativeSlot(14, flatbuffers.number_types.UOffsetTFlags.py_type(abvQnodes), 0)
+
+def AddAbvQnodes(builder, abvQnodes):
+    BlockAddAbvQnodes(builder, abvQnodes)
+
+def BlockStartAbvQnodesVector(builder, numElems):
+    return builder.StartVector(6, numElems, 2)
+
+def StartAbvQnodesVector(builder, numElems):
+    return BlockStartAbvQnodesVector(builder, numElems)
 
 def BlockEnd(builder):
     return builder.EndObject()

@@ -1,0 +1,202 @@
+//! Files of earlier minor versions, committed under tests/data/, still open, verify and render
+//! as they did when they were written (schema/CHANGES.md: a reader of 1.m reads any 1.x file).
+//!
+//! - `foliage-1.3.agg`: `aggtool gen foliage --triangles 400`, baked by the 1.3 build
+//!   (21f8d27) with `aggtool convert foliage.glb --max-res 8 --min-res 2 --samples 8
+//!   --max-samples 64 --aiv-res 8 --aiv-rays 4 --abv-res 8 --abv-rays 1`.
+//! - `foliage-1.0.agg`, `foliage-1.1.agg`, `foliage-1.2.agg`: the same asset and command,
+//!   baked by builds of the last commit writing each version (aa840f1, 8e562ba, bf5b976; each
+//!   built in a temporary worktree). Their expected figures were printed by the 1.4 build,
+//!   whose float path renders the 1.3 file as the 1.3 build did (the test below) and renders
+//!   these three exactly as a 1.3 reader does (`aggtool render` on a 32² view: RMSE 0).
+//!
+//! - `foliage-1.4.agg`: the same voxels and faces in format 1.4's quantized layout, written
+//!   from `foliage-1.3.agg` by `cargo run --example requantize -- tests/data/foliage-1.3.agg
+//!   tests/data/foliage-1.4.agg` (the bytes a quantized bake of those settings writes). Both
+//!   files also seed the fuzzer (fuzz/fuzz_targets/read_agg.rs).
+//!
+//! The expected figures were printed by this test on the 1.3 build (AGGTOOL_PRINT=1 prints
+//! them again); the render is deterministic (fixed seed, per-pixel streams).
+
+use std::path::Path;
+
+use aggtool::format::Aggregate;
+use aggtool::render::View;
+use aggtool::runtime::{LodScene, TraceSettings};
+use aggtool::util::no_progress;
+use glam::Vec3;
+
+/// A committed file, opened with full verification.
+fn open(name: &str) -> Aggregate {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name);
+    Aggregate::open(&p).unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+/// The mean radiance of a 16×16, 4-spp render framing the file's bounds under a constant sky
+/// and a sun, and three of its pixels.
+fn render(agg: Aggregate) -> (Vec3, [Vec3; 3]) {
+    let (lo, hi) = agg.bounds();
+    let mut v = View::framing(0.5 * (lo + hi), 0.5 * (hi - lo).length(), 16, 16, 4);
+    v.environment = Some(aggtool::render::view::EnvironmentDesc::Constant {
+        constant: aggtool::render::view::Rgb::Rgb([0.4, 0.5, 0.7]),
+    });
+    v.sun = Some(aggtool::render::view::SunDesc {
+        direction: [0.3, 1.0, 0.5],
+        irradiance: aggtool::render::view::Rgb::Scalar(2.0),
+    });
+    let lights = v.lights().unwrap();
+    let lod = LodScene::new(agg);
+    let (img, stats) = aggtool::runtime::render(
+        &lod,
+        &v.camera(),
+        &lights,
+        4,
+        1,
+        &TraceSettings::default(),
+        &no_progress,
+    );
+    assert_eq!((stats.invalid_samples, stats.non_finite), (0, 0));
+    let mean = img.pixels.iter().copied().sum::<Vec3>() / img.pixels.len() as f32;
+    let px = |x: usize, y: usize| img.pixels[y * 16 + x];
+    (mean, [px(8, 8), px(5, 10), px(10, 4)])
+}
+
+/// Relative agreement within 1e-4 (the same code path reads the same floats; the margin is
+/// for summation order only).
+fn close(a: Vec3, b: [f32; 3]) -> bool {
+    let b = Vec3::from_array(b);
+    (a - b).abs().max_element() <= 1e-4 * b.abs().max_element().max(1e-3)
+}
+
+#[test]
+fn format_1_3_file_still_reads_and_renders_the_same() {
+    let agg = open("foliage-1.3.agg");
+    assert_eq!((agg.header().major, agg.header().minor), (1, 3));
+    assert_eq!(agg.level_count(), 3);
+    let counts: Vec<(u64, u64)> = (0..3)
+        .map(|l| (agg.counts(l).voxels, agg.counts(l).faces))
+        .collect();
+    assert_eq!(counts, [(133, 220), (37, 80), (8, 24)]);
+    assert!(aggtool::format::read::exercise(&agg) > 0);
+    let (mean, px) = render(agg);
+    if std::env::var_os("AGGTOOL_PRINT").is_some() {
+        eprintln!(
+            "mean {:?} pixels {:?}",
+            mean.to_array(),
+            px.map(|p| p.to_array())
+        );
+    }
+    // Printed by the 1.3 build (21f8d27); the second pixel sees the sky past the foliage.
+    let want_mean = [0.36749336, 0.47101167, 0.6389608];
+    let want_px = [
+        [0.24420556, 0.3868246, 0.4096083],
+        [0.4, 0.5, 0.7],
+        [0.16582578, 0.32755318, 0.26213473],
+    ];
+    assert!(close(mean, want_mean), "mean {mean}");
+    for (p, w) in px.iter().zip(want_px) {
+        assert!(close(*p, w), "pixel {p} against {w:?}");
+    }
+}
+
+/// The committed 1.0, 1.1 and 1.2 files open, verify and render as they did.
+#[test]
+fn format_1_0_to_1_2_files_still_read_and_render_the_same() {
+    // (file, minor, voxels and faces per level, mean, three pixels)
+    type Want = (&'static str, u16, [(u64, u64); 3], [f32; 3], [[f32; 3]; 3]);
+    let files: [Want; 3] = [
+        (
+            "foliage-1.0.agg",
+            0,
+            [(133, 220), (37, 80), (8, 24)],
+            [0.36441395, 0.46542525, 0.6347367],
+            [
+                [0.24736932, 0.3996995, 0.41191754],
+                [0.4, 0.5, 0.7],
+                [0.17371549, 0.28764126, 0.28823206],
+            ],
+        ),
+        (
+            "foliage-1.1.agg",
+            1,
+            [(133, 220), (37, 80), (8, 24)],
+            [0.3649963, 0.46681148, 0.635222],
+            [
+                [0.24805515, 0.40240857, 0.41264743],
+                [0.4, 0.5, 0.7],
+                [0.17578194, 0.2962691, 0.29060358],
+            ],
+        ),
+        (
+            "foliage-1.2.agg",
+            2,
+            [(133, 220), (37, 80), (8, 24)],
+            [0.36498737, 0.46678042, 0.635192],
+            [
+                [0.24172811, 0.3776389, 0.4055235],
+                [0.4, 0.5, 0.7],
+                [0.17623562, 0.29802662, 0.29112718],
+            ],
+        ),
+    ];
+    let print = std::env::var_os("AGGTOOL_PRINT").is_some();
+    for (name, minor, counts, want_mean, want_px) in files {
+        let agg = open(name);
+        assert_eq!(
+            (agg.header().major, agg.header().minor),
+            (1, minor),
+            "{name}"
+        );
+        let got: Vec<(u64, u64)> = (0..agg.level_count())
+            .map(|l| (agg.counts(l).voxels, agg.counts(l).faces))
+            .collect();
+        assert!(aggtool::format::read::exercise(&agg) > 0);
+        let (mean, px) = render(agg);
+        if print {
+            eprintln!(
+                "{name}: counts {got:?} mean {:?} pixels {:?}",
+                mean.to_array(),
+                px.map(|p| p.to_array())
+            );
+            continue;
+        }
+        assert_eq!(got, counts, "{name}");
+        assert!(close(mean, want_mean), "{name}: mean {mean}");
+        for (p, w) in px.iter().zip(want_px) {
+            assert!(close(*p, w), "{name}: pixel {p} against {w:?}");
+        }
+    }
+}
+
+/// The committed 1.4 file opens and verifies, is quantized at every level, and renders as the
+/// float file does within what quantization moves a render: the mean within 0.5%, the pixels
+/// within 2% (visibility values move by 0.006 at most in this file, binary16 moments by 2^-11).
+#[test]
+fn format_1_4_quantized_file_renders_as_the_float_one() {
+    let agg = open("foliage-1.4.agg");
+    assert_eq!((agg.header().major, agg.header().minor), (1, 4));
+    assert!(!agg.settings().lossless);
+    for l in 0..agg.level_count() {
+        assert!(agg.component_bytes(l).1, "level {l} is not quantized");
+    }
+    assert!(aggtool::format::read::exercise(&agg) > 0);
+    let (mean, px) = render(agg);
+    let (float_mean, float_px) = render(open("foliage-1.3.agg"));
+    if std::env::var_os("AGGTOOL_PRINT").is_some() {
+        eprintln!(
+            "1.4 mean {:?} pixels {:?}",
+            mean.to_array(),
+            px.map(|p| p.to_array())
+        );
+    }
+    let rel = |a: Vec3, b: Vec3| (a - b).abs().max_element() / b.max_element().max(1e-3);
+    assert!(
+        rel(mean, float_mean) <= 0.005,
+        "mean {mean} vs {float_mean}"
+    );
+    for (p, f) in px.iter().zip(float_px) {
+        assert!(rel(*p, f) <= 0.02, "pixel {p} vs {f}");
+    }
+}
