@@ -1325,43 +1325,14 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
         .map(|l| (agg.grid(l).res, agg.counts(l)))
         .collect();
     let effects = effect_lines(&levels, s.keep_all_effects);
-    let level_info: Vec<serde_json::Value> = (0..agg.level_count())
-        .map(|l| {
-            let (vb, fb) = agg.level_bytes(l);
-            let (nv, nf) = agg.block_counts(l);
-            let (components, quantized) = agg.component_bytes(l);
-            serde_json::json!({
-                "components": components,
-                "quantized": quantized,
-                "res": agg.grid(l).res,
-                "voxels": levels[l].1.voxels,
-                "faces": levels[l].1.faces,
-                "voxel_blocks": nv,
-                "face_blocks": nf,
-                "bytes": vb + fb,
-                "counts": levels[l].1,
-            })
-        })
-        .collect();
-    let (lo, hi) = agg.bounds();
-    let (tables_version, tables_crc32) = agg.tables();
+    let summary = aggtool::format::summary(&agg, file);
     if json {
-        let v = serde_json::json!({
-            "file": file.display().to_string(),
-            "format": format!("{}.{}", h.major, h.minor),
-            "bytes": h.file_size,
-            "generator": agg.generator(),
-            "source": agg.source(),
-            "bounds": [lo.to_array(), hi.to_array()],
-            "tables_version": tables_version,
-            "tables_crc32": tables_crc32,
-            "settings": s,
-            "levels": level_info,
-            "effects": effects,
-        });
-        println!("{}", serde_json::to_string_pretty(&v)?);
+        println!("{}", serde_json::to_string_pretty(&summary)?);
         return Ok(());
     }
+    let level_info = summary["levels"].as_array().cloned().unwrap_or_default();
+    let (lo, hi) = agg.bounds();
+    let (tables_version, tables_crc32) = agg.tables();
     println!(
         "{}: aggtool format {}.{}, {} bytes, written by {}",
         file.display(),

@@ -127,8 +127,8 @@ struct AggScene *agg_open(const char *path);
 void agg_close(struct AggScene *scene);
 
 /*
- The aggregate's bounds: `lo` and `hi` receive three floats each. [`AGG_ERR_NOT_FOUND`]
- for an empty aggregate.
+ The bounds of the asset the aggregate was baked from (inside the finest level's cube):
+ `lo` and `hi` receive three floats each. [`AGG_ERR_NOT_FOUND`] for an empty aggregate.
  */
 int agg_bounds(const struct AggScene *scene, float *lo, float *hi);
 

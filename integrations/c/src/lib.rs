@@ -220,8 +220,8 @@ pub unsafe extern "C" fn agg_close(scene: *mut AggScene) {
     });
 }
 
-/// The aggregate's bounds: `lo` and `hi` receive three floats each. [`AGG_ERR_NOT_FOUND`]
-/// for an empty aggregate.
+/// The bounds of the asset the aggregate was baked from (inside the finest level's cube):
+/// `lo` and `hi` receive three floats each. [`AGG_ERR_NOT_FOUND`] for an empty aggregate.
 #[no_mangle]
 pub unsafe extern "C" fn agg_bounds(scene: *const AggScene, lo: *mut f32, hi: *mut f32) -> c_int {
     guard(|| {
@@ -229,10 +229,10 @@ pub unsafe extern "C" fn agg_bounds(scene: *const AggScene, lo: *mut f32, hi: *m
         if lo.is_null() || hi.is_null() {
             return Err(arg("lo or hi"));
         }
-        let (a, b) = s
-            .scene
-            .bounds()
-            .ok_or((AGG_ERR_NOT_FOUND, "the aggregate is empty".to_string()))?;
+        if s.scene.level_count() == 0 {
+            return Err((AGG_ERR_NOT_FOUND, "the aggregate is empty".to_string()));
+        }
+        let (a, b) = s.scene.aggregate().bounds();
         write3(lo, a);
         write3(hi, b);
         Ok(())
