@@ -12,10 +12,8 @@
 
 mod common;
 
-use aggtool::math::rng::Pcg32;
 use aggtool::runtime::{Cone, Lights, LodScene, TraceSettings};
 use glam::Vec3;
-use rayon::prelude::*;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
@@ -46,14 +44,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut best = f64::INFINITY;
     for _ in 0..repeat {
         let t = std::time::Instant::now();
-        out.par_chunks_mut(4)
-            .zip(cones.par_iter())
-            .enumerate()
-            .for_each(|(i, (o, c))| {
-                let mut rng = Pcg32::new(1, i as u64);
-                let r = scene.trace(c, &lights, &settings, &mut rng);
-                o.copy_from_slice(&[r.radiance.x, r.radiance.y, r.radiance.z, r.transmittance]);
-            });
+        scene.trace_batch(&cones, &lights, &settings, 1, &mut out);
         best = best.min(t.elapsed().as_secs_f64());
     }
     let mean: f64 = out.iter().map(|&x| x as f64).sum::<f64>() / out.len().max(1) as f64;

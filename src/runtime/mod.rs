@@ -351,6 +351,29 @@ impl LodScene {
         shade::trace(self, cone, lights, settings, sampler)
     }
 
+    /// Traces a batch of cones in parallel with [`LodScene::trace`]: four floats per cone in
+    /// `rgba` (radiance RGB, background transmittance). Cone `i` draws stream `i` of `seed`,
+    /// so the result does not depend on the thread count. What the C ABI and the Python
+    /// module call. `rgba` must hold `4 * cones.len()` floats (extra ones are left alone).
+    pub fn trace_batch(
+        &self,
+        cones: &[Cone],
+        lights: &Lights,
+        settings: &TraceSettings,
+        seed: u64,
+        rgba: &mut [f32],
+    ) {
+        use rayon::prelude::*;
+        rgba.par_chunks_mut(4)
+            .zip(cones.par_iter())
+            .enumerate()
+            .for_each(|(i, (o, c))| {
+                let mut rng = Pcg32::new(seed, i as u64);
+                let r = self.trace(c, lights, settings, &mut rng);
+                o.copy_from_slice(&[r.radiance.x, r.radiance.y, r.radiance.z, r.transmittance]);
+            });
+    }
+
     /// The background's weight along a cone, the ABV of the face it enters the aggregate by
     /// (1 when it meets no primitive): what the aggregate lets through, for a host's shadow
     /// rays.

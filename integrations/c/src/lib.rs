@@ -21,7 +21,6 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::Path;
 
 use aggtool::bsdf::Bsdf;
-use aggtool::math::rng::Pcg32;
 use aggtool::runtime::{Cone, EnvMap, Environment, Lights, LodScene, Sun, TraceSettings};
 use glam::{Vec2, Vec3};
 
@@ -366,7 +365,6 @@ pub unsafe extern "C" fn agg_trace_cones(
     rgba_out: *mut f32,
 ) -> c_int {
     guard(|| {
-        use rayon::prelude::*;
         let s = scene_ref(scene)?;
         let lights = match l.as_ref() {
             Some(x) if x.magic == LIGHTS_MAGIC => &x.lights,
@@ -385,15 +383,8 @@ pub unsafe extern "C" fn agg_trace_cones(
             .enumerate()
             .map(|(i, c)| cone(c).map_err(|e| (AGG_ERR_VALUE, format!("cone {i}: {e}"))))
             .collect::<Result<_, _>>()?;
-        let settings = TraceSettings::default();
-        out.par_chunks_mut(4)
-            .zip(cs.par_iter())
-            .enumerate()
-            .for_each(|(i, (o, c))| {
-                let mut rng = Pcg32::new(seed, i as u64);
-                let r = s.scene.trace(c, lights, &settings, &mut rng);
-                o.copy_from_slice(&[r.radiance.x, r.radiance.y, r.radiance.z, r.transmittance]);
-            });
+        s.scene
+            .trace_batch(&cs, lights, &TraceSettings::default(), seed, out);
         if let Some(e) = s.scene.first_error() {
             return Err((AGG_ERR_FILE, format!("damaged level: {e}")));
         }

@@ -13,7 +13,6 @@
 
 use std::path::PathBuf;
 
-use aggtool::math::rng::Pcg32;
 use aggtool::runtime::{
     Cone, EnvMap, Environment, Lights as RtLights, LodScene, Sun, TraceSettings,
 };
@@ -230,17 +229,8 @@ impl Scene {
             .unwrap_or_else(|| RtLights::constant(Vec3::ONE));
         let scene = &self.scene;
         let out: Vec<f32> = py.detach(|| {
-            use rayon::prelude::*;
-            let settings = TraceSettings::default();
             let mut out = vec![0f32; 4 * n];
-            out.par_chunks_mut(4)
-                .zip(cones.par_iter())
-                .enumerate()
-                .for_each(|(i, (o, c))| {
-                    let mut rng = Pcg32::new(seed, i as u64);
-                    let r = scene.trace(c, &lights, &settings, &mut rng);
-                    o.copy_from_slice(&[r.radiance.x, r.radiance.y, r.radiance.z, r.transmittance]);
-                });
+            scene.trace_batch(&cones, &lights, &TraceSettings::default(), seed, &mut out);
             out
         });
         if let Some(e) = self.scene.first_error() {
