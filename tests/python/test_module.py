@@ -3,39 +3,13 @@ folder, imported from there, and checked: open/bounds/levels/inspect against `ag
 an image traced through `Scene.trace` against `aggtool render` of the same view, `convert`
 with settings and progress, and each bad input as a clear exception."""
 import json
-import shutil
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from aggtool_cli import ROOT, find_aggtool, run  # noqa: E402
-
-PKG = ROOT / "integrations" / "python"
-
-
-@pytest.fixture(scope="module")
-def aggtool_module():
-    if shutil.which("maturin") is None:
-        pytest.skip("maturin is not installed (pip install maturin)")
-    out = Path(tempfile.mkdtemp(prefix="aggtool-wheel-"))
-    profile = "release" if "release" in str(find_aggtool()) else "dev"
-    r = subprocess.run(["maturin", "build", "--profile", profile, "-o", str(out / "dist")],
-                       cwd=PKG, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr[-4000:]
-    wheel = next((out / "dist").glob("aggtool-*.whl"))
-    r = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps",
-                        "--target", str(out / "site"), str(wheel)], capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    sys.path.insert(0, str(out / "site"))
-    import aggtool
-    assert Path(aggtool.__file__).is_relative_to(out / "site")
-    yield aggtool
-    sys.path.remove(str(out / "site"))
-    shutil.rmtree(out, ignore_errors=True)
+from aggtool_cli import run  # noqa: E402
 
 
 def tree(tmp: Path) -> Path:
