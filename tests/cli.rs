@@ -252,7 +252,8 @@ fn export_writes_views_instances_and_textures() {
     assert!(!p.join("x").join("scene.json").exists());
 }
 
-/// `convert` writes format 1.4 quantized by default and the float layout with `--lossless`;
+/// `convert` writes format 1.4's quantized layout by default, its blocks compressed (1.5), and
+/// the float layout with `--lossless`;
 /// `--no-cpca` is accepted and changes nothing (CPCA is not implemented); `inspect --json`
 /// gives each level's bytes per component and layout, and the quantized file is smaller in
 /// every node, lobe and moment component.
@@ -294,8 +295,26 @@ fn lossless_and_quantized_layouts() {
         std::fs::read(p.join("n.agg")).unwrap(),
         "--no-cpca changes nothing"
     );
-    assert_eq!(q["format"], "1.4");
+    assert_eq!(q["format"], "1.5");
     assert_eq!(q["settings"]["lossless"], false);
+    assert_eq!(q["settings"]["compression"], 19);
+    // Blocks compressed by default (1.5), stored as they are with level 0: same content.
+    let z = bake(&["--compression-level", "0"], "z.agg");
+    assert_eq!(z["settings"]["compression"], 0);
+    for (a, b) in q["levels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(z["levels"].as_array().unwrap())
+    {
+        assert_eq!(a["components"], b["components"]);
+        assert_eq!(a["inflated_bytes"], b["bytes"]);
+        assert!(a["bytes"].as_u64() < b["bytes"].as_u64(), "{a} vs {b}");
+        assert!(a["compression_ratio"].as_f64().unwrap() > 1.0);
+    }
+    let e = aggtool(&["convert", "foliage.glb", "--compression-level", "23"], p);
+    assert!(!e.status.success());
+    assert!(String::from_utf8_lossy(&e.stderr).contains("--compression-level"));
     assert_eq!(l["settings"]["lossless"], true);
     for (a, b) in q["levels"]
         .as_array()

@@ -58,6 +58,9 @@ pub struct BakeSettings {
     /// format 1.4's quantized one (`format::quantize`, `math::haar::QNode`), for measuring
     /// what quantization costs; renders differ by the quantization error only.
     pub lossless: bool,
+    /// Zstandard level of the block blobs (format 1.5; 0 stores them uncompressed): lossless,
+    /// inflated by readers the first time a block is read.
+    pub compression: i32,
 }
 
 impl Default for BakeSettings {
@@ -79,6 +82,7 @@ impl Default for BakeSettings {
             denoise: true,
             keep_all_effects: false,
             lossless: false,
+            compression: crate::format::DEFAULT_COMPRESSION,
         }
     }
 }
@@ -115,6 +119,12 @@ impl BakeSettings {
             return Err(format!(
                 "--moment-res must be 1 to 16, got {}",
                 self.moment_res
+            ));
+        }
+        if !(0..=22).contains(&self.compression) {
+            return Err(format!(
+                "--compression-level must be 0 (none) to 22, got {}",
+                self.compression
             ));
         }
         if !(self.keep > 0.0 && self.keep <= 1.0) || !(self.energy >= 0.0 && self.energy <= 1.0) {
@@ -168,6 +178,7 @@ impl BakeSettings {
             denoise: self.denoise,
             aiv_weighting: crate::format::AivWeighting::ProjectedArea,
             lossless: self.lossless,
+            compression: self.compression,
         }
     }
 
