@@ -528,12 +528,14 @@ fn writer_is_atomic() {
 fn damaged_files_never_panic() {
     let dir = tempfile::tempdir().unwrap();
     let (bytes, _) = bake(&scene("foliage", 300, false), &small(), dir.path(), "f.agg");
-    // The quantized bake, then the committed files of each layout (1.3 floats, 1.4 quantized).
+    // The default bake (quantized, blocks compressed), then the committed files of each layout
+    // (1.3 floats, 1.4 quantized, 1.5 compressed).
     let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
     let files = [
         (bytes, 3000),
         (std::fs::read(data.join("foliage-1.3.agg")).unwrap(), 1000),
         (std::fs::read(data.join("foliage-1.4.agg")).unwrap(), 1000),
+        (std::fs::read(data.join("foliage-1.5.agg")).unwrap(), 1000),
     ];
     for (bytes, runs) in files {
         damage(&bytes, runs);
