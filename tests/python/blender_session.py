@@ -240,10 +240,38 @@ def preview():
     scene.render.film_transparent = True
     # The screenshot of the README: the image written as a PNG.
     img = bpy.data.images["aggtool preview"]
-    img.filepath_raw = str(WORK / "preview.png")
     img.file_format = "PNG"
-    img.save()
+    img.save(filepath=str(WORK / "preview.png"))
     result["preview_png"] = str(WORK / "preview.png")
+
+
+@part("preview_vs_render")
+def preview_vs_render():
+    """The opaque preview as a PFM, and the same view as a view file for `aggtool render` in
+    the aggregate's (glTF's) space, built from the camera's position, forward axis and field
+    of view rather than the extension's ray generation; test_blender.py renders and compares."""
+    select([base])
+    scene.render.film_transparent = False
+    try:
+        bpy.ops.aggtool.render_preview(samples=128, seed=5)
+    finally:
+        scene.render.film_transparent = True
+    _, px = preview_pixels()
+    with open(WORK / "preview.pfm", "wb") as f:  # PFM rows run bottom-up, as Blender's do
+        f.write(f"PF\n{WIDTH} {HEIGHT}\n-1.0\n".encode())
+        f.write(np.ascontiguousarray(px[..., :3], dtype="<f4").tobytes())
+    y_up = lambda v: [v.x, v.z, -v.y]  # noqa: E731 (the exporter's Z-up -> Y-up)
+    forward = cam.matrix_world.to_3x3() @ Vector((0.0, 0.0, -1.0))
+    # Sensor fit AUTO on a landscape image: `angle` is the horizontal field of view.
+    fov_y = 2 * math.degrees(math.atan(math.tan(cam.data.angle / 2) * HEIGHT / WIDTH))
+    towards_sun = sun.matrix_world.to_3x3() @ Vector((0.0, 0.0, 1.0))
+    view = {"version": 1, "camera": {"eye": y_up(cam.location), "target": y_up(cam.location + forward),
+                                     "fov_y_deg": fov_y, "width": WIDTH, "height": HEIGHT},
+            "environment": {"constant": [0.2, 0.3, 0.4]},
+            "sun": {"direction": y_up(towards_sun), "irradiance": [3.0, 3.0, 3.0]}, "spp": 128}
+    (WORK / "view.json").write_text(json.dumps(view))
+    result["preview_vs_render"] = {"pfm": str(WORK / "preview.pfm"), "view": str(WORK / "view.json"),
+                                   "agg": str(bpy.path.abspath(base["aggtool_sidecar"]))}
 
 
 @part("bad_input")
