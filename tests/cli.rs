@@ -339,3 +339,58 @@ fn lossless_and_quantized_layouts() {
         "{text}"
     );
 }
+
+/// `convert --progress-json` (for programs that run the bake, e.g. the Blender extension):
+/// stderr holds only JSON progress lines, each stage of every level from 0 to its total, and
+/// the file is the same as without the flag.
+#[test]
+fn convert_progress_json() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    ok(&aggtool(
+        &["gen", "foliage", "-o", ".", "--triangles", "400"],
+        p,
+    ));
+    let bake = |extra: &[&str], out: &str| {
+        let mut args = vec![
+            "convert",
+            "foliage.glb",
+            "--max-res",
+            "8",
+            "--min-res",
+            "4",
+            "--samples",
+            "4",
+            "--aiv-res",
+            "8",
+            "--abv-res",
+            "8",
+            "-o",
+            out,
+        ];
+        args.extend_from_slice(extra);
+        let o = aggtool(&args, p);
+        ok(&o);
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    let err = bake(&["--progress-json"], "j.agg");
+    let lines: Vec<serde_json::Value> = err
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{l}: {e}")))
+        .collect();
+    for stage in ["8³ voxels", "8³ faces", "4³ voxels", "4³ faces"] {
+        let s: Vec<_> = lines.iter().filter(|l| l["stage"] == stage).collect();
+        assert!(!s.is_empty(), "no {stage} in {err}");
+        assert_eq!(s.first().unwrap()["done"], 0, "{err}");
+        assert_eq!(
+            s.last().unwrap()["done"],
+            s.last().unwrap()["total"],
+            "{err}"
+        );
+    }
+    bake(&[], "n.agg");
+    assert_eq!(
+        std::fs::read(p.join("j.agg")).unwrap(),
+        std::fs::read(p.join("n.agg")).unwrap()
+    );
+}

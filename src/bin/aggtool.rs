@@ -246,6 +246,10 @@ enum Command {
         /// Treat import warnings as errors.
         #[arg(long)]
         strict: bool,
+        /// Report progress on stderr as JSON lines ({"stage", "done", "total"}: at each stage's
+        /// start, whole percent and end) instead of bars, for programs that run the bake.
+        #[arg(long)]
+        progress_json: bool,
     },
     /// Render an .agg aggregate with the LoD runtime (cone tracing, Eq. 30) to EXR and PNG.
     Render {
@@ -1125,6 +1129,7 @@ fn run(cli: Cli) -> Result<()> {
             report,
             verbose,
             strict,
+            progress_json,
         } => {
             let settings = aggtool::bake::BakeSettings {
                 max_res,
@@ -1152,6 +1157,7 @@ fn run(cli: Cli) -> Result<()> {
                 report.as_deref(),
                 verbose,
                 strict,
+                progress_json,
             )
         }
         Command::Inspect { file, json } => inspect(&file, json),
@@ -1222,6 +1228,7 @@ fn convert(
     report: Option<&Path>,
     verbose: bool,
     strict: bool,
+    progress_json: bool,
 ) -> Result<()> {
     settings.validate().map_err(anyhow::Error::msg)?;
     let out = output.unwrap_or_else(|| asset.with_extension("agg"));
@@ -1238,8 +1245,10 @@ fn convert(
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     let bars = TerminalProgress::new();
-    let r = aggtool::bake::bake_to_file(&scene, &source, settings, &out, &|s, d, n| {
-        bars.report(s, d, n)
+    let json = progress_json.then(aggtool::util::JsonProgress::stderr);
+    let r = aggtool::bake::bake_to_file(&scene, &source, settings, &out, &|s, d, n| match &json {
+        Some(j) => j.report(s, d, n),
+        None => bars.report(s, d, n),
     })
     .with_context(|| format!("baking {}", asset.display()))?;
     bars.finish();
