@@ -63,7 +63,8 @@ fn study(name: &str, maps: &[Vec<f32>], n: usize, s: &CpcaSettings, stored_bytes
             bytes += 8 + 16 * (1 + cl.reps.len());
             bytes += tree_bytes(&cl.mean, t, 1.0, 1.0);
             for u in &cl.reps {
-                let r = u.iter().fold(f32::MIN, |a, b| a.max(*b)) - u.iter().fold(f32::MAX, |a, b| a.min(*b));
+                let r = u.iter().fold(f32::MIN, |a, b| a.max(*b))
+                    - u.iter().fold(f32::MAX, |a, b| a.min(*b));
                 let scaled: Vec<f32> = u.iter().map(|x| x / r.max(1e-12)).collect();
                 bytes += tree_bytes(&scaled, t, 1.0, 1.0);
             }
@@ -87,7 +88,11 @@ fn study(name: &str, maps: &[Vec<f32>], n: usize, s: &CpcaSettings, stored_bytes
             let mut rec = cl.mean.clone();
             for (j, u) in cl.reps.iter().enumerate() {
                 let st = scales[ci][j];
-                let wq = if st > 0.0 { (c.weights[i][j] / st).round() * st } else { 0.0 };
+                let wq = if st > 0.0 {
+                    (c.weights[i][j] / st).round() * st
+                } else {
+                    0.0
+                };
                 for (o, x) in rec.iter_mut().zip(u) {
                     *o += wq * x;
                 }
@@ -125,11 +130,47 @@ fn main() {
     let lvl = agg.read_level(0);
     let (cb, _) = agg.component_bytes(0);
     let s = agg.settings();
-    let aiv: Vec<Vec<f32>> = lvl.voxels.iter().filter(|v| !v.aiv.is_constant()).map(|v| dense(&v.aiv)).collect();
-    let abv: Vec<Vec<f32>> = lvl.faces.iter().filter(|f| !f.abv.is_constant()).map(|f| dense(&f.abv)).collect();
+    let aiv: Vec<Vec<f32>> = lvl
+        .voxels
+        .iter()
+        .filter(|v| !v.aiv.is_constant())
+        .map(|v| dense(&v.aiv))
+        .collect();
+    let abv: Vec<Vec<f32>> = lvl
+        .faces
+        .iter()
+        .filter(|f| !f.abv.is_constant())
+        .map(|f| dense(&f.abv))
+        .collect();
     let t0 = std::time::Instant::now();
-    study("AIV", &aiv, s.aiv_res as usize, &CpcaSettings { clusters, reps: reps_aiv, min_per_cluster: 32, tolerance: tol }, cb.aiv_nodes);
+    study(
+        "AIV",
+        &aiv,
+        s.aiv_res as usize,
+        &CpcaSettings {
+            clusters,
+            reps: reps_aiv,
+            min_per_cluster: 32,
+            tolerance: tol,
+        },
+        cb.aiv_nodes,
+    );
     let t1 = std::time::Instant::now();
-    study("ABV", &abv, s.abv_res as usize, &CpcaSettings { clusters, reps: reps_abv, min_per_cluster: 32, tolerance: tol }, cb.abv_nodes);
-    println!("seconds: AIV {:.1}, ABV {:.1}", (t1 - t0).as_secs_f64(), t1.elapsed().as_secs_f64());
+    study(
+        "ABV",
+        &abv,
+        s.abv_res as usize,
+        &CpcaSettings {
+            clusters,
+            reps: reps_abv,
+            min_per_cluster: 32,
+            tolerance: tol,
+        },
+        cb.abv_nodes,
+    );
+    println!(
+        "seconds: AIV {:.1}, ABV {:.1}",
+        (t1 - t0).as_secs_f64(),
+        t1.elapsed().as_secs_f64()
+    );
 }

@@ -161,9 +161,7 @@ fn main() -> anyhow::Result<()> {
     let paths: Vec<PathBuf> = args
         .iter()
         .enumerate()
-        .filter(|(i, a)| {
-            !a.starts_with("--") && (*i == 0 || args[i - 1] != "--compression-level")
-        })
+        .filter(|(i, a)| !a.starts_with("--") && (*i == 0 || args[i - 1] != "--compression-level"))
         .map(|(_, a)| PathBuf::from(a))
         .collect();
     let [input, output] = paths.as_slice() else {

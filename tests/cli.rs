@@ -394,3 +394,58 @@ fn convert_progress_json() {
         std::fs::read(p.join("n.agg")).unwrap()
     );
 }
+
+/// `--preset` starts from the library's preset and flags beside it override it: the file
+/// records the preset's values where no flag was given (draft: 2 lobes, 4 AIV rays, fast
+/// compression; max: nothing truncated, quantized or compressed) and the flag's where one was.
+#[test]
+fn presets_and_overrides() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    ok(&aggtool(
+        &["gen", "foliage", "-o", ".", "--triangles", "300"],
+        p,
+    ));
+    let settings = |extra: &[&str], out: &str| {
+        let mut args = vec![
+            "convert",
+            "foliage.glb",
+            "--max-res",
+            "8",
+            "--samples",
+            "4",
+            "-o",
+            out,
+        ];
+        args.extend_from_slice(extra);
+        ok(&aggtool(&args, p));
+        let j = ok(&aggtool(&["inspect", out, "--json"], p));
+        serde_json::from_str::<serde_json::Value>(&j).unwrap()["settings"].clone()
+    };
+    let draft = settings(&["--preset", "draft", "--aiv-res", "8"], "d.agg");
+    assert_eq!(
+        (
+            &draft["ndf_lobes"],
+            &draft["aiv_rays"],
+            &draft["compression"]
+        ),
+        (&2.into(), &4.into(), &3.into())
+    );
+    assert_eq!(
+        (&draft["aiv_res"], &draft["max_res"]),
+        (&8.into(), &8.into()),
+        "flags win"
+    );
+    let max = settings(
+        &["--preset", "max", "--aiv-res", "8", "--abv-res", "8"],
+        "m.agg",
+    );
+    assert_eq!((&max["keep"], &max["energy"]), (&1.0.into(), &1.0.into()));
+    assert_eq!(
+        (&max["lossless"], &max["denoise"], &max["compression"]),
+        (&true.into(), &false.into(), &0.into())
+    );
+    let e = aggtool(&["convert", "foliage.glb", "--preset", "fast"], p);
+    assert!(!e.status.success());
+    assert!(String::from_utf8_lossy(&e.stderr).contains("possible values"));
+}

@@ -210,7 +210,10 @@ fn format_1_5_compressed_file_renders_as_the_1_4_one() {
     let z = open("foliage-1.5.agg");
     let q = open("foliage-1.4.agg");
     assert_eq!((z.header().major, z.header().minor), (1, 5));
-    assert_eq!(z.settings().compression, aggtool::format::DEFAULT_COMPRESSION);
+    assert_eq!(
+        z.settings().compression,
+        aggtool::format::DEFAULT_COMPRESSION
+    );
     assert!(z.bytes().len() < q.bytes().len());
     for l in 0..z.level_count() {
         assert_eq!(z.read_level(l), q.read_level(l), "level {l}");

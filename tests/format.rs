@@ -306,8 +306,16 @@ fn round_trip_and_rejection() {
     // refused in a file that claims 1.4.
     let (zbytes, _) = bake(&sc, &small(), dir.path(), "z.agg");
     let z = Aggregate::from_bytes(zbytes.clone()).unwrap();
-    assert_eq!(z.settings().compression, aggtool::format::DEFAULT_COMPRESSION);
-    assert!(zbytes.len() < qbytes.len(), "{} vs {}", zbytes.len(), qbytes.len());
+    assert_eq!(
+        z.settings().compression,
+        aggtool::format::DEFAULT_COMPRESSION
+    );
+    assert!(
+        zbytes.len() < qbytes.len(),
+        "{} vs {}",
+        zbytes.len(),
+        qbytes.len()
+    );
     for l in 0..z.level_count() {
         assert_eq!(z.read_level(l), q.read_level(l), "level {l}");
         assert_eq!(z.component_bytes(l), q.component_bytes(l), "level {l}");

@@ -59,10 +59,7 @@ impl Cpca {
 }
 
 fn dist2(a: &[f32], b: &[f32]) -> f64 {
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| ((x - y) as f64).powi(2))
-        .sum()
+    a.iter().zip(b).map(|(x, y)| ((x - y) as f64).powi(2)).sum()
 }
 
 /// Deterministic k-means (Lloyd) of the `m` vectors of `data` (row-major, `dim` each) into at
@@ -170,7 +167,13 @@ fn argmax(v: &[f64]) -> usize {
 /// PCA of the vectors `members` (rows of `data`, `dim` each): their mean and the fewest
 /// top left-singular vectors of the mean-subtracted matrix (at most `max_reps`) whose
 /// reconstruction has an RMS error per component of at most `tolerance`.
-pub fn pca(data: &[f32], dim: usize, members: &[usize], max_reps: usize, tolerance: f64) -> Cluster {
+pub fn pca(
+    data: &[f32],
+    dim: usize,
+    members: &[usize],
+    max_reps: usize,
+    tolerance: f64,
+) -> Cluster {
     let m = members.len();
     let row = |i: usize| &data[i * dim..(i + 1) * dim];
     let mut mean = vec![0f64; dim];
