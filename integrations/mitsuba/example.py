@@ -4,7 +4,7 @@ integrator, under the same environment map and directional emitter; writes both 
 (LoD left, mesh right) as an EXR and a PNG and prints their relative RMSE and times.
 
     python3 integrations/mitsuba/example.py [--variant scalar_rgb|llvm_ad_rgb] [--size 128]
-        [--spp 16] [-o mitsuba-tree]
+        [--spp 16] [--triangles 20000] [--max-res 32] [-o mitsuba-tree]
 
 It runs `aggtool gen foliage` and `aggtool convert` (the `aggtool` on PATH, or target/release)
 into the output folder first. tests/python/test_mitsuba_host.py uses the functions here.
@@ -41,14 +41,14 @@ def find_aggtool() -> str:
     sys.exit("aggtool not found: cargo build --release -p aggtool")
 
 
-def make_tree(folder: Path, aggtool: str, triangles=2000) -> tuple[Path, Path]:
+def make_tree(folder: Path, aggtool: str, triangles=2000, max_res=16) -> tuple[Path, Path]:
     """`aggtool gen foliage` (Lambertian, so Mitsuba's `diffuse` is the same material) and a
     tiny bake of it. Returns (glb, agg)."""
     folder.mkdir(parents=True, exist_ok=True)
     subprocess.run([aggtool, "gen", "foliage", "-o", str(folder), "--triangles", str(triangles),
                     "--lambertian"], check=True, capture_output=True)
     glb = folder / "foliage.glb"
-    subprocess.run([aggtool, "convert", str(glb), "--max-res", "16", "--min-res", "4",
+    subprocess.run([aggtool, "convert", str(glb), "--max-res", str(max_res), "--min-res", "4",
                     "--samples", "8", "--aiv-res", "8", "--aiv-rays", "4", "--abv-res", "8",
                     "--abv-full-res", "8"], check=True, capture_output=True)
     return glb, folder / "foliage.agg"
@@ -88,10 +88,45 @@ def write_ply(path: Path, pos, nrm, uv, faces):
     path.write_bytes(head.encode() + v.tobytes() + f.tobytes())
 
 
+def _bilinear(img, uv):
+    """glTF texture lookup (uv (0, 0) at the image's top left, clamped), bilinear."""
+    h, w = img.shape[:2]
+    x = np.clip(uv[:, 0] * w - 0.5, 0, w - 1)
+    y = np.clip(uv[:, 1] * h - 0.5, 0, h - 1)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    return ((img[y0, x0] * (1 - fx) + img[y0, x1] * fx) * (1 - fy)
+            + (img[y1, x0] * (1 - fx) + img[y1, x1] * fx) * fy)
+
+
+def cut_out(pos, nrm, uv, faces, alpha, cutoff, k=16):
+    """Alpha cut-outs as geometry: each triangle split into k² sub-triangles on a barycentric
+    grid, those whose centre's alpha is below the cut-off dropped. Mitsuba's `direct` cannot
+    take the cut-outs as a `mask` BSDF: its shadow rays (`ray_test`) see masked surfaces as
+    opaque and its camera rays stop at them, which rendered the foliage ~20% darker than
+    `aggtool reference`."""
+    ij = np.array([(i, j) for i in range(k) for j in range(k - i)], np.float64)
+    up = np.stack([ij, ij + [1, 0], ij + [0, 1]], axis=1)            # (U, 3, 2)
+    dn = ij[ij.sum(axis=1) < k - 1]
+    dn = np.stack([dn + [1, 0], dn + [1, 1], dn + [0, 1]], axis=1)
+    sub = np.concatenate([up, dn]) / k                                # (S, 3, 2) barycentric
+    w = np.concatenate([1 - sub.sum(axis=2, keepdims=True), sub], axis=2)  # (S, 3, 3)
+
+    def lerp(attr):
+        a = attr[faces]                                               # (F, 3, C)
+        return np.einsum("svc,fcd->fsvd", w, a)                       # (F, S, 3, C)
+
+    P, N, T = lerp(pos), lerp(nrm), lerp(uv)
+    keep = _bilinear(alpha, T.mean(axis=2).reshape(-1, 2))[:, 0] >= cutoff
+    P, N, T = (x.reshape(-1, 3, x.shape[-1])[keep].reshape(-1, x.shape[-1]) for x in (P, N, T))
+    return P, N, T, np.arange(len(P), dtype=np.uint32).reshape(-1, 3)
+
+
 def glb_shapes(mi, glb: Path, folder: Path, to_world=None) -> dict:
     """The GLB's triangle meshes as Mitsuba shapes (PLY files in `folder`), each with a
-    two-sided `diffuse` of its base colour (texture × factor, sRGB decoded) and, for
-    alphaMode MASK, a `mask` of its cut-out: what aggtool's Lambertian model reduces to. Node
+    two-sided `diffuse` of its base colour (texture × factor, sRGB decoded), alphaMode MASK
+    cut out of the geometry ([`cut_out`]): what aggtool's Lambertian model reduces to. Node
     transforms are not read (aggtool gen writes none)."""
     gltf, binary = _read_glb(glb)
     textures = {}
@@ -105,12 +140,10 @@ def glb_shapes(mi, glb: Path, folder: Path, to_world=None) -> dict:
                   else np.zeros((len(pos), 2), np.float32))
             faces = _accessor(gltf, binary, prim["indices"]).reshape(-1, 3).astype(np.uint32)
             name = f"mesh{mi_idx}_{pi}"
-            write_ply(folder / f"{name}.ply", pos, nrm, uv, faces)
             mat = gltf["materials"][prim.get("material", 0)]
             pbr = mat.get("pbrMetallicRoughness", {})
             factor = np.array(pbr.get("baseColorFactor", [1, 1, 1, 1]), np.float32)
             tex = pbr.get("baseColorTexture")
-            opacity = None
             if tex is None:
                 refl = {"type": "rgb", "value": factor[:3].tolist()}
             else:
@@ -125,16 +158,13 @@ def glb_shapes(mi, glb: Path, folder: Path, to_world=None) -> dict:
                                                       mi.Struct.Type.Float32, srgb_gamma=False)
                     textures[src] = np.array(bmp)
                 rgba = textures[src] * factor
-                refl = {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(rgba[..., :3])),
-                        "raw": True}
+                refl = {"type": "bitmap", "raw": True,
+                        "bitmap": mi.Bitmap(np.ascontiguousarray(rgba[..., :3]))}
                 if mat.get("alphaMode") == "MASK":
-                    cut = mat.get("alphaCutoff", 0.5)
-                    a = (rgba[..., 3:4] >= cut).astype(np.float32)
-                    opacity = {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(a)),
-                               "raw": True, "filter_type": "nearest"}
+                    pos, nrm, uv, faces = cut_out(pos, nrm, uv, faces, rgba[..., 3:4],
+                                                  mat.get("alphaCutoff", 0.5))
+            write_ply(folder / f"{name}.ply", pos, nrm, uv, faces)
             bsdf = {"type": "twosided", "material": {"type": "diffuse", "reflectance": refl}}
-            if opacity is not None:
-                bsdf = {"type": "mask", "opacity": opacity, "material": bsdf}
             shape = {"type": "ply", "filename": str(folder / f"{name}.ply"), "bsdf": bsdf,
                      "face_normals": False}
             if to_world is not None:
@@ -216,12 +246,13 @@ def main():
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--triangles", type=int, default=20000)
+    ap.add_argument("--max-res", type=int, default=32, help="the bake's finest level")
     ap.add_argument("-o", "--output", type=Path, default=Path("mitsuba-tree"))
     args = ap.parse_args()
     import mitsuba as mi
     mi.set_variant(args.variant)
     sys.path.insert(0, str(Path(__file__).parent))
-    glb, agg = make_tree(args.output, find_aggtool(), args.triangles)
+    glb, agg = make_tree(args.output, find_aggtool(), args.triangles, args.max_res)
     a, b, ta, tb = render_pair(mi, args.output, glb, agg, args.size, args.spp)
     side = np.concatenate([a, b], axis=1).astype(np.float32)
     mi.Bitmap(side).write(str(args.output / "side-by-side.exr"))
