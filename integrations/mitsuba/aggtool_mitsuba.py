@@ -57,7 +57,7 @@ import numpy as np
 
 import aggtool
 
-__all__ = ["AggtoolLod", "Aggregate", "register"]
+__all__ = ["AggtoolLod", "Aggregate", "integrator_class", "register"]
 
 _KEY = re.compile(r"^agg_(\w+?)$")
 
@@ -236,11 +236,13 @@ def _parse(props):
     return aggs
 
 
-class AggtoolLod(mi.SamplingIntegrator):
-    """Direct illumination of meshes and aggtool aggregates (see the module's docstring)."""
+class _AggtoolLod:
+    """Direct illumination of meshes and aggtool aggregates (see the module's docstring).
+    The methods of the integrator; [`integrator_class`] copies them into a subclass of the
+    active variant's `mi.SamplingIntegrator` (nanobind types take one base)."""
 
     def __init__(self, props=None, aggregates=None):
-        super().__init__(props if props is not None else mi.Properties())
+        mi.SamplingIntegrator.__init__(self, props if props is not None else mi.Properties())
         self.aggregates = _parse(props) if props is not None else []
         self.aggregates += list(aggregates or [])
         self.hide_emitters = bool(props["hide_emitters"]) if (
@@ -490,8 +492,29 @@ class AggtoolLod(mi.SamplingIntegrator):
         return "AggtoolLod[" + ", ".join(str(a.path) for a in self.aggregates) + "]"
 
 
+_CLASSES = {}
+
+
+def integrator_class():
+    """The integrator's class for the active variant (each variant has its own
+    `mi.SamplingIntegrator`, so a class made under one cannot serve another)."""
+    v = mi.variant()
+    if v not in _CLASSES:
+        methods = {k: f for k, f in vars(_AggtoolLod).items()
+                   if k not in ("__dict__", "__weakref__")}
+        _CLASSES[v] = type("AggtoolLod", (mi.SamplingIntegrator,), methods)
+    return _CLASSES[v]
+
+
+def AggtoolLod(props=None, aggregates=None):  # noqa: N802 - reads as the class it makes
+    """An `aggtool_lod` integrator for the active variant: from Mitsuba properties (what
+    `mi.load_dict` passes) and/or a list of [`Aggregate`]s."""
+    return integrator_class()(props, aggregates)
+
+
 def register():
-    """Registers `aggtool_lod` for the active Mitsuba variant (call after mi.set_variant)."""
+    """Registers `aggtool_lod` for the active Mitsuba variant (call after mi.set_variant;
+    importing this module does it for the variant active then)."""
     mi.register_integrator("aggtool_lod", lambda props: AggtoolLod(props))
 
 
