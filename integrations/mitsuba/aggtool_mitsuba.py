@@ -60,6 +60,8 @@ import aggtool
 __all__ = ["AggtoolLod", "Aggregate", "integrator_class", "register"]
 
 _KEY = re.compile(r"^agg_(\w+?)$")
+# Rays per batch: every phase's arrays are a few hundred bytes per ray.
+BATCH = 1 << 18
 
 
 def _jit() -> bool:
@@ -474,10 +476,17 @@ class _AggtoolLod:
         _, dd, _ = _batch(self._camera(sensor), 2, (mid.astype(np.float32), "p2"))
         dd = _normalize(dd)
         aperture = float(np.arccos(np.clip(np.dot(dd[0], dd[1]), -1.0, 1.0)))
-        acc = np.zeros((len(xy), 3))
-        for s in range(spp):
-            rng = np.random.default_rng([int(seed), s])
-            acc += self._pass(scene, sensor, rng, xy, full, aperture)
+        # Several samples per pixel in one batch, up to BATCH rays.
+        npix = len(xy)
+        per = max(1, BATCH // max(npix, 1))
+        acc = np.zeros((npix, 3))
+        done, b = 0, 0
+        while done < spp:
+            k = min(per, spp - done)
+            rng = np.random.default_rng([int(seed), b])
+            out = self._pass(scene, sensor, rng, np.tile(xy, (k, 1)), full, aperture)
+            acc += out.reshape(k, npix, 3).sum(axis=0)
+            done, b = done + k, b + 1
         img = (acc / spp).reshape(size[1], size[0], 3)
         channels = np.array(film.develop()).shape[-1]
         if channels > 3:
