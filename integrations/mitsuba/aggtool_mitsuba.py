@@ -13,6 +13,18 @@ aggregates (`.agg` files) beside Mitsuba's own meshes.
     })
     image = mi.render(scene, spp=16)
 
+Parameters (properties of the integrator):
+
+    agg_<name>            string     path of an .agg file (any number of them)
+    agg_<name>_to_world   transform  where it sits: rotation, uniform scale, translation
+                                     (default: identity; shear, non-uniform scale, singular,
+                                     projective or non-finite transforms are refused)
+    hide_emitters         boolean    hide the environment where camera rays escape
+                                     (default: false)
+
+`mi.render(scene, spp=N, seed=S)`: N samples per pixel (default: the sensor's sampler's
+count), S seeds numpy's PCG64 (one stream per batch of rays).
+
 What it computes (direct illumination, as Mitsuba's `direct` integrator does for meshes):
 
 - Camera rays meet Mitsuba's meshes (`Scene.ray_intersect`) and each aggregate's primitives
