@@ -120,7 +120,6 @@ def test_shadows_both_ways(tree, variant_guard):
     d_bare = render(example.scene_dict(mi, folder, depth, SIZE, 1), spp=1)[..., 0]
     ground = (np.abs(d_tree - d_bare) < 1e-4) & (d_bare > 0)
     shadow = ground & (with_tree.mean(axis=2) < 0.75 * bare.mean(axis=2))
-    lit = ground & ~shadow
     r_mesh = with_tree[shadow].mean() / bare[shadow].mean()
     r_lod = lod[shadow].mean() / bare[shadow].mean()
     # The light the tree takes from the whole ground, aggregate against mesh.
