@@ -43,6 +43,10 @@ create_exception!(
     "A file could not be read, verified or written."
 );
 
+/// A float32 numpy vector and any numpy array handed back to Python.
+type F32s<'py> = Bound<'py, PyArray1<f32>>;
+type Array<'py> = Bound<'py, PyAny>;
+
 fn agg_err(msg: impl std::fmt::Display) -> PyErr {
     AggError::new_err(msg.to_string())
 }
@@ -471,7 +475,7 @@ impl Scene {
         key: PyReadonlyArray1<'py, u64>,
         wi: PyReadonlyArray2<'py, f32>,
         wo: PyReadonlyArray2<'py, f32>,
-    ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyArray1<f32>>)> {
+    ) -> PyResult<(Array<'py>, F32s<'py>)> {
         let (lv, ky) = voxel_ids(&level, &key)?;
         let wi = unit_rows(&wi, "wi", lv.len())?;
         let wo = unit_rows(&wo, "wo", lv.len())?;
@@ -509,11 +513,7 @@ impl Scene {
         key: PyReadonlyArray1<'py, u64>,
         wo: PyReadonlyArray2<'py, f32>,
         u: PyReadonlyArray2<'py, f32>,
-    ) -> PyResult<(
-        Bound<'py, PyAny>,
-        Bound<'py, PyAny>,
-        Bound<'py, PyArray1<f32>>,
-    )> {
+    ) -> PyResult<(Array<'py>, Array<'py>, F32s<'py>)> {
         let (lv, ky) = voxel_ids(&level, &key)?;
         let wo = unit_rows(&wo, "wo", lv.len())?;
         let (mu, us) = rows3(&u, "u")?;
@@ -570,7 +570,7 @@ impl Scene {
         level: PyReadonlyArray1<'py, u32>,
         key: PyReadonlyArray1<'py, u64>,
         d: PyReadonlyArray2<'py, f32>,
-    ) -> PyResult<(Bound<'py, PyArray1<f32>>, Bound<'py, PyArray1<f32>>)> {
+    ) -> PyResult<(F32s<'py>, F32s<'py>)> {
         let (lv, ky) = voxel_ids(&level, &key)?;
         let d = unit_rows(&d, "d", lv.len())?;
         let scene = &self.scene;
