@@ -185,9 +185,12 @@ def test_bad_input(tree, variant_guard, tmp_path):
     cut.write_bytes(Path(agg).read_bytes()[:1000])
     with pytest.raises(RuntimeError, match="cut.agg"):
         load(agg_tree=str(cut))
-    # A good one loads, and renders a tiny image with every value finite.
-    scene = mi.load_dict({"type": "scene", "integrator": {"type": "aggtool_lod",
-                                                          "agg_tree": str(agg)},
+    # Good ones load (two trees, one behind the other, composite front to back) and render a
+    # tiny image with every value finite.
+    scene = mi.load_dict({"type": "scene", "integrator": {
+                              "type": "aggtool_lod", "agg_tree": str(agg), "agg_far": str(agg),
+                              "agg_far_to_world": mi.ScalarTransform4f().translate([0.3, 0, -2])
+                              @ mi.ScalarTransform4f().scale(2.0)},
                           "sensor": {"type": "perspective", "film": {"type": "hdrfilm",
                                      "width": 8, "height": 6}}})
     assert "foliage.agg" in str(scene.integrator())
