@@ -142,3 +142,80 @@ def test_bad_input_is_a_clear_exception(aggtool_module):
             aggtool.Lights(sun_direction=(0, 1, 0))
         with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
             aggtool.Lights().set_environment(np.ones((4, 4, 4), np.float32))
+
+
+def test_traversal_layer(aggtool_module):
+    """hits / transmittance / voxel_eval / voxel_sample / voxel_visibility (what the Mitsuba
+    host shades aggregates with) agree with each other and with trace."""
+    aggtool = aggtool_module
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        scene = aggtool.open(str(tree(tmp)))
+        lo, hi = (np.array(x) for x in scene.bounds)
+        rng = np.random.default_rng(5)
+        n = 4000
+        o = np.tile(np.float32([0.0, 0.6, 3.0]), (n, 1))
+        dirs = (rng.uniform(lo, hi, (n, 3)) - o).astype(np.float32)
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        ap = 0.01
+        h = scene.hits(o, dirs, ap)
+        off, t, w, tr = h["offsets"], h["t"], h["weight"], h["transmittance"]
+        m = len(t)
+        assert off.dtype == np.int64 and off.shape == (n + 1,) and off[0] == 0 and off[-1] == m
+        assert h["level"].dtype == np.uint32 and h["key"].dtype == np.uint64 and m > n
+        assert (np.diff(off) >= 0).all() and (w >= 0).all() and ((tr >= 0) & (tr <= 1)).all()
+        cone = np.repeat(np.arange(n), np.diff(off))
+        same = cone[1:] == cone[:-1]
+        assert (t[1:][same] >= t[:-1][same]).all(), "hits come in order along each cone"
+        assert np.array_equal(scene.transmittance(o, dirs, ap), tr)
+        # tmax: inf is no limit, 0 meets nothing, a finite one keeps only the hits before it.
+        h_inf = scene.hits(o, dirs, ap, np.full(n, np.inf, np.float32))
+        assert np.array_equal(h_inf["t"], t) and np.array_equal(h_inf["transmittance"], tr)
+        h0 = scene.hits(o, dirs, ap, np.zeros(n, np.float32))
+        assert len(h0["t"]) == 0 and (h0["transmittance"] == 1).all()
+        cut = np.full(n, float(np.median(t)), np.float32)
+        hc = scene.hits(o, dirs, ap, cut)
+        assert 0 < len(hc["t"]) < m and (hc["t"] <= cut[0]).all()
+        # trace(background=False) + T · environment == trace.
+        sky = (0.2, 0.3, 0.5)
+        lights = aggtool.Lights(constant=sky)
+        full = scene.trace(o, dirs, ap, lights, seed=3)
+        bare = scene.trace(o, dirs, ap, lights, seed=3, background=False)
+        assert np.allclose(bare[:, :3] + bare[:, 3:] * np.float32(sky), full[:, :3], atol=1e-5)
+        # The ABSDF's samples against its evaluation.
+        lv, ky = h["level"], h["key"]
+        wo = -dirs[cone]
+        wi, val, pdf = scene.voxel_sample(lv, ky, wo, rng.random((m, 3), dtype=np.float32))
+        ok = pdf > 0
+        assert ok.mean() > 0.5
+        f, p = scene.voxel_eval(lv[ok], ky[ok], wi[ok], wo[ok])
+        assert np.allclose(f, val[ok], rtol=1e-3, atol=1e-6)
+        assert np.allclose(p, pdf[ok], rtol=1e-3, atol=1e-6)
+        aiv, inc = scene.voxel_visibility(lv, ky, wi)
+        assert ((aiv >= 0) & (aiv <= 1) & (inc >= aiv - 1e-6) & (inc <= 1)).all()
+        # A host shading every hit with ABSDF samples under the constant sky estimates what
+        # trace does (Eq. 30 with MIS and reservoir picks): the means of 4000 cones agree
+        # within 3% (two independent estimates; measured 1.0%).
+        lo_k = np.where(ok[:, None], val * (inc / np.where(ok, pdf, 1))[:, None], 0) * sky
+        host = np.zeros((n, 3))
+        np.add.at(host, cone, lo_k * w[:, None])
+        print(f"host shading {host.mean():.5f}, trace {bare[:, :3].mean():.5f}")
+        assert abs(host.mean() / bare[:, :3].mean() - 1) < 0.03
+        # Bad input.
+        with pytest.raises(TypeError):
+            scene.voxel_eval(lv.astype(np.int64), ky, wi, wo)
+        with pytest.raises(ValueError, match="levels but"):
+            scene.voxel_eval(lv[:3], ky[:4], wi[:3], wo[:3])
+        with pytest.raises(aggtool.AggError, match="foliage.agg: voxel 1: no voxel"):
+            scene.voxel_visibility(lv[:2], np.array([ky[0], 2**62], np.uint64), wi[:2])
+        bad = wi[:3].copy()
+        bad[1] = 0
+        with pytest.raises(ValueError, match="wi 1"):
+            scene.voxel_eval(lv[:3], ky[:3], bad, wo[:3])
+        with pytest.raises(ValueError, match="cone 2: tmax"):
+            scene.hits(o[:3], dirs[:3], ap, np.float32([1, 1, np.nan]))
+        with pytest.raises(ValueError, match=r"tmax must have shape \(3,\)"):
+            scene.transmittance(o[:3], dirs[:3], ap, np.ones(2, np.float32))
+        empty = np.zeros((0, 3), np.float32)
+        assert scene.hits(empty, empty, ap)["offsets"].tolist() == [0]
+        assert scene.voxel_eval(lv[:0], ky[:0], empty, empty)[0].shape == (0, 3)

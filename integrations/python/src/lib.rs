@@ -4,6 +4,13 @@
 //! - `aggtool.open(path)` → `Scene` with `.bounds`, `.levels`, `.inspect()` and
 //!   `.trace(origins, directions, aperture, lights=None, seed=0)` → (N, 4) float32 (radiance
 //!   RGB and background transmittance per cone), which releases the GIL while it traces;
+//!   `tmax` clips each cone at a host's own surface and `background=False` leaves the
+//!   environment out, for compositing over what lies behind;
+//! - the traversal layer for hosts that shade aggregate hits themselves (as the Mitsuba host
+//!   does): `.hits(...)` (every primitive each cone meets: level, Morton key, t, coverage
+//!   weight, and the transmittance), `.transmittance(...)` (shadow cones),
+//!   `.voxel_eval(...)`, `.voxel_sample(...)` and `.voxel_visibility(...)`, all batched over
+//!   numpy arrays with the GIL released;
 //! - `aggtool.Lights(constant=(1, 1, 1), sun_direction=None, sun_irradiance=None)` and
 //!   `.set_environment(pixels (H, W, 3) float32, intensity=1, rotation_deg=0)`;
 //! - `aggtool.convert(source, output=None, progress=None, **settings)` → output path.
@@ -13,15 +20,21 @@
 
 use std::path::PathBuf;
 
+use aggtool::bsdf::Bsdf;
 use aggtool::runtime::{
     Cone, EnvMap, Environment, Lights as RtLights, LodScene, Sun, TraceSettings,
 };
+use glam::Vec2;
 use glam::Vec3;
-use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
+use numpy::{
+    PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3,
+    PyUntypedArrayMethods,
+};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
+use rayon::prelude::*;
 
 create_exception!(
     _native,
@@ -29,6 +42,10 @@ create_exception!(
     PyValueError,
     "A file could not be read, verified or written."
 );
+
+/// A float32 numpy vector and any numpy array handed back to Python.
+type F32s<'py> = Bound<'py, PyArray1<f32>>;
+type Array<'py> = Bound<'py, PyAny>;
 
 fn agg_err(msg: impl std::fmt::Display) -> PyErr {
     AggError::new_err(msg.to_string())
@@ -159,6 +176,129 @@ fn rows3<'a>(a: &'a PyReadonlyArray2<'_, f32>, what: &str) -> PyResult<(usize, &
     Ok((shape[0], s))
 }
 
+impl Scene {
+    /// A level that failed verification while tracing, as an `AggError` naming the file.
+    fn check(&self) -> PyResult<()> {
+        match self.scene.first_error() {
+            Some(e) => Err(agg_err(format!("{}: {e}", self.path.display()))),
+            None => Ok(()),
+        }
+    }
+
+    /// The per-voxel results, or an error naming the first voxel that does not exist.
+    fn found<T>(&self, r: Vec<Option<T>>, lv: &[u32], ky: &[u64]) -> PyResult<Vec<T>> {
+        self.check()?;
+        if let Some(i) = r.iter().position(|x| x.is_none()) {
+            return Err(agg_err(format!(
+                "{}: voxel {i}: no voxel with key {} at level {}",
+                self.path.display(),
+                ky[i],
+                lv[i]
+            )));
+        }
+        Ok(r.into_iter().flatten().collect())
+    }
+}
+
+/// Cones of a batch: `origins` and `directions` (N, 3), one full `aperture`, and optionally
+/// `tmax` (N,) (non-negative; inf for no limit).
+fn cones(
+    origins: &PyReadonlyArray2<'_, f32>,
+    directions: &PyReadonlyArray2<'_, f32>,
+    aperture: f32,
+    tmax: Option<&PyReadonlyArray1<'_, f32>>,
+) -> PyResult<Vec<Cone>> {
+    let (n, o) = rows3(origins, "origins")?;
+    let (m, d) = rows3(directions, "directions")?;
+    if n != m {
+        return Err(PyValueError::new_err(format!(
+            "{n} origins but {m} directions"
+        )));
+    }
+    if !aperture.is_finite() || aperture < 0.0 {
+        return Err(PyValueError::new_err(
+            "aperture must be finite and non-negative",
+        ));
+    }
+    let tmax = match tmax {
+        None => None,
+        Some(t) => {
+            let s = t
+                .as_slice()
+                .map_err(|_| PyValueError::new_err("tmax must be C-contiguous"))?;
+            if s.len() != n {
+                return Err(PyValueError::new_err(format!(
+                    "tmax must have shape ({n},), not ({},)",
+                    s.len()
+                )));
+            }
+            Some(s)
+        }
+    };
+    let mut cones = Vec::with_capacity(n);
+    for i in 0..n {
+        let (oi, di) = (Vec3::from_slice(&o[3 * i..]), Vec3::from_slice(&d[3 * i..]));
+        let di = di
+            .try_normalize()
+            .filter(|_| oi.is_finite())
+            .ok_or_else(|| {
+                PyValueError::new_err(format!("cone {i}: non-finite or zero-length ray"))
+            })?;
+        let mut c = Cone::new(oi, di, aperture);
+        if let Some(t) = tmax {
+            if !(t[i] >= 0.0) {
+                return Err(PyValueError::new_err(format!(
+                    "cone {i}: tmax must be non-negative (inf for no limit), not {}",
+                    t[i]
+                )));
+            }
+            c.tmax = t[i];
+        }
+        cones.push(c);
+    }
+    Ok(cones)
+}
+
+/// The voxels of a batch: `level` (M,) uint32 and `key` (M,) uint64 of the same length.
+fn voxel_ids<'a>(
+    level: &'a PyReadonlyArray1<'_, u32>,
+    key: &'a PyReadonlyArray1<'_, u64>,
+) -> PyResult<(&'a [u32], &'a [u64])> {
+    let lv = level
+        .as_slice()
+        .map_err(|_| PyValueError::new_err("level must be C-contiguous"))?;
+    let ky = key
+        .as_slice()
+        .map_err(|_| PyValueError::new_err("key must be C-contiguous"))?;
+    if lv.len() != ky.len() {
+        return Err(PyValueError::new_err(format!(
+            "{} levels but {} keys",
+            lv.len(),
+            ky.len()
+        )));
+    }
+    Ok((lv, ky))
+}
+
+/// M unit directions from an (M, 3) array (normalised; non-finite or zero rows refused).
+fn unit_rows(a: &PyReadonlyArray2<'_, f32>, what: &str, m: usize) -> PyResult<Vec<Vec3>> {
+    let (n, s) = rows3(a, what)?;
+    if n != m {
+        return Err(PyValueError::new_err(format!(
+            "{m} voxels but {n} rows of {what}"
+        )));
+    }
+    (0..n)
+        .map(|i| {
+            Vec3::from_slice(&s[3 * i..])
+                .try_normalize()
+                .ok_or_else(|| {
+                    PyValueError::new_err(format!("{what} {i}: non-finite or zero-length"))
+                })
+        })
+        .collect()
+}
+
 #[pymethods]
 impl Scene {
     /// The bounds of the asset the aggregate was baked from, ((x, y, z), (x, y, z)), or None
@@ -191,7 +331,12 @@ impl Scene {
     /// Traces N cones: `origins` and `directions` (N, 3) float32, one full `aperture` angle
     /// in radians for all; returns (N, 4) float32: radiance RGB and the background's
     /// transmittance. Cone i draws stream i of `seed`. Releases the GIL while tracing.
-    #[pyo3(signature = (origins, directions, aperture, lights = None, seed = 0))]
+    /// `tmax`, (N,) float32, clips each cone at that distance along its (unit) direction (a
+    /// host's own surface; inf for none); `background=False` leaves the environment's
+    /// radiance out of the RGB, so that a host composites: RGB + transmittance · (what lies
+    /// behind).
+    #[pyo3(signature = (origins, directions, aperture, lights = None, seed = 0, tmax = None, background = true))]
+    #[allow(clippy::too_many_arguments)]
     fn trace<'py>(
         &self,
         py: Python<'py>,
@@ -200,30 +345,11 @@ impl Scene {
         aperture: f32,
         lights: Option<PyRef<'py, Lights>>,
         seed: u64,
+        tmax: Option<PyReadonlyArray1<'py, f32>>,
+        background: bool,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let (n, o) = rows3(&origins, "origins")?;
-        let (m, d) = rows3(&directions, "directions")?;
-        if n != m {
-            return Err(PyValueError::new_err(format!(
-                "{n} origins but {m} directions"
-            )));
-        }
-        if !aperture.is_finite() || aperture < 0.0 {
-            return Err(PyValueError::new_err(
-                "aperture must be finite and non-negative",
-            ));
-        }
-        let mut cones = Vec::with_capacity(n);
-        for i in 0..n {
-            let (oi, di) = (Vec3::from_slice(&o[3 * i..]), Vec3::from_slice(&d[3 * i..]));
-            let di = di
-                .try_normalize()
-                .filter(|_| oi.is_finite())
-                .ok_or_else(|| {
-                    PyValueError::new_err(format!("cone {i}: non-finite or zero-length ray"))
-                })?;
-            cones.push(Cone::new(oi, di, aperture));
-        }
+        let cones = cones(&origins, &directions, aperture, tmax.as_ref())?;
+        let n = cones.len();
         let lights = lights
             .map(|l| l.lights.clone())
             .unwrap_or_else(|| RtLights::constant(Vec3::ONE));
@@ -231,13 +357,235 @@ impl Scene {
         let out: Vec<f32> = py.detach(|| {
             let mut out = vec![0f32; 4 * n];
             scene.trace_batch(&cones, &lights, &TraceSettings::default(), seed, &mut out);
+            if !background {
+                // The runtime composes surfaces + environment · T; take the environment back
+                // out (relative rounding of f32, far below the estimate's noise).
+                for (o, c) in out.chunks_mut(4).zip(&cones) {
+                    let e = lights.environment.eval(c.dir) * o[3];
+                    for k in 0..3 {
+                        o[k] = (o[k] - e[k]).max(0.0);
+                    }
+                }
+            }
             out
         });
-        if let Some(e) = self.scene.first_error() {
-            return Err(agg_err(format!("{}: {e}", self.path.display())));
-        }
+        self.check()?;
         let a = PyArray1::from_vec(py, out);
         Ok(a.reshape([n, 4])?.into_any())
+    }
+
+    /// The traversal layer, for hosts that shade aggregate hits themselves: every primitive
+    /// each cone meets, in order (`LodScene::hits`, the C ABI's `agg_hits`). Cones as for
+    /// `trace` (`tmax` clips them). Returns a dict of numpy arrays: `offsets` (N + 1,) int64
+    /// (cone i's hits are rows offsets[i]:offsets[i+1]), per hit `level` uint32 (0 = finest),
+    /// `key` uint64 (Morton key in the level), `t` float32 (where the centre ray enters the
+    /// primitive), `weight` float32 (the coverage V̂(ω_o)·|A|_ω/|B|_ω of Eq. 30), and per cone
+    /// `transmittance` float32 (the background's weight: the ABV of the entry face, 1 when
+    /// the cone met nothing). Releases the GIL.
+    #[pyo3(signature = (origins, directions, aperture, tmax = None))]
+    fn hits<'py>(
+        &self,
+        py: Python<'py>,
+        origins: PyReadonlyArray2<'py, f32>,
+        directions: PyReadonlyArray2<'py, f32>,
+        aperture: f32,
+        tmax: Option<PyReadonlyArray1<'py, f32>>,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let cones = cones(&origins, &directions, aperture, tmax.as_ref())?;
+        let scene = &self.scene;
+        type ConeHits = (Vec<(u32, u64, f32, f32)>, f32);
+        let per: Vec<ConeHits> = py.detach(|| {
+            let settings = TraceSettings::default();
+            cones
+                .par_iter()
+                .map(|c| {
+                    let mut h = scene.hits(c, &settings);
+                    let v = (&mut h)
+                        .map(|x| (x.voxel.level() as u32, x.voxel.key(), x.t, x.weight))
+                        .collect();
+                    (v, h.transmittance())
+                })
+                .collect()
+        });
+        self.check()?;
+        let m: usize = per.iter().map(|p| p.0.len()).sum();
+        let mut offsets = Vec::with_capacity(per.len() + 1);
+        let (mut level, mut key, mut t, mut weight, mut tr) = (
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(per.len()),
+        );
+        offsets.push(0i64);
+        for (hs, trans) in per {
+            for (l, k, ht, w) in hs {
+                level.push(l);
+                key.push(k);
+                t.push(ht);
+                weight.push(w);
+            }
+            offsets.push(level.len() as i64);
+            tr.push(trans);
+        }
+        let d = PyDict::new(py);
+        d.set_item("offsets", PyArray1::from_vec(py, offsets))?;
+        d.set_item("level", PyArray1::from_vec(py, level))?;
+        d.set_item("key", PyArray1::from_vec(py, key))?;
+        d.set_item("t", PyArray1::from_vec(py, t))?;
+        d.set_item("weight", PyArray1::from_vec(py, weight))?;
+        d.set_item("transmittance", PyArray1::from_vec(py, tr))?;
+        Ok(d)
+    }
+
+    /// What the aggregate lets through along each cone (`LodScene::transmittance`): the ABV
+    /// of the face a cone enters by, 1 when it meets no primitive before `tmax`. For a host's
+    /// shadow cones from its own surfaces towards its lights. (N,) float32; releases the GIL.
+    #[pyo3(signature = (origins, directions, aperture, tmax = None))]
+    fn transmittance<'py>(
+        &self,
+        py: Python<'py>,
+        origins: PyReadonlyArray2<'py, f32>,
+        directions: PyReadonlyArray2<'py, f32>,
+        aperture: f32,
+        tmax: Option<PyReadonlyArray1<'py, f32>>,
+    ) -> PyResult<Bound<'py, PyArray1<f32>>> {
+        let cones = cones(&origins, &directions, aperture, tmax.as_ref())?;
+        let scene = &self.scene;
+        let out: Vec<f32> = py.detach(|| {
+            let settings = TraceSettings::default();
+            cones
+                .par_iter()
+                .map(|c| scene.transmittance(c, &settings))
+                .collect()
+        });
+        self.check()?;
+        Ok(PyArray1::from_vec(py, out))
+    }
+
+    /// The ABSDF of M voxels (`level` (M,) uint32 and `key` (M,) uint64, as `hits` gives
+    /// them) for incident `wi` and outgoing `wo` (M, 3) float32 (towards the light and the
+    /// viewer, in the aggregate's frame; normalised here): returns (value (M, 3), pdf (M,))
+    /// float32, f̂(ω_i, ω_o) (it carries its own cosines: reflected radiance is
+    /// ∫ f̂ L_i V̂ dω_i) and the solid-angle pdf of `voxel_sample` drawing ω_i.
+    fn voxel_eval<'py>(
+        &self,
+        py: Python<'py>,
+        level: PyReadonlyArray1<'py, u32>,
+        key: PyReadonlyArray1<'py, u64>,
+        wi: PyReadonlyArray2<'py, f32>,
+        wo: PyReadonlyArray2<'py, f32>,
+    ) -> PyResult<(Array<'py>, F32s<'py>)> {
+        let (lv, ky) = voxel_ids(&level, &key)?;
+        let wi = unit_rows(&wi, "wi", lv.len())?;
+        let wo = unit_rows(&wo, "wo", lv.len())?;
+        let scene = &self.scene;
+        let r: Vec<Option<(Vec3, f32)>> = py.detach(|| {
+            (0..lv.len())
+                .into_par_iter()
+                .map(|i| {
+                    let v = scene.voxel(lv[i] as usize, ky[i])?;
+                    Some(v.eval_pdf(wi[i], wo[i]))
+                })
+                .collect()
+        });
+        let r = self.found(r, lv, ky)?;
+        let m = r.len();
+        let (mut value, mut pdf) = (Vec::with_capacity(3 * m), Vec::with_capacity(m));
+        for (f, p) in r {
+            value.extend_from_slice(&f.to_array());
+            pdf.push(p);
+        }
+        Ok((
+            PyArray1::from_vec(py, value).reshape([m, 3])?.into_any(),
+            PyArray1::from_vec(py, pdf),
+        ))
+    }
+
+    /// Samples an incident direction of M voxels' ABSDFs for outgoing `wo` (M, 3) from
+    /// uniform numbers `u` (M, 3) in [0, 1): returns (wi (M, 3), value (M, 3), pdf (M,))
+    /// float32: the direction, f̂(ω_i, ω_o) for it (as `voxel_eval` gives it, not divided by
+    /// the pdf) and its solid-angle pdf; pdf 0 (and zeros) where no direction was drawn.
+    fn voxel_sample<'py>(
+        &self,
+        py: Python<'py>,
+        level: PyReadonlyArray1<'py, u32>,
+        key: PyReadonlyArray1<'py, u64>,
+        wo: PyReadonlyArray2<'py, f32>,
+        u: PyReadonlyArray2<'py, f32>,
+    ) -> PyResult<(Array<'py>, Array<'py>, F32s<'py>)> {
+        let (lv, ky) = voxel_ids(&level, &key)?;
+        let wo = unit_rows(&wo, "wo", lv.len())?;
+        let (mu, us) = rows3(&u, "u")?;
+        if mu != lv.len() {
+            return Err(PyValueError::new_err(format!(
+                "{} voxels but {mu} rows of u",
+                lv.len()
+            )));
+        }
+        if let Some(i) = us.iter().position(|x| !x.is_finite()) {
+            return Err(PyValueError::new_err(format!("u {}: not finite", i / 3)));
+        }
+        let scene = &self.scene;
+        let r: Vec<Option<(Vec3, Vec3, f32)>> = py.detach(|| {
+            (0..lv.len())
+                .into_par_iter()
+                .map(|i| {
+                    let v = scene.voxel(lv[i] as usize, ky[i])?;
+                    let x = Vec3::from_slice(&us[3 * i..])
+                        .clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
+                    Some(match v.sample(wo[i], x.x, Vec2::new(x.y, x.z)) {
+                        Some(s) if s.pdf > 0.0 && s.pdf.is_finite() => (s.wi, s.value, s.pdf),
+                        _ => (Vec3::ZERO, Vec3::ZERO, 0.0),
+                    })
+                })
+                .collect()
+        });
+        let r = self.found(r, lv, ky)?;
+        let m = r.len();
+        let (mut wi, mut value, mut pdf) = (
+            Vec::with_capacity(3 * m),
+            Vec::with_capacity(3 * m),
+            Vec::with_capacity(m),
+        );
+        for (w, f, p) in r {
+            wi.extend_from_slice(&w.to_array());
+            value.extend_from_slice(&f.to_array());
+            pdf.push(p);
+        }
+        Ok((
+            PyArray1::from_vec(py, wi).reshape([m, 3])?.into_any(),
+            PyArray1::from_vec(py, value).reshape([m, 3])?.into_any(),
+            PyArray1::from_vec(py, pdf),
+        ))
+    }
+
+    /// The interior visibility of M voxels towards `d` (M, 3) float32: returns (aiv (M,),
+    /// incident (M,)) float32, the AIV V̂(d) (Eq. 25) and the visibility the runtime uses for
+    /// light arriving from d, min(1, V̂(d)/η): what stands in for a shadow ray inside the
+    /// aggregate (a host multiplies it with its own shadow rays outside).
+    fn voxel_visibility<'py>(
+        &self,
+        py: Python<'py>,
+        level: PyReadonlyArray1<'py, u32>,
+        key: PyReadonlyArray1<'py, u64>,
+        d: PyReadonlyArray2<'py, f32>,
+    ) -> PyResult<(F32s<'py>, F32s<'py>)> {
+        let (lv, ky) = voxel_ids(&level, &key)?;
+        let d = unit_rows(&d, "d", lv.len())?;
+        let scene = &self.scene;
+        let r: Vec<Option<(f32, f32)>> = py.detach(|| {
+            (0..lv.len())
+                .into_par_iter()
+                .map(|i| {
+                    let v = scene.voxel(lv[i] as usize, ky[i])?;
+                    Some((v.aiv(d[i]), v.incident_visibility(d[i])))
+                })
+                .collect()
+        });
+        let r = self.found(r, lv, ky)?;
+        let (aiv, inc): (Vec<f32>, Vec<f32>) = r.into_iter().unzip();
+        Ok((PyArray1::from_vec(py, aiv), PyArray1::from_vec(py, inc)))
     }
 
     fn __repr__(&self) -> String {

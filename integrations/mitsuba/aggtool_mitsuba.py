@@ -1,0 +1,543 @@
+"""A Mitsuba 3 integrator, `aggtool_lod`, that renders a scene where some objects are aggtool
+aggregates (`.agg` files) beside Mitsuba's own meshes.
+
+    import mitsuba as mi
+    mi.set_variant("scalar_rgb")          # or llvm_ad_rgb
+    import aggtool_mitsuba                 # registers "aggtool_lod" for the active variant
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "aggtool_lod",
+                       "agg_tree": "tree.agg",                       # any key agg_<name>
+                       "agg_tree_to_world": mi.ScalarTransform4f().translate([1, 0, 0])},
+        ...                                  # sensor, meshes, envmap, directional
+    })
+    image = mi.render(scene, spp=16)
+
+Parameters (properties of the integrator):
+
+    agg_<name>            string     path of an .agg file (any number of them)
+    agg_<name>_to_world   transform  where it sits: rotation, uniform scale, translation
+                                     (default: identity; shear, non-uniform scale, singular,
+                                     projective or non-finite transforms are refused)
+    hide_emitters         boolean    hide the environment where camera rays escape
+                                     (default: false)
+
+`mi.render(scene, spp=N, seed=S)`: N samples per pixel (default: the sensor's sampler's
+count), S seeds numpy's PCG64 (one stream per batch of rays).
+
+What it computes (direct illumination, as Mitsuba's `direct` integrator does for meshes):
+
+- Camera rays meet Mitsuba's meshes (`Scene.ray_intersect`) and each aggregate's primitives
+  (`aggtool.Scene.hits` with `tmax` clipped at the mesh), so the nearer surface wins: the
+  aggregate's surfaces in front of the mesh add their radiance, weighted by their coverage
+  (Eq. 30 of the paper), and pass what lies behind (the mesh, or the environment) through the
+  aggregate's transmittance (its ABV). Several aggregates composite front to back.
+- Mesh points are shaded as `direct` does (one emitter sample and one BSDF sample, combined by
+  MIS) with Mitsuba's emitters; their shadow rays are Mitsuba's (other meshes) times each
+  aggregate's transmittance along a shadow cone (`aggtool.Scene.transmittance`), so aggregates
+  shadow meshes.
+- Aggregate hits are shaded here, not by the runtime: one primitive per cone, picked in
+  proportion to its coverage weight (the weight sum carried, an unbiased estimate of Eq. 30's
+  sum), lit by one emitter sample of Mitsuba's scene (environment map, directional emitter,
+  area lights) and one ABSDF sample (`voxel_sample`), combined by MIS; the ABSDF comes from
+  `voxel_eval`, self-shadowing from the voxel's interior visibility (`voxel_visibility`), and
+  Mitsuba's shadow rays decide whether a mesh blocks the light, so meshes shadow aggregates.
+- Shadow cones and the aggregate's level of detail use the camera's pixel angle as aperture.
+
+All per-pixel work runs as whole-image batches: numpy arrays into the aggtool module (which
+releases the GIL and runs in parallel) and, in JIT variants (`llvm_ad_rgb`), one vectorised
+Mitsuba call per phase. In `scalar_*` variants Mitsuba has no batched queries, so the Mitsuba
+phases loop over rays in Python (slow: keep images small there). Pixels are box-filtered
+(uniform jitter over the pixel) whatever the film's `rfilter`; the sampler's seed is
+`mi.render`'s `seed` (numpy's PCG64), not the scene's sampler.
+
+Limits: `to_world` must be a similarity (rotation, uniform scale, translation): cone apertures
+and ABSDF directions do not survive shear or non-uniform scale, so those are refused. Only
+`.agg` files: `aggtool.open` does not read assembly manifests yet. Where a mesh pierces an
+aggregate (the cone clipped inside its bounds), the transmittance in front of the mesh is
+max(ABV, 1 − coverage in front), an approximation.
+"""
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+import aggtool
+
+__all__ = ["AggtoolLod", "Aggregate", "integrator_class", "register"]
+
+_KEY = re.compile(r"^agg_(\w+?)$")
+# Rays per batch: every phase's arrays are a few hundred bytes per ray.
+BATCH = 1 << 18
+
+
+def _jit() -> bool:
+    return dr.is_jit_v(mi.Float)
+
+
+# --- batches: one vectorised call in JIT variants, a loop over rows in scalar ones ---------
+
+def _to_mi(a, kind):
+    if kind == "f":
+        return mi.Float(np.ascontiguousarray(a, np.float32))
+    if kind == "b":
+        return mi.Bool(np.ascontiguousarray(a, bool))
+    a = np.ascontiguousarray(a, np.float32)
+    cols = [mi.Float(np.ascontiguousarray(a[:, k])) for k in range(a.shape[1])]
+    return {"p2": mi.Point2f, "v3": mi.Vector3f, "p3": mi.Point3f}[kind](*cols)
+
+
+def _scalar_row(r, kind):
+    if kind == "f":
+        return float(r)
+    if kind == "b":
+        return bool(r)
+    return {"p2": mi.Point2f, "v3": mi.Vector3f, "p3": mi.Point3f}[kind](*r)
+
+
+def _batch(fn, n, *args):
+    """Calls the Mitsuba-side `fn` on n rows of numpy arrays (each with its kind: f, b, p2,
+    v3, p3) and returns its outputs as numpy arrays of n rows."""
+    if _jit():
+        outs = fn(*[_to_mi(a, k) for a, k in args])
+        dr.eval(*outs)
+        res = []
+        for x in outs:
+            a = np.array(x)
+            a = a.T if a.ndim == 2 else a
+            if a.shape[0] != n:  # a literal broadcast over the batch
+                a = np.broadcast_to(a, (n,) + a.shape[1:]).copy()
+            res.append(a)
+        return res
+    rows = [a.tolist() for a, _ in args]
+    kinds = [k for _, k in args]
+    per = [fn(*[_scalar_row(r[i], k) for r, k in zip(rows, kinds)]) for i in range(n)]
+    return [np.array([np.array(p[j], dtype=np.float64) for p in per]) for j in range(len(per[0]))]
+
+
+def _power(a, b):
+    a2, b2 = a * a, b * b
+    return dr.select(a2 + b2 > 0, a2 / dr.maximum(a2 + b2, 1e-30), 0.0)
+
+
+def _power_np(a, b):
+    a2, b2 = a * a, b * b
+    s = a2 + b2
+    return np.where(s > 0, a2 / np.where(s > 0, s, 1.0), 0.0)
+
+
+def _emit(em, si, active=True):
+    """An emitter's radiance towards a surface interaction (the environment on a miss)."""
+    if em is None:  # scalar variants: no emitter there
+        return mi.Color3f(0.0)
+    return em.eval(si, active)
+
+
+def _infinite(em):
+    if em is None:
+        return False
+    return mi.has_flag(em.flags(), mi.EmitterFlags.Infinite)
+
+
+def _normalize(v):
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.where(n > 0, n, 1.0)
+
+
+# --- aggregates ------------------------------------------------------------------------
+
+def _matrix(to_world, what):
+    if to_world is None:
+        return np.eye(4)
+    if hasattr(to_world, "matrix"):
+        m = np.array(to_world.matrix, dtype=np.float64)
+    else:
+        try:
+            m = np.array(to_world, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{what}: not a transform (a mi.ScalarTransform4f or a 4x4 "
+                             f"matrix), got {type(to_world).__name__}") from None
+    m = m.reshape(4, 4) if m.size == 16 else m
+    if m.shape != (4, 4):
+        raise ValueError(f"{what}: a transform needs 4x4 numbers, got shape {m.shape}")
+    if not np.isfinite(m).all():
+        raise ValueError(f"{what}: the transform is not finite")
+    if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-9):
+        raise ValueError(f"{what}: a projective transform (last row {m[3].tolist()})")
+    a = m[:3, :3]
+    g = a.T @ a
+    s2 = np.trace(g) / 3
+    if not s2 > 1e-24:
+        raise ValueError(f"{what}: the transform is singular (scale 0)")
+    if not np.allclose(g, s2 * np.eye(3), rtol=0, atol=1e-4 * s2):
+        raise ValueError(f"{what}: shear or non-uniform scale; aggregates take rotations, "
+                         f"uniform scales and translations only (cone apertures and ABSDF "
+                         f"directions do not survive the others)")
+    return m
+
+
+class Aggregate:
+    """An aggtool aggregate placed in the scene by `to_world` (a similarity transform)."""
+
+    def __init__(self, path, to_world=None, name="aggregate"):
+        path = Path(path)
+        if path.suffix.lower() == ".json":
+            raise ValueError(f"{path}: assembly manifests are not supported yet (the aggtool "
+                             f"module opens .agg files only); place each aggregate instead")
+        self.name = name
+        self.path = path
+        self.scene = aggtool.open(str(path))  # aggtool.AggError naming the file
+        self.to_world = _matrix(to_world, f"{name}_to_world")
+        self.linear = self.to_world[:3, :3]
+        self.scale = float(np.sqrt(np.trace(self.linear.T @ self.linear) / 3))
+        inv = np.linalg.inv(self.to_world)
+        self.inv_linear, self.inv_offset = inv[:3, :3], inv[:3, 3]
+        b = self.scene.bounds
+        self.bounds = None if b is None else (np.array(b[0]), np.array(b[1]))
+
+    def point_to_local(self, p):
+        return (p @ self.inv_linear.T + self.inv_offset).astype(np.float32)
+
+    def dir_to_local(self, d):
+        return _normalize(d @ self.inv_linear.T).astype(np.float32)
+
+    def dir_to_world(self, d):
+        return _normalize(d @ self.linear.T)
+
+    def t_to_local(self, t):
+        """World distances along unit directions → local ones (inf stays inf)."""
+        return (np.asarray(t, np.float64) / self.scale).astype(np.float32)
+
+    def exit_t(self, o_l, d_l):
+        """Local ray parameter where rays leave the asset's bounds (−inf when they miss)."""
+        lo, hi = self.bounds
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / d_l
+            t0, t1 = (lo - o_l) * inv, (hi - o_l) * inv
+        tn = np.nanmax(np.minimum(t0, t1), axis=1)
+        tf = np.nanmin(np.maximum(t0, t1), axis=1)
+        return np.where(tn <= tf, tf, -np.inf)
+
+    def transmittance(self, p, d, aperture, tmax):
+        """What this aggregate lets through along world rays p + t d, t < tmax."""
+        return self.scene.transmittance(self.point_to_local(p), self.dir_to_local(d),
+                                        aperture, self.t_to_local(tmax))
+
+
+def _parse(props):
+    aggs = []
+    keys = list(props.keys())
+    for k in sorted(keys):
+        m = _KEY.match(k)
+        if not m or k.endswith("_to_world"):
+            continue
+        path = props[k]
+        if not isinstance(path, str):
+            raise ValueError(f"aggtool_lod: {k} must be the path of an .agg file")
+        tw = props[k + "_to_world"] if (k + "_to_world") in keys else None
+        aggs.append(Aggregate(path, tw, k))
+    for k in keys:
+        if k.endswith("_to_world") and k[: -len("_to_world")] not in keys:
+            raise ValueError(f"aggtool_lod: {k} has no {k[:-len('_to_world')]} path beside it")
+        if not k.startswith("agg_") and k not in ("hide_emitters",):
+            raise ValueError(f"aggtool_lod: unknown property {k!r} (agg_<name>, "
+                             f"agg_<name>_to_world, hide_emitters)")
+    return aggs
+
+
+class _AggtoolLod:
+    """Direct illumination of meshes and aggtool aggregates (see the module's docstring).
+    The methods of the integrator; [`integrator_class`] copies them into a subclass of the
+    active variant's `mi.SamplingIntegrator` (nanobind types take one base)."""
+
+    def __init__(self, props=None, aggregates=None):
+        mi.SamplingIntegrator.__init__(self, props if props is not None else mi.Properties())
+        self.aggregates = _parse(props) if props is not None else []
+        self.aggregates += list(aggregates or [])
+        self.hide_emitters = bool(props["hide_emitters"]) if (
+            props is not None and "hide_emitters" in props.keys()) else False
+
+    # -- Mitsuba-side phases (written once for scalar and JIT variants) --------------------
+
+    def _camera(self, sensor):
+        def fn(pos):
+            ray, w = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
+            return ray.o, ray.d, mi.Color3f(w)
+        return fn
+
+    def _mesh(self, scene):
+        jit = _jit()
+
+        def fn(o, d, u_e, u_b1, u_b2):
+            ray = mi.Ray3f(o, d)
+            si = scene.ray_intersect(ray)
+            valid = si.is_valid()
+            le = _emit(si.emitter(scene), si)
+            if self.hide_emitters:
+                le = dr.select(valid, le, mi.Color3f(0.0))
+            zero = mi.Color3f(0.0)
+            if not jit and not valid:
+                return (math.inf, le, zero, d, math.inf, zero, d, math.inf, o)
+            ctx = mi.BSDFContext()
+            bsdf = si.bsdf(ray)
+            # One emitter sample, shadow ray by Mitsuba (meshes).
+            ds, em_w = scene.sample_emitter_direction(si, u_e, True, valid)
+            f_e, pdf_b = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), valid)
+            mis_e = dr.select(ds.delta, 1.0, _power(ds.pdf, pdf_b))
+            c_e = dr.select(valid & (ds.pdf > 0), f_e * em_w * mis_e, zero)
+            dist_e = dr.select(_infinite(ds.emitter) if not jit else
+                               mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite),
+                               math.inf, ds.dist)
+            # One BSDF sample towards whatever emits (the environment, an area light).
+            bs, w_b = bsdf.sample(ctx, si, u_b1, u_b2, valid)
+            d_b = si.to_world(bs.wo)
+            si_b = scene.ray_intersect(si.spawn_ray(d_b), valid)
+            em_b = si_b.emitter(scene)
+            le_b = _emit(em_b, si_b, valid)
+            delta_b = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            if jit or em_b is not None:
+                ds_b = mi.DirectionSample3f(scene, si_b, si)
+                pdf_e = scene.pdf_emitter_direction(
+                    si, ds_b, (valid & ~delta_b) if jit else bool(valid and not delta_b))
+            else:
+                pdf_e = 0.0
+            mis_b = dr.select(delta_b, 1.0, _power(bs.pdf, pdf_e))
+            c_b = dr.select(valid & (bs.pdf > 0), w_b * le_b * mis_b, zero)
+            dist_b = dr.select(si_b.is_valid(), si_b.t, math.inf)
+            return (dr.select(valid, si.t, math.inf), le, c_e, ds.d, dist_e, c_b, d_b, dist_b,
+                    si.p)
+        return fn
+
+    def _interaction(self, p):
+        it = dr.zeros(mi.Interaction3f, dr.width(p)) if _jit() else dr.zeros(mi.Interaction3f)
+        it.p = p
+        return it
+
+    def _agg_light(self, scene):
+        jit = _jit()
+
+        def fn(p, u_e):
+            it = self._interaction(p)
+            ds, em_w = scene.sample_emitter_direction(it, u_e, True)
+            inf = (mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite) if jit
+                   else _infinite(ds.emitter))
+            return ds.d, em_w, ds.pdf, ds.delta, dr.select(inf, math.inf, ds.dist)
+        return fn
+
+    def _agg_bsdf(self, scene):
+        jit = _jit()
+
+        def fn(p, d):
+            it = self._interaction(p)
+            si = scene.ray_intersect(mi.Ray3f(p, d))
+            em = si.emitter(scene)
+            le = _emit(em, si)
+            if jit or em is not None:
+                pdf_e = scene.pdf_emitter_direction(it, mi.DirectionSample3f(scene, si, it))
+            else:
+                pdf_e = 0.0
+            return le, pdf_e, dr.select(si.is_valid(), si.t, math.inf)
+        return fn
+
+    # -- aggregates ---------------------------------------------------------------------------
+
+    def _through_others(self, skip, p, d, tmax, aperture):
+        """Transmittance of every aggregate but `skip` along world rays (shadow cones)."""
+        t = np.ones(len(p))
+        for j, a in enumerate(self.aggregates):
+            if j != skip and a.bounds is not None and len(p):
+                t *= a.transmittance(p, d, aperture, tmax)
+        return t
+
+    def _shade_hits(self, scene, rng, agg_of, level, key, p, wo, aperture):
+        """Reflected radiance of M aggregate hits towards wo (world), lit by Mitsuba's
+        emitters: one emitter sample and one ABSDF sample, MIS."""
+        m = len(p)
+        out = np.zeros((m, 3))
+        if m == 0:
+            return out
+        u_e = rng.random((m, 2))
+        d_e, em_w, pdf_e, delta, dist_e = _batch(self._agg_light(scene), m, (p, "p3"),
+                                                 (u_e, "p2"))
+        u_b = rng.random((m, 3)).astype(np.float32)
+        for j, a in enumerate(self.aggregates):
+            sel = np.nonzero(agg_of == j)[0]
+            if len(sel) == 0:
+                continue
+            lv, ky = level[sel], key[sel]
+            wo_l = a.dir_to_local(wo[sel])
+            # Emitter sample.
+            lit = sel[(em_w[sel].max(axis=1) > 0) & (pdf_e[sel] > 0)]
+            if len(lit):
+                k = np.searchsorted(sel, lit)
+                wi_l = a.dir_to_local(d_e[lit])
+                f, pdf_b = a.scene.voxel_eval(lv[k], ky[k], wi_l, wo_l[k])
+                _, inc = a.scene.voxel_visibility(lv[k], ky[k], wi_l)
+                tr = self._through_others(j, p[lit], d_e[lit], dist_e[lit], aperture)
+                mis = np.where(delta[lit].astype(bool), 1.0, _power_np(pdf_e[lit], pdf_b))
+                out[lit] += f * em_w[lit] * (inc * tr * mis)[:, None]
+            # ABSDF sample.
+            wi_l, val, pdf = a.scene.voxel_sample(lv, ky, wo_l, u_b[sel])
+            ok = pdf > 0
+            if ok.any():
+                s = sel[ok]
+                d_w = a.dir_to_world(wi_l[ok]).astype(np.float32)
+                le, pdf_l, dist = _batch(self._agg_bsdf(scene), len(s), (p[s], "p3"),
+                                         (d_w, "v3"))
+                _, inc = a.scene.voxel_visibility(lv[ok], ky[ok], wi_l[ok])
+                tr = self._through_others(j, p[s], d_w, dist, aperture)
+                mis = _power_np(pdf[ok], pdf_l)
+                out[s] += val[ok] * le * (inc * tr * mis / pdf[ok])[:, None]
+        return out
+
+    def _aggregate_layers(self, scene, rng, o, d, t_mesh, aperture):
+        """Per aggregate: (entry distance, surfaces' radiance, transmittance) of every ray."""
+        n = len(o)
+        picks, layers = [], []
+        for j, a in enumerate(self.aggregates):
+            if a.bounds is None:
+                continue
+            o_l, d_l = a.point_to_local(o), a.dir_to_local(d)
+            tmax_l = a.t_to_local(t_mesh)
+            h = a.scene.hits(o_l, d_l, aperture, tmax_l)
+            off, w = h["offsets"], h["weight"].astype(np.float64)
+            cnt = np.diff(off)
+            csum = np.concatenate([[0.0], np.cumsum(w)])
+            wsum = csum[off[1:]] - csum[off[:-1]]
+            tr = h["transmittance"].astype(np.float64)
+            # Clipped by a mesh inside the aggregate's bounds: what lies in front lets through
+            # at least 1 − its coverage.
+            clipped = (cnt > 0) & (tmax_l < a.exit_t(o_l, d_l))
+            tr = np.where(clipped, np.maximum(tr, np.clip(1.0 - wsum, 0.0, 1.0)), tr)
+            entry = np.full(n, np.inf)
+            hit = cnt > 0
+            entry[hit] = h["t"][off[:-1][hit]] * a.scale
+            # One primitive per cone, in proportion to its weight.
+            rays = np.nonzero(hit & (wsum > 0))[0]
+            target = csum[off[rays]] + rng.random(len(rays)) * wsum[rays]
+            k = np.searchsorted(csum, target, side="right") - 1
+            k = np.clip(k, off[rays], off[rays + 1] - 1)
+            p = o[rays] + (h["t"][k].astype(np.float64) * a.scale)[:, None] * d[rays]
+            picks.append((j, rays, h["level"][k], h["key"][k], p))
+            layers.append([entry, np.zeros((n, 3)), tr, wsum])
+        if not picks:
+            return []
+        agg_of = np.concatenate([np.full(len(r), j) for j, r, *_ in picks])
+        level = np.concatenate([x[2] for x in picks])
+        key = np.concatenate([x[3] for x in picks])
+        p = np.concatenate([x[4] for x in picks]).astype(np.float32)
+        rays = np.concatenate([x[1] for x in picks])
+        wo = (-d[rays]).astype(np.float32)
+        lo = self._shade_hits(scene, rng, agg_of, level, key, p, wo, aperture)
+        start = 0
+        for (j, r, *_), layer in zip(picks, layers):
+            layer[1][r] = lo[start:start + len(r)] * layer[3][r][:, None]
+            start += len(r)
+        return [(e, s, t) for e, s, t, _ in layers]
+
+    # -- the image ----------------------------------------------------------------------------
+
+    def _pass(self, scene, sensor, rng, xy, full, aperture):
+        n = len(xy)
+        pos = ((xy + rng.random((n, 2))) / full).astype(np.float32)
+        o, d, w = _batch(self._camera(sensor), n, (pos, "p2"))
+        d = _normalize(d)
+        u = rng.random((n, 5)).astype(np.float32)
+        (t_mesh, le, c_e, d_e, dist_e, c_b, d_b, dist_b, p_m) = _batch(
+            self._mesh(scene), n, (o, "p3"), (d, "v3"), (u[:, :2], "p2"), (u[:, 2], "f"),
+            (u[:, 3:], "p2"))
+        # Aggregates shadow meshes: shadow cones from the mesh points towards the light.
+        for c, dl, dist in ((c_e, d_e, dist_e), (c_b, d_b, dist_b)):
+            s = np.nonzero((c.max(axis=1) > 0) & np.isfinite(t_mesh))[0]
+            if len(s) and self.aggregates:
+                c[s] *= self._through_others(-1, p_m[s], _normalize(dl[s]), dist[s],
+                                             aperture)[:, None]
+        radiance = le + c_e + c_b
+        # Aggregates in front of the mesh (or the background), front to back.
+        layers = self._aggregate_layers(scene, rng, o, d, t_mesh, aperture)
+        if layers:
+            entry = np.stack([e for e, _, _ in layers])
+            order = np.argsort(-entry, axis=0)  # farthest first
+            rows = np.arange(n)
+            for k in range(len(layers)):
+                idx = order[k]
+                s = np.stack([l[1] for l in layers])[idx, rows]
+                t = np.stack([l[2] for l in layers])[idx, rows]
+                radiance = s + t[:, None] * radiance
+        return radiance * w
+
+    def render(self, scene, sensor, seed=0, spp=0, develop=True, evaluate=True):
+        if not isinstance(sensor, mi.Sensor):
+            sensor = scene.sensors()[sensor]
+        film = sensor.film()
+        film.prepare([])
+        size = np.array(film.crop_size())
+        offset = np.array(film.crop_offset())
+        full = np.array(film.size(), dtype=np.float64)
+        spp = int(spp) if spp else int(sensor.sampler().sample_count())
+        ys, xs = np.mgrid[0:size[1], 0:size[0]]
+        xy = np.stack([xs.ravel() + offset[0], ys.ravel() + offset[1]], axis=1).astype(np.float64)
+        # The pixel's angle, from two neighbouring centre rays: the cones' aperture.
+        c = (full / 2 + 0.5)
+        mid = np.array([c, c + [1.0, 0.0]]) / full
+        _, dd, _ = _batch(self._camera(sensor), 2, (mid.astype(np.float32), "p2"))
+        dd = _normalize(dd)
+        aperture = float(np.arccos(np.clip(np.dot(dd[0], dd[1]), -1.0, 1.0)))
+        # Several samples per pixel in one batch, up to BATCH rays.
+        npix = len(xy)
+        per = max(1, BATCH // max(npix, 1))
+        acc = np.zeros((npix, 3))
+        done, b = 0, 0
+        while done < spp:
+            k = min(per, spp - done)
+            rng = np.random.default_rng([int(seed), b])
+            out = self._pass(scene, sensor, rng, np.tile(xy, (k, 1)), full, aperture)
+            acc += out.reshape(k, npix, 3).sum(axis=0)
+            done, b = done + k, b + 1
+        img = (acc / spp).reshape(size[1], size[0], 3)
+        channels = np.array(film.develop()).shape[-1]
+        if channels > 3:
+            img = np.concatenate([img, np.ones(img.shape[:2] + (channels - 3,))], axis=-1)
+        return mi.TensorXf(np.ascontiguousarray(img, np.float32))
+
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        raise RuntimeError("aggtool_lod renders whole images in batches (mi.render); "
+                           "sample() per ray is not supported")
+
+    def to_string(self):
+        return "AggtoolLod[" + ", ".join(str(a.path) for a in self.aggregates) + "]"
+
+
+_CLASSES = {}
+
+
+def integrator_class():
+    """The integrator's class for the active variant (each variant has its own
+    `mi.SamplingIntegrator`, so a class made under one cannot serve another)."""
+    v = mi.variant()
+    if v not in _CLASSES:
+        methods = {k: f for k, f in vars(_AggtoolLod).items()
+                   if k not in ("__dict__", "__weakref__")}
+        _CLASSES[v] = type("AggtoolLod", (mi.SamplingIntegrator,), methods)
+    return _CLASSES[v]
+
+
+def AggtoolLod(props=None, aggregates=None):  # noqa: N802 - reads as the class it makes
+    """An `aggtool_lod` integrator for the active variant: from Mitsuba properties (what
+    `mi.load_dict` passes) and/or a list of [`Aggregate`]s."""
+    return integrator_class()(props, aggregates)
+
+
+def register():
+    """Registers `aggtool_lod` for the active Mitsuba variant (call after mi.set_variant;
+    importing this module does it for the variant active then)."""
+    mi.register_integrator("aggtool_lod", lambda props: AggtoolLod(props))
+
+
+if mi.variant() is not None:
+    register()
