@@ -1,0 +1,6 @@
+//! Assemblies: scenes of many instances of a few assets, read from a manifest
+//! ([`manifest`]), rendered with the LoD runtime and with the reference renderer.
+
+pub mod manifest;
+
+pub use manifest::{Asset, Manifest, ManifestError};
