@@ -41,7 +41,7 @@ use crate::spatial::Grid;
 
 pub use crate::lights::{EnvMap, Environment, LightSample, Lights, Sun};
 pub use hits::{Hit, Hits};
-pub use shade::shade;
+pub use shade::{shade, Placement};
 
 /// A cone: a centre ray and the full angle of its aperture (Algorithm 1's r and θ).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -349,6 +349,30 @@ impl LodScene {
         sampler: &mut S,
     ) -> ConeResult {
         shade::trace(self, cone, lights, settings, sampler)
+    }
+
+    /// [`LodScene::trace`] for a scene placed in a larger world (an instance of an assembly):
+    /// `cone` is in the scene's own space, `lights` in the world's, directions are carried
+    /// between the two by `place`, and light reaching a voxel is attenuated by
+    /// [`Placement::occlusion`] besides the voxel's own AIV. The result's `radiance` holds the
+    /// surfaces alone, **without the background**: the caller composes what lies behind through
+    /// `transmittance`. [`PrimitiveKind::Volume`] is not supported here (it is shaded as
+    /// [`PrimitiveKind::TruncatedEllipsoid`]).
+    pub fn trace_placed<S: Sampler + ?Sized, P: Placement + ?Sized>(
+        &self,
+        cone: &Cone,
+        lights: &Lights,
+        settings: &TraceSettings,
+        sampler: &mut S,
+        place: &P,
+    ) -> ConeResult {
+        let mut settings = *settings;
+        if settings.primitive == PrimitiveKind::Volume {
+            settings.primitive = PrimitiveKind::TruncatedEllipsoid;
+        }
+        let (surfaces, transmittance, primitives, coverage) =
+            shade::trace_surfaces(self, cone, lights, &settings, sampler, place);
+        ConeResult::compose(surfaces, Vec3::ZERO, transmittance, primitives, coverage)
     }
 
     /// Traces a batch of cones in parallel with [`LodScene::trace`]: four floats per cone in
