@@ -3,6 +3,15 @@
 
 pub mod lod;
 pub mod manifest;
+pub mod mesh;
 
 pub use manifest::{Asset, Manifest, ManifestError};
 pub use lod::{render, Assembly, AssemblyError};
+
+/// Whether a path names a manifest (a `.json` file) rather than an asset or an aggregate: what
+/// the CLI's `render`, `reference` and `inspect` go by.
+pub fn is_manifest(path: &std::path::Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("json"))
+}

@@ -73,9 +73,11 @@ enum Command {
         #[arg(short, long, default_value = "aggtool-eval")]
         output: PathBuf,
     },
-    /// Render an asset with the reference path tracer (direct illumination) to EXR and PNG.
+    /// Render an asset, or an assembly manifest, with the reference path tracer (direct
+    /// illumination) to EXR and PNG.
     Reference {
-        /// The asset (.gltf, .glb or .obj).
+        /// The asset (.gltf, .glb or .obj), or an assembly manifest (.json): each mesh loaded
+        /// once and instanced by the two-level BVH.
         asset: PathBuf,
         /// View file (JSON); see the README.
         #[arg(long, conflicts_with = "auto_view")]
@@ -241,9 +243,10 @@ enum Command {
         #[arg(long)]
         strict: bool,
     },
-    /// Render an .agg aggregate with the LoD runtime (cone tracing, Eq. 30) to EXR and PNG.
+    /// Render an .agg aggregate, or an assembly manifest (.json), with the LoD runtime (cone
+    /// tracing, Eq. 30) to EXR and PNG.
     Render {
-        /// The aggregate (.agg).
+        /// The aggregate (.agg), or an assembly manifest (.json; see the README's "Assemblies").
         agg: PathBuf,
         /// View file (JSON), the same as for `aggtool reference`.
         #[arg(long)]
@@ -274,7 +277,8 @@ enum Command {
         #[arg(long, default_value_t = 0.0)]
         exposure: f32,
     },
-    /// Print what an .agg file holds: header, settings, levels, effects kept and dropped.
+    /// Print what an .agg file holds: header, settings, levels, effects kept and dropped; or,
+    /// for an assembly manifest (.json): assets, instances, aggregate bytes, triangles.
     Inspect {
         file: PathBuf,
         #[arg(long)]
@@ -435,6 +439,25 @@ fn load_scene(path: &Path, strict: bool) -> Result<Scene> {
     for w in &scene.warnings {
         eprintln!("warning: {w}");
     }
+    Ok(scene)
+}
+
+/// An assembly's meshes as one scene, each source imported once (see
+/// `aggtool::assembly::mesh`).
+fn load_assembly_scene(path: &Path, strict: bool) -> Result<Scene> {
+    use aggtool::assembly::{mesh, Manifest};
+    let m = Manifest::load(path)?;
+    let sources = mesh::load_sources(&m, ImportOptions { strict })?;
+    let scene = mesh::scene(&m, &sources);
+    for w in &scene.warnings {
+        eprintln!("warning: {w}");
+    }
+    println!(
+        "input: {}: {} assets, {} instances",
+        path.display(),
+        m.assets.len(),
+        m.instance_count()
+    );
     Ok(scene)
 }
 
@@ -602,6 +625,103 @@ fn run_lod(
         png_beside(output).display()
     );
     Ok((prepare, seconds))
+}
+
+/// Renders an assembly (a manifest) with the LoD runtime; returns the render seconds.
+fn run_assembly_lod(
+    manifest: &Path,
+    view: &View,
+    output: &Path,
+    exposure: f32,
+    settings: &aggtool::runtime::TraceSettings,
+) -> Result<f64> {
+    let lights = view.lights()?;
+    let t0 = std::time::Instant::now();
+    let asm = aggtool::assembly::Assembly::open(manifest)?;
+    let m = asm.manifest();
+    println!(
+        "input: {}: {} assets, {} instances (opened with the instance BVH in {:.1} ms)",
+        manifest.display(),
+        m.assets.len(),
+        m.instance_count(),
+        t0.elapsed().as_secs_f64() * 1e3
+    );
+    let bars = TerminalProgress::new();
+    let (img, stats) = aggtool::assembly::render(
+        &asm,
+        &view.camera(),
+        &lights,
+        view.spp,
+        view.seed,
+        settings,
+        &|s, d, n| bars.report(s, d, n),
+    );
+    bars.finish();
+    for (a, asset) in m.assets.iter().enumerate() {
+        if let Some(e) = asm.scene(a).first_error() {
+            bail!("asset '{}': {}: {e}", asset.id, asset.aggregate.display());
+        }
+    }
+    img.write_exr(output)?;
+    img.write_png(&png_beside(output), exposure)?;
+    println!("{}", stats.line("LoD"));
+    for (a, asset) in m.assets.iter().enumerate() {
+        let s = asm.scene(a);
+        println!(
+            "stats: asset '{}': levels used {:?}",
+            asset.id,
+            s.prepared()
+                .iter()
+                .enumerate()
+                .filter(|(_, p)| **p)
+                .map(|(l, _)| s.grid(l).res)
+                .collect::<Vec<_>>()
+        );
+    }
+    println!(
+        "output: {} and {}",
+        output.display(),
+        png_beside(output).display()
+    );
+    Ok(stats.seconds)
+}
+
+/// `inspect MANIFEST`: assets, instances, bytes of the aggregates, triangles.
+fn inspect_assembly(path: &Path, json: bool) -> Result<()> {
+    let m = aggtool::assembly::Manifest::load(path)?;
+    let s = aggtool::assembly::mesh::summary(&m, true)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&s)?);
+        return Ok(());
+    }
+    let opt = |v: Option<u64>| v.map_or("?".to_string(), |v| v.to_string());
+    println!(
+        "{}: {} assets, {} instances ({} in memory)",
+        path.display(),
+        s.assets,
+        s.instances,
+        mib(s.instance_bytes as u64)
+    );
+    for a in &s.per_asset {
+        println!(
+            "asset '{}': {} instances, source {}{}, aggregate {} ({}), {} triangles ({} placed)",
+            a.id,
+            a.instances,
+            a.source,
+            if a.source_present { "" } else { " (missing)" },
+            a.aggregate,
+            a.aggregate_bytes.map_or("missing".into(), mib),
+            opt(a.unique_triangles),
+            opt(a.placed_triangles),
+        );
+    }
+    println!(
+        "aggregates: {} present; triangles: {} unique, {} instanced",
+        mib(s.aggregate_bytes),
+        opt(s.unique_triangles),
+        opt(s.instanced_triangles)
+    );
+    Ok(())
 }
 
 /// Writes images side by side (same size) into one sRGB PNG.
@@ -974,7 +1094,11 @@ fn run(cli: Cli) -> Result<()> {
             strict,
             save_view,
         } => {
-            let scene = load_scene(&asset, strict)?;
+            let scene = if aggtool::assembly::is_manifest(&asset) {
+                load_assembly_scene(&asset, strict)?
+            } else {
+                load_scene(&asset, strict)?
+            };
             println!("input: {}: {}", asset.display(), scene.summary());
             let mut view = match (view, auto_view) {
                 (Some(v), _) => View::load(&v)?,
@@ -1143,6 +1267,9 @@ fn run(cli: Cli) -> Result<()> {
                 strict,
             )
         }
+        Command::Inspect { file, json } if aggtool::assembly::is_manifest(&file) => {
+            inspect_assembly(&file, json)
+        }
         Command::Inspect { file, json } => inspect(&file, json),
         Command::Render {
             agg,
@@ -1176,7 +1303,14 @@ fn run(cli: Cli) -> Result<()> {
                     aggtool::runtime::PrimitiveKind::TruncatedEllipsoid
                 },
             };
-            run_lod(&agg, &view, &output, exposure, &settings)?;
+            if aggtool::assembly::is_manifest(&agg) {
+                if volume {
+                    bail!("--volume is not supported for assemblies");
+                }
+                run_assembly_lod(&agg, &view, &output, exposure, &settings)?;
+            } else {
+                run_lod(&agg, &view, &output, exposure, &settings)?;
+            }
             Ok(())
         }
         Command::Flatten { asset, output } => {
