@@ -2,11 +2,15 @@
 //! (lazily: levels are paged in when cones need them), a BVH over the instances' world
 //! bounds, and instances combined as uncorrelated.
 //!
-//! - **Camera cones.** The instances whose bounds the centre ray crosses are sorted by entry
-//!   distance; each is traced in its own space ([`LodScene::trace_placed`]) with the cone
-//!   carried there ([`local_cone`]), so that it picks its level by its own footprint; the
-//!   radiance of each instance met is added through the transmittance of those before it, and
-//!   its background transmittance (the ABV where the cone entered it) passes the rest on.
+//! - **Camera cones.** The instances whose bounds the centre ray crosses are visited in order
+//!   of entry distance; each is traced in its own space ([`LodScene::trace_placed`]) with the
+//!   cone carried there ([`local_cone`]), so that it picks its level by its own footprint.
+//!   The instances met are then composed in order of their **first primitive** along the ray
+//!   (not of their bounds, which overlap: a ground's bounds hold the whole forest standing on
+//!   it): the radiance of each is added through the transmittance of those before it, and its
+//!   background transmittance (the ABV where the cone entered it) passes the rest on. An
+//!   instance is composed as soon as no unvisited instance can come before it (its first hit
+//!   is nearer than the next entry), and the walk stops once the transmittance is spent.
 //! - **Light.** Light reaching a voxel of one instance is attenuated, besides the voxel's own
 //!   AIV (which holds only its own asset's occlusion, each asset being baked alone), by every
 //!   other instance its direction crosses: the shadow cone meets them through
@@ -210,12 +214,23 @@ impl Assembly {
         let background = lights.environment.eval(cone.dir);
         let mut list = Vec::new();
         self.along(cone, None, &mut list);
-        let (mut radiance, mut transmittance, mut primitives, mut coverage) =
-            (Vec3::ZERO, 1.0f32, 0u32, 0.0f32);
-        for &(_, i) in &list {
+        let mut acc = Composite {
+            radiance: Vec3::ZERO,
+            transmittance: 1.0,
+            primitives: 0,
+            coverage: 0.0,
+        };
+        // Instances traced but not composed yet: (first hit, result), kept sorted by first
+        // hit, nearest last.
+        let mut pending: Vec<(f32, ConeResult)> = Vec::new();
+        for &(entry, i) in &list {
+            acc.flush(&mut pending, entry);
+            if acc.transmittance <= MIN_TRANSMITTANCE {
+                break;
+            }
             let i = i as usize;
             let xf = self.xf(i);
-            let local = local_cone(&xf, cone);
+            let (local, k) = local_cone(&xf, cone);
             let place = InstancePlace {
                 asm: self,
                 instance: i,
@@ -224,23 +239,26 @@ impl Assembly {
                 aperture: cone.aperture,
                 settings,
             };
-            let r = self.scenes[self.manifest.asset_of(i)].trace_placed(
-                &local, lights, settings, sampler, &place,
-            );
-            radiance += transmittance * r.radiance;
-            coverage += transmittance * r.coverage;
-            primitives += r.primitives;
-            transmittance *= r.transmittance;
-            if transmittance <= MIN_TRANSMITTANCE {
-                transmittance = 0.0;
-                break;
+            let (r, first) = self.scenes[self.manifest.asset_of(i)]
+                .trace_placed(&local, lights, settings, sampler, &place);
+            if r.primitives == 0 && r.transmittance >= 1.0 {
+                continue;
             }
+            let t = first / k;
+            let at = pending.partition_point(|p| p.0 > t);
+            pending.insert(at, (t, r));
         }
+        acc.flush(&mut pending, f32::INFINITY);
+        let transmittance = if acc.transmittance <= MIN_TRANSMITTANCE {
+            0.0
+        } else {
+            acc.transmittance
+        };
         ConeResult {
-            radiance: crate::math::finite_vec_or_zero(radiance + background * transmittance),
+            radiance: crate::math::finite_vec_or_zero(acc.radiance + background * transmittance),
             transmittance: crate::math::finite_or_zero(transmittance),
-            primitives,
-            coverage: crate::math::finite_or_zero(coverage),
+            primitives: acc.primitives,
+            coverage: crate::math::finite_or_zero(acc.coverage),
         }
     }
 
@@ -252,7 +270,7 @@ impl Assembly {
         let mut t = 1.0f32;
         for &(_, i) in &list {
             let i = i as usize;
-            let local = local_cone(&self.xf(i), cone);
+            let (local, _) = local_cone(&self.xf(i), cone);
             t *= self.scenes[self.manifest.asset_of(i)].transmittance(&local, settings);
             if t <= MIN_TRANSMITTANCE {
                 return 0.0;
@@ -262,21 +280,48 @@ impl Assembly {
     }
 }
 
+/// What a camera cone has gathered so far.
+struct Composite {
+    radiance: Vec3,
+    transmittance: f32,
+    primitives: u32,
+    coverage: f32,
+}
+
+impl Composite {
+    /// Composes, nearest first, the pending results whose first hit is before `t`.
+    fn flush(&mut self, pending: &mut Vec<(f32, ConeResult)>, t: f32) {
+        while let Some(&(first, r)) = pending.last() {
+            if first > t {
+                break;
+            }
+            pending.pop();
+            self.radiance += self.transmittance * r.radiance;
+            self.coverage += self.transmittance * r.coverage;
+            self.primitives += r.primitives;
+            self.transmittance *= r.transmittance;
+        }
+    }
+}
+
 /// A world cone in an instance's own space: the origin and the direction mapped, the ray
 /// parameter scaled by k = |M⁻¹d| (so the same points are covered), the aperture's tangent by
-/// lateral / k (unchanged for a uniform scale).
+/// lateral / k (unchanged for a uniform scale). Returns the cone and k.
 #[inline]
-fn local_cone(xf: &Xf, cone: &Cone) -> Cone {
+fn local_cone(xf: &Xf, cone: &Cone) -> (Cone, f32) {
     let v = xf.to_local.transform_vector3(cone.dir);
     let k = v.length();
     let tan_half = (0.5 * cone.aperture).tan() * xf.lateral / k;
-    Cone {
-        origin: xf.to_local.transform_point3(cone.origin),
-        dir: v / k,
-        aperture: 2.0 * tan_half.atan(),
-        tmin: cone.tmin * k,
-        tmax: cone.tmax * k,
-    }
+    (
+        Cone {
+            origin: xf.to_local.transform_point3(cone.origin),
+            dir: v / k,
+            aperture: 2.0 * tan_half.atan(),
+            tmin: cone.tmin * k,
+            tmax: cone.tmax * k,
+        },
+        k,
+    )
 }
 
 /// An instance as the runtime's shading sees it.

@@ -1,6 +1,8 @@
 //! Assemblies: scenes of many instances of a few assets, read from a manifest
 //! ([`manifest`]), rendered with the LoD runtime and with the reference renderer.
 
+pub mod bake;
+pub mod forest;
 pub mod lod;
 pub mod manifest;
 pub mod mesh;

@@ -122,9 +122,10 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Write a generated hard-case scene as GLB.
+    /// Write a generated hard-case scene as GLB; or, with `forest`, an assembly: --species
+    /// trees of --triangles each and a manifest (forest.json) placing --instances of them.
     Gen {
-        /// One of: plane45, lattice, foliage, displaced-sphere, rings, buildings, or all.
+        /// One of: plane45, lattice, foliage, displaced-sphere, rings, buildings, all, or forest.
         name: String,
         /// Output folder.
         #[arg(short, long, default_value = ".")]
@@ -140,6 +141,12 @@ enum Command {
         quantize: bool,
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// forest: distinct trees.
+        #[arg(long, default_value_t = 4)]
+        species: usize,
+        /// forest: trees placed.
+        #[arg(long, default_value_t = 100)]
+        instances: usize,
     },
     /// Print what an asset imports as: counts, bounds, materials, warnings.
     Info {
@@ -276,6 +283,41 @@ enum Command {
         /// Exposure of the PNG in stops.
         #[arg(long, default_value_t = 0.0)]
         exposure: f32,
+    },
+    /// Bake every asset of an assembly manifest whose aggregate is missing or stale (a stamp
+    /// NAME.agg.stamp.json beside each records its source's and settings' checksums), assets
+    /// in parallel; says what it baked and what it reused. Settings not listed here are
+    /// `convert`'s defaults.
+    Assemble {
+        /// The manifest (.json).
+        manifest: PathBuf,
+        /// Finest level resolution (a power of two).
+        #[arg(long, default_value_t = 256)]
+        max_res: u32,
+        /// Coarsest level resolution.
+        #[arg(long, default_value_t = 4)]
+        min_res: u32,
+        /// Surface samples per voxel at the finest level.
+        #[arg(long, default_value_t = 16)]
+        samples: u32,
+        /// Interior-visibility map resolution.
+        #[arg(long, default_value_t = 32)]
+        aiv_res: u32,
+        /// Interior-visibility rays per surface sample.
+        #[arg(long, default_value_t = 16)]
+        aiv_rays: u32,
+        /// Boundary-visibility map resolution.
+        #[arg(long, default_value_t = 64)]
+        abv_res: u32,
+        /// See `convert --abv-full-res`.
+        #[arg(long, default_value_t = 64)]
+        abv_full_res: u32,
+        /// Treat import warnings as errors.
+        #[arg(long)]
+        strict: bool,
+        /// Print the outcomes as JSON.
+        #[arg(long)]
+        json: bool,
     },
     /// Print what an .agg file holds: header, settings, levels, effects kept and dropped; or,
     /// for an assembly manifest (.json): assets, instances, aggregate bytes, triangles.
@@ -1150,7 +1192,24 @@ fn run(cli: Cli) -> Result<()> {
             lambertian,
             quantize,
             seed,
+            species,
+            instances,
         } => {
+            if name == "forest" {
+                let r = aggtool::assembly::forest::write(&output, species, instances, triangles, seed)
+                    .map_err(anyhow::Error::msg)?;
+                for a in &r.assets {
+                    println!("output: {}", a.display());
+                }
+                println!(
+                    "output: {} ({} trees of {} species, {} triangles each)",
+                    r.manifest.display(),
+                    r.instances,
+                    species,
+                    r.tree_triangles
+                );
+                return Ok(());
+            }
             let settings = GenSettings {
                 triangles,
                 lambertian,
@@ -1266,6 +1325,66 @@ fn run(cli: Cli) -> Result<()> {
                 verbose,
                 strict,
             )
+        }
+        Command::Assemble {
+            manifest,
+            max_res,
+            min_res,
+            samples,
+            aiv_res,
+            aiv_rays,
+            abv_res,
+            abv_full_res,
+            strict,
+            json,
+        } => {
+            let settings = aggtool::bake::BakeSettings {
+                max_res,
+                min_res,
+                samples,
+                aiv_res,
+                aiv_rays,
+                abv_res,
+                abv_full_res,
+                ..Default::default()
+            };
+            let m = aggtool::assembly::Manifest::load(&manifest)?;
+            let t0 = std::time::Instant::now();
+            let outcomes = aggtool::assembly::bake::assemble(
+                &m,
+                &settings,
+                ImportOptions { strict },
+                &|o| {
+                    if !json {
+                        match &o.reason {
+                            Some(r) => println!(
+                                "baked: asset '{}' ({r}) -> {} ({}, {:.1} s)",
+                                o.asset,
+                                o.aggregate.display(),
+                                mib(o.bytes),
+                                o.seconds
+                            ),
+                            None => println!(
+                                "reused: asset '{}': {} is up to date",
+                                o.asset,
+                                o.aggregate.display()
+                            ),
+                        }
+                    }
+                },
+            )?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&outcomes)?);
+            } else {
+                let baked = outcomes.iter().filter(|o| o.baked).count();
+                println!(
+                    "stats: {} assets: {baked} baked, {} reused, {:.1} s",
+                    outcomes.len(),
+                    outcomes.len() - baked,
+                    t0.elapsed().as_secs_f64()
+                );
+            }
+            Ok(())
         }
         Command::Inspect { file, json } if aggtool::assembly::is_manifest(&file) => {
             inspect_assembly(&file, json)

@@ -356,7 +356,9 @@ impl LodScene {
     /// between the two by `place`, and light reaching a voxel is attenuated by
     /// [`Placement::occlusion`] besides the voxel's own AIV. The result's `radiance` holds the
     /// surfaces alone, **without the background**: the caller composes what lies behind through
-    /// `transmittance`. [`PrimitiveKind::Volume`] is not supported here (it is shaded as
+    /// `transmittance`; with it comes the ray parameter of the first primitive met (infinite
+    /// when none), by which a caller orders overlapping scenes along the cone.
+    /// [`PrimitiveKind::Volume`] is not supported here (it is shaded as
     /// [`PrimitiveKind::TruncatedEllipsoid`]).
     pub fn trace_placed<S: Sampler + ?Sized, P: Placement + ?Sized>(
         &self,
@@ -365,14 +367,17 @@ impl LodScene {
         settings: &TraceSettings,
         sampler: &mut S,
         place: &P,
-    ) -> ConeResult {
+    ) -> (ConeResult, f32) {
         let mut settings = *settings;
         if settings.primitive == PrimitiveKind::Volume {
             settings.primitive = PrimitiveKind::TruncatedEllipsoid;
         }
-        let (surfaces, transmittance, primitives, coverage) =
+        let (surfaces, transmittance, primitives, coverage, first) =
             shade::trace_surfaces(self, cone, lights, &settings, sampler, place);
-        ConeResult::compose(surfaces, Vec3::ZERO, transmittance, primitives, coverage)
+        (
+            ConeResult::compose(surfaces, Vec3::ZERO, transmittance, primitives, coverage),
+            first,
+        )
     }
 
     /// Traces a batch of cones in parallel with [`LodScene::trace`]: four floats per cone in

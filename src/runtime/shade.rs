@@ -166,13 +166,14 @@ pub(crate) fn trace<S: Sampler + ?Sized>(
     if settings.primitive == PrimitiveKind::Volume {
         return scene.trace_volume(cone, lights, settings, sampler);
     }
-    let (surfaces, transmittance, primitives, coverage) =
+    let (surfaces, transmittance, primitives, coverage, _) =
         trace_surfaces(scene, cone, lights, settings, sampler, &Alone);
     ConeResult::compose(surfaces, background, transmittance, primitives, coverage)
 }
 
 /// [`LodScene::trace_placed`]: the surfaces' radiance (no background), the background's
-/// weight, the primitives met and the coverage.
+/// weight, the primitives met, the coverage, and the ray parameter of the first primitive met
+/// (infinite when none).
 pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
     scene: &LodScene,
     cone: &Cone,
@@ -180,13 +181,15 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
     settings: &TraceSettings,
     sampler: &mut S,
     place: &P,
-) -> (Vec3, f32, u32, f32) {
+) -> (Vec3, f32, u32, f32, f32) {
     let wo = place.to_world(-cone.dir);
     let mut hits = scene.hits(cone, settings);
+    let mut first = f32::INFINITY;
     let (surfaces, coverage) = match settings.shading {
         Shading::Every => {
             let (mut sum, mut cov) = (Vec3::ZERO, 0.0f32);
             for h in &mut hits {
+                first = first.min(h.t);
                 sum += shade_placed(&h, cone, wo, lights, settings.nee, sampler, place) * h.weight;
                 cov += h.weight;
             }
@@ -202,6 +205,7 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
             let mut kept: [Option<Hit>; MAX_PICKS] = [None; MAX_PICKS];
             let mut wsum = 0.0f32;
             for h in &mut hits {
+                first = first.min(h.t);
                 wsum += h.weight;
                 let p = h.weight / wsum;
                 for slot in kept.iter_mut().take(n) {
@@ -228,5 +232,5 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
             }
         }
     };
-    (surfaces, hits.transmittance(), hits.primitives(), coverage)
+    (surfaces, hits.transmittance(), hits.primitives(), coverage, first)
 }
