@@ -358,3 +358,49 @@ fn a_hundred_thousand_instances_parse_and_render() {
     // Only coarse levels for trees this small and far (the lazy paging at work).
     assert!(!asm.scene(0).prepared().is_empty());
 }
+
+/// `gen forest` is deterministic, `assemble` bakes what is missing and reuses what is up to
+/// date (rebaking when the settings change), and the LoD render of the forest (trees standing
+/// on a ground whose bounds hold them all) agrees with the reference.
+#[test]
+fn forest_generates_assembles_and_renders_like_the_reference() {
+    use aggtool::assembly::{bake::assemble, forest};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let r = forest::write(&d.join("f"), 2, 25, 1500, 1).unwrap();
+    let r2 = forest::write(&d.join("g"), 2, 25, 1500, 1).unwrap();
+    for (a, b) in r.assets.iter().chain([&r.manifest]).zip(r2.assets.iter().chain([&r2.manifest])) {
+        assert_eq!(std::fs::read(a).unwrap(), std::fs::read(b).unwrap(), "{}", a.display());
+    }
+    let m = Manifest::load(&r.manifest).unwrap();
+    assert_eq!(m.instance_count(), 26, "25 trees and the ground");
+    let quiet = |_: &assembly::bake::Outcome| {};
+    let first = assemble(&m, &tiny(), Default::default(), &quiet).unwrap();
+    assert!(first.iter().all(|o| o.baked && o.reason.as_deref() == Some("missing")));
+    let again = assemble(&m, &tiny(), Default::default(), &quiet).unwrap();
+    assert!(again.iter().all(|o| !o.baked), "{again:?}");
+    let other = BakeSettings { samples: 4, ..tiny() };
+    let changed = assemble(&m, &other, Default::default(), &quiet).unwrap();
+    assert!(changed.iter().all(|o| o.reason.as_deref() == Some("settings changed")));
+    // A source edited: only that asset is baked again.
+    let tree0 = &m.assets.iter().find(|a| a.id == "tree_00").unwrap().source;
+    let mut bytes = std::fs::read(tree0).unwrap();
+    bytes.extend_from_slice(b"    ");
+    std::fs::write(tree0, bytes).unwrap();
+    let edited = assemble(&m, &other, Default::default(), &quiet).unwrap();
+    let baked: Vec<&str> = edited.iter().filter(|o| o.baked).map(|o| o.asset.as_str()).collect();
+    assert_eq!(baked, ["tree_00"]);
+
+    let cam = Camera::look_at(Vec3::new(-4.0, 2.0, -4.0), Vec3::new(0.5, 0.3, 0.5), Vec3::Y, 45.0, 48, 32);
+    let sources = assembly::mesh::load_sources(&m, Default::default()).unwrap();
+    let scene = assembly::mesh::scene(&m, &sources);
+    let accel = aggtool::trace::Accel::build(&scene);
+    let settings = aggtool::render::reference::ReferenceSettings { spp: 16, seed: 1 };
+    let (reference, _) = aggtool::render::reference::render(&accel, &cam, &lights(), settings, &no_progress);
+    let lod = render_asm(&Assembly::new(m).unwrap(), &cam, 16);
+    let c = compare(&lod, &reference).unwrap();
+    eprintln!("forest relmse LoD vs reference: {:.4}", c.relmse);
+    // Measured 0.051. Composing by bounds instead of first hits hid the trees behind the
+    // ground: 0.26 here (checked by making that change), 0.82 on a 400-tree forest.
+    assert!(c.relmse < 0.15, "{c:?}");
+}
