@@ -36,7 +36,14 @@ fn asset(dir: &Path, name: &str, data: &SceneData) -> PathBuf {
     let glb = dir.join(format!("{name}.glb"));
     std::fs::write(&glb, to_glb(data, false)).unwrap();
     let scene = aggtool::import::load(&glb, Default::default()).unwrap();
-    bake_to_file(&scene, name, &tiny(), &glb.with_extension("agg"), &no_progress).unwrap();
+    bake_to_file(
+        &scene,
+        name,
+        &tiny(),
+        &glb.with_extension("agg"),
+        &no_progress,
+    )
+    .unwrap();
     glb
 }
 
@@ -75,8 +82,10 @@ fn manifest(dir: &Path, name: &str, assets: &[(&str, &str)], inst: &[(&str, Affi
     let p = dir.join(name);
     std::fs::write(
         &p,
-        serde_json::to_string(&serde_json::json!({ "version": 1, "assets": assets, "instances": instances }))
-            .unwrap(),
+        serde_json::to_string(
+            &serde_json::json!({ "version": 1, "assets": assets, "instances": instances }),
+        )
+        .unwrap(),
     )
     .unwrap();
     p
@@ -105,12 +114,30 @@ fn camera(m: Affine3A, w: u32, h: u32) -> Camera {
 }
 
 fn render_asm(asm: &Assembly, cam: &Camera, spp: u32) -> Image {
-    assembly::render(asm, cam, &lights(), spp, 7, &TraceSettings::default(), &no_progress).0
+    assembly::render(
+        asm,
+        cam,
+        &lights(),
+        spp,
+        7,
+        &TraceSettings::default(),
+        &no_progress,
+    )
+    .0
 }
 
 fn render_single(agg: &Path, cam: &Camera, spp: u32) -> Image {
     let s = LodScene::open(agg).unwrap();
-    aggtool::runtime::render(&s, cam, &lights(), spp, 7, &TraceSettings::default(), &no_progress).0
+    aggtool::runtime::render(
+        &s,
+        cam,
+        &lights(),
+        spp,
+        7,
+        &TraceSettings::default(),
+        &no_progress,
+    )
+    .0
 }
 
 #[test]
@@ -121,7 +148,9 @@ fn manifest_errors_name_the_asset_or_instance() {
     // The aggregate of asset 'a' (a.agg by default) is missing: opening names the asset.
     let p = manifest(d, "m.json", &[("a", "a.glb")], &[("a", Affine3A::IDENTITY)]);
     match Assembly::open(&p) {
-        Err(assembly::AssemblyError::Manifest(ManifestError::MissingFile { asset, what, .. })) => {
+        Err(assembly::AssemblyError::Manifest(ManifestError::MissingFile {
+            asset, what, ..
+        })) => {
             assert_eq!((asset.as_str(), what), ("a", "aggregate"))
         }
         Err(e) => panic!("wrong error: {e}"),
@@ -129,23 +158,47 @@ fn manifest_errors_name_the_asset_or_instance() {
     }
     // A corrupt aggregate: an open error naming the asset.
     std::fs::write(d.join("a.agg"), b"garbage").unwrap();
-    let e = Assembly::open(&p).err().expect("opened a corrupt aggregate").to_string();
+    let e = Assembly::open(&p)
+        .err()
+        .expect("opened a corrupt aggregate")
+        .to_string();
     assert!(e.contains("asset 'a'"), "{e}");
     // Singular, unknown asset, bad version.
     let p = manifest(
         d,
         "m2.json",
         &[("a", "a.glb")],
-        &[("a", Affine3A::IDENTITY), ("a", Affine3A::from_scale(Vec3::new(1.0, 0.0, 1.0)))],
+        &[
+            ("a", Affine3A::IDENTITY),
+            ("a", Affine3A::from_scale(Vec3::new(1.0, 0.0, 1.0))),
+        ],
     );
     let e = Manifest::load(&p).unwrap_err();
-    assert!(matches!(e, ManifestError::BadTransform { index: 1, .. }), "{e}");
-    let p = manifest(d, "m3.json", &[("a", "a.glb")], &[("b", Affine3A::IDENTITY)]);
+    assert!(
+        matches!(e, ManifestError::BadTransform { index: 1, .. }),
+        "{e}"
+    );
+    let p = manifest(
+        d,
+        "m3.json",
+        &[("a", "a.glb")],
+        &[("b", Affine3A::IDENTITY)],
+    );
     let e = Manifest::load(&p).unwrap_err();
-    assert!(matches!(&e, ManifestError::UnknownAsset { index: 0, asset, .. } if asset == "b"), "{e}");
-    std::fs::write(d.join("m4.json"), r#"{"version": 3, "assets": {}, "instances": []}"#).unwrap();
+    assert!(
+        matches!(&e, ManifestError::UnknownAsset { index: 0, asset, .. } if asset == "b"),
+        "{e}"
+    );
+    std::fs::write(
+        d.join("m4.json"),
+        r#"{"version": 3, "assets": {}, "instances": []}"#,
+    )
+    .unwrap();
     let e = Manifest::load(&d.join("m4.json")).unwrap_err();
-    assert!(matches!(e, ManifestError::BadVersion { version: 3, .. }), "{e}");
+    assert!(
+        matches!(e, ManifestError::BadVersion { version: 3, .. }),
+        "{e}"
+    );
     let e = Manifest::load(&d.join("absent.json")).unwrap_err();
     assert!(matches!(e, ManifestError::Io { .. }), "{e}");
 }
@@ -164,7 +217,12 @@ fn two_instances_render_as_the_asset_twice() {
         Quat::from_rotation_y(std::f32::consts::FRAC_PI_2),
         Vec3::new(40.0, 0.0, -10.0),
     );
-    let p = manifest(d, "two.json", &[("tree", "tree.glb")], &[("tree", Affine3A::IDENTITY), ("tree", moved)]);
+    let p = manifest(
+        d,
+        "two.json",
+        &[("tree", "tree.glb")],
+        &[("tree", Affine3A::IDENTITY), ("tree", moved)],
+    );
     let asm = Assembly::open(&p).unwrap();
     let (w, h, spp) = (48, 48, 16);
     let single = render_single(&agg, &camera(Affine3A::IDENTITY, w, h), spp);
@@ -176,21 +234,31 @@ fn two_instances_render_as_the_asset_twice() {
     // flip a reservoir choice in a few pixels, which at 16 spp costs ~1e-3 relative MSE.
     // Measured: first 0.000000, second 0.000094.
     eprintln!("relmse: first {:.6}, second {:.6}", c1.relmse, c2.relmse);
-    assert!(c1.relmse < 0.003, "first instance differs from the asset: {c1:?}");
-    assert!(c2.relmse < 0.003, "moved instance differs from the asset: {c2:?}");
+    assert!(
+        c1.relmse < 0.003,
+        "first instance differs from the asset: {c1:?}"
+    );
+    assert!(
+        c2.relmse < 0.003,
+        "moved instance differs from the asset: {c2:?}"
+    );
     // The check can fail: the moved instance seen from the unmoved camera's angle (turned a
     // quarter) differs from the asset by several times the tolerance (measured 0.023).
     let turned = render_asm(
         &asm,
         &camera(
-            Affine3A::from_translation(moved.translation.into()) * Affine3A::from_scale(Vec3::splat(2.0)),
+            Affine3A::from_translation(moved.translation.into())
+                * Affine3A::from_scale(Vec3::splat(2.0)),
             w,
             h,
         ),
         spp,
     );
     let c3 = compare(&turned, &single).unwrap();
-    eprintln!("relmse of the instance seen from a quarter turn: {:.4}", c3.relmse);
+    eprintln!(
+        "relmse of the instance seen from a quarter turn: {:.4}",
+        c3.relmse
+    );
     assert!(c3.relmse > 0.01, "{c3:?}");
 }
 
@@ -223,24 +291,58 @@ fn an_opaque_wall_hides_an_instance_behind_it() {
     // Wall at z = 1.5 between the camera (at z ≈ 2.6 + ...) and the tree at the origin.
     let wall = Affine3A::from_translation(Vec3::new(0.2, 0.6, 1.3));
     let assets = [("tree", "tree.glb"), ("wall", "wall.glb")];
-    let both = Assembly::open(&manifest(d, "both.json", &assets, &[("tree", Affine3A::IDENTITY), ("wall", wall)])).unwrap();
+    let both = Assembly::open(&manifest(
+        d,
+        "both.json",
+        &assets,
+        &[("tree", Affine3A::IDENTITY), ("wall", wall)],
+    ))
+    .unwrap();
     let wall_only = Assembly::open(&manifest(d, "wall.json", &assets, &[("wall", wall)])).unwrap();
-    let tree_only = Assembly::open(&manifest(d, "tree.json", &assets, &[("tree", Affine3A::IDENTITY)])).unwrap();
-    let cam = Camera::look_at(Vec3::new(0.0, 0.6, 4.0), Vec3::new(0.0, 0.6, 0.0), Vec3::Y, 30.0, 32, 32);
+    let tree_only = Assembly::open(&manifest(
+        d,
+        "tree.json",
+        &assets,
+        &[("tree", Affine3A::IDENTITY)],
+    ))
+    .unwrap();
+    let cam = Camera::look_at(
+        Vec3::new(0.0, 0.6, 4.0),
+        Vec3::new(0.0, 0.6, 0.0),
+        Vec3::Y,
+        30.0,
+        32,
+        32,
+    );
     let spp = 16;
     let (b, wl, t) = (
         render_asm(&both, &cam, spp),
         render_asm(&wall_only, &cam, spp),
         render_asm(&tree_only, &cam, spp),
     );
-    let sky = render_asm(&Assembly::open(&manifest(d, "none.json", &assets, &[])).unwrap(), &cam, spp);
-    let (mb, mw, mt, ms) = (centre_mean(&b, 0.3), centre_mean(&wl, 0.3), centre_mean(&t, 0.3), centre_mean(&sky, 0.3));
+    let sky = render_asm(
+        &Assembly::open(&manifest(d, "none.json", &assets, &[])).unwrap(),
+        &cam,
+        spp,
+    );
+    let (mb, mw, mt, ms) = (
+        centre_mean(&b, 0.3),
+        centre_mean(&wl, 0.3),
+        centre_mean(&t, 0.3),
+        centre_mean(&sky, 0.3),
+    );
     eprintln!("centre means: both {mb:.4}, wall {mw:.4}, tree {mt:.4}, sky {ms:.4}");
     // The tree shows in the centre on its own (measured: 0.119 against the wall's 0.150).
-    assert!((mt - mw).abs() > 0.02, "tree {mt} vs wall {mw}: the test could not fail");
+    assert!(
+        (mt - mw).abs() > 0.02,
+        "tree {mt} vs wall {mw}: the test could not fail"
+    );
     // Behind the wall it changes less than a tenth of that: what the wall's ABV lets through
     // (the wall is opaque, its boundary visibility ~0) and noise (measured: 0.0004, 1.3%).
-    assert!((mb - mw).abs() < 0.1 * (mt - mw).abs(), "both {mb} vs wall {mw}");
+    assert!(
+        (mb - mw).abs() < 0.1 * (mt - mw).abs(),
+        "both {mb} vs wall {mw}"
+    );
 }
 
 /// An opaque slab above a floor, lit by a sun from straight above, darkens the floor under it:
@@ -263,10 +365,26 @@ fn an_opaque_instance_casts_its_shadow_on_another() {
             irradiance: Vec3::splat(3.0),
         }),
     };
-    let cam = Camera::look_at(Vec3::new(0.0, 2.0, 0.8), Vec3::new(0.0, 0.0, 0.0), Vec3::Y, 20.0, 24, 24);
+    let cam = Camera::look_at(
+        Vec3::new(0.0, 2.0, 0.8),
+        Vec3::new(0.0, 0.0, 0.0),
+        Vec3::Y,
+        20.0,
+        24,
+        24,
+    );
     let render = |inst: &[(&str, Affine3A)], name: &str| {
         let asm = Assembly::open(&manifest(d, name, &assets, inst)).unwrap();
-        assembly::render(&asm, &cam, &lights, 16, 3, &TraceSettings::default(), &no_progress).0
+        assembly::render(
+            &asm,
+            &cam,
+            &lights,
+            16,
+            3,
+            &TraceSettings::default(),
+            &no_progress,
+        )
+        .0
     };
     let lit = render(&[("floor", floor)], "lit.json");
     let shaded = render(&[("floor", floor), ("roof", roof)], "shaded.json");
@@ -286,21 +404,48 @@ fn reference_renders_the_same_instances() {
     let d = dir.path();
     tree(d);
     let a = Affine3A::from_translation(Vec3::new(-0.8, 0.0, 0.0));
-    let b = Affine3A::from_rotation_translation(Quat::from_rotation_y(1.0), Vec3::new(0.8, 0.0, 0.0));
-    let p = manifest(d, "two.json", &[("tree", "tree.glb")], &[("tree", a), ("tree", b)]);
+    let b =
+        Affine3A::from_rotation_translation(Quat::from_rotation_y(1.0), Vec3::new(0.8, 0.0, 0.0));
+    let p = manifest(
+        d,
+        "two.json",
+        &[("tree", "tree.glb")],
+        &[("tree", a), ("tree", b)],
+    );
     let m = Manifest::load(&p).unwrap();
     let sources = assembly::mesh::load_sources(&m, Default::default()).unwrap();
     let scene = assembly::mesh::scene(&m, &sources);
-    assert_eq!(scene.meshes.len(), sources[0].meshes.len(), "meshes are stored once");
-    assert_eq!(scene.instanced_triangle_count(), 2 * sources[0].instanced_triangle_count());
+    assert_eq!(
+        scene.meshes.len(),
+        sources[0].meshes.len(),
+        "meshes are stored once"
+    );
+    assert_eq!(
+        scene.instanced_triangle_count(),
+        2 * sources[0].instanced_triangle_count()
+    );
     let summary = assembly::mesh::summary(&m, true).unwrap();
-    assert_eq!(summary.unique_triangles, Some(sources[0].unique_triangle_count() as u64));
-    assert_eq!(summary.instanced_triangles, Some(2 * sources[0].instanced_triangle_count() as u64));
+    assert_eq!(
+        summary.unique_triangles,
+        Some(sources[0].unique_triangle_count() as u64)
+    );
+    assert_eq!(
+        summary.instanced_triangles,
+        Some(2 * sources[0].instanced_triangle_count() as u64)
+    );
     assert!(summary.aggregate_bytes > 0);
     let accel = aggtool::trace::Accel::build(&scene);
-    let cam = Camera::look_at(Vec3::new(0.0, 1.0, 4.0), Vec3::new(0.0, 0.6, 0.0), Vec3::Y, 40.0, 48, 32);
+    let cam = Camera::look_at(
+        Vec3::new(0.0, 1.0, 4.0),
+        Vec3::new(0.0, 0.6, 0.0),
+        Vec3::Y,
+        40.0,
+        48,
+        32,
+    );
     let settings = aggtool::render::reference::ReferenceSettings { spp: 16, seed: 1 };
-    let (reference, _) = aggtool::render::reference::render(&accel, &cam, &lights(), settings, &no_progress);
+    let (reference, _) =
+        aggtool::render::reference::render(&accel, &cam, &lights(), settings, &no_progress);
     let lod = render_asm(&Assembly::new(m).unwrap(), &cam, 16);
     // Single asset LoD against its reference, the yardstick.
     let (ref1, _) = {
@@ -312,10 +457,16 @@ fn reference_renders_the_same_instances() {
         (compare(&l, &r.0).unwrap(), ())
     };
     let c = compare(&lod, &reference).unwrap();
-    eprintln!("relmse: assembly LoD vs reference {:.4}; single asset {:.4}", c.relmse, ref1.relmse);
+    eprintln!(
+        "relmse: assembly LoD vs reference {:.4}; single asset {:.4}",
+        c.relmse, ref1.relmse
+    );
     // A 16³ bake is coarse; the assembly is held to the single asset's agreement with slack for
     // the different framing (measured in the report).
-    assert!(c.relmse < 2.0 * ref1.relmse + 0.05, "{c:?} vs single {ref1:?}");
+    assert!(
+        c.relmse < 2.0 * ref1.relmse + 0.05,
+        "{c:?} vs single {ref1:?}"
+    );
 }
 
 /// A 100,000-instance manifest (a 316 × 317 grid of small trees) parses and renders a small
@@ -325,7 +476,8 @@ fn a_hundred_thousand_instances_parse_and_render() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     tree(d);
-    let mut s = String::from(r#"{"version":1,"assets":{"tree":{"source":"tree.glb"}},"instances":["#);
+    let mut s =
+        String::from(r#"{"version":1,"assets":{"tree":{"source":"tree.glb"}},"instances":["#);
     for i in 0..100_000 {
         if i > 0 {
             s.push(',');
@@ -345,7 +497,14 @@ fn a_hundred_thousand_instances_parse_and_render() {
     let open = t.elapsed().as_secs_f64();
     assert_eq!(asm.manifest().instance_count(), 100_000);
     // Above the forest's corner, looking across it.
-    let cam = Camera::look_at(Vec3::new(-5.0, 6.0, -5.0), Vec3::new(60.0, 0.0, 60.0), Vec3::Y, 50.0, 32, 16);
+    let cam = Camera::look_at(
+        Vec3::new(-5.0, 6.0, -5.0),
+        Vec3::new(60.0, 0.0, 60.0),
+        Vec3::Y,
+        50.0,
+        32,
+        16,
+    );
     let t = std::time::Instant::now();
     let img = render_asm(&asm, &cam, 2);
     let render = t.elapsed().as_secs_f64();
@@ -353,8 +512,15 @@ fn a_hundred_thousand_instances_parse_and_render() {
     assert!(img.pixels.iter().all(|p| p.is_finite()));
     // Trees fill the lower half (darker than the sky of 0.2 + sun): not the empty sky image.
     let sky = lights().environment.eval(Vec3::Y);
-    let differs = img.pixels.iter().filter(|p| (**p - sky).abs().max_element() > 0.02).count();
-    assert!(differs > img.pixels.len() / 4, "only {differs} pixels show trees");
+    let differs = img
+        .pixels
+        .iter()
+        .filter(|p| (**p - sky).abs().max_element() > 0.02)
+        .count();
+    assert!(
+        differs > img.pixels.len() / 4,
+        "only {differs} pixels show trees"
+    );
     // Only coarse levels for trees this small and far (the lazy paging at work).
     assert!(!asm.scene(0).prepared().is_empty());
 }
@@ -369,34 +535,63 @@ fn forest_generates_assembles_and_renders_like_the_reference() {
     let d = dir.path();
     let r = forest::write(&d.join("f"), 2, 25, 1500, 1).unwrap();
     let r2 = forest::write(&d.join("g"), 2, 25, 1500, 1).unwrap();
-    for (a, b) in r.assets.iter().chain([&r.manifest]).zip(r2.assets.iter().chain([&r2.manifest])) {
-        assert_eq!(std::fs::read(a).unwrap(), std::fs::read(b).unwrap(), "{}", a.display());
+    for (a, b) in r
+        .assets
+        .iter()
+        .chain([&r.manifest])
+        .zip(r2.assets.iter().chain([&r2.manifest]))
+    {
+        assert_eq!(
+            std::fs::read(a).unwrap(),
+            std::fs::read(b).unwrap(),
+            "{}",
+            a.display()
+        );
     }
     let m = Manifest::load(&r.manifest).unwrap();
     assert_eq!(m.instance_count(), 26, "25 trees and the ground");
     let quiet = |_: &assembly::bake::Outcome| {};
     let first = assemble(&m, &tiny(), Default::default(), &quiet).unwrap();
-    assert!(first.iter().all(|o| o.baked && o.reason.as_deref() == Some("missing")));
+    assert!(first
+        .iter()
+        .all(|o| o.baked && o.reason.as_deref() == Some("missing")));
     let again = assemble(&m, &tiny(), Default::default(), &quiet).unwrap();
     assert!(again.iter().all(|o| !o.baked), "{again:?}");
-    let other = BakeSettings { samples: 4, ..tiny() };
+    let other = BakeSettings {
+        samples: 4,
+        ..tiny()
+    };
     let changed = assemble(&m, &other, Default::default(), &quiet).unwrap();
-    assert!(changed.iter().all(|o| o.reason.as_deref() == Some("settings changed")));
+    assert!(changed
+        .iter()
+        .all(|o| o.reason.as_deref() == Some("settings changed")));
     // A source edited: only that asset is baked again.
     let tree0 = &m.assets.iter().find(|a| a.id == "tree_00").unwrap().source;
     let mut bytes = std::fs::read(tree0).unwrap();
     bytes.extend_from_slice(b"    ");
     std::fs::write(tree0, bytes).unwrap();
     let edited = assemble(&m, &other, Default::default(), &quiet).unwrap();
-    let baked: Vec<&str> = edited.iter().filter(|o| o.baked).map(|o| o.asset.as_str()).collect();
+    let baked: Vec<&str> = edited
+        .iter()
+        .filter(|o| o.baked)
+        .map(|o| o.asset.as_str())
+        .collect();
     assert_eq!(baked, ["tree_00"]);
 
-    let cam = Camera::look_at(Vec3::new(-4.0, 2.0, -4.0), Vec3::new(0.5, 0.3, 0.5), Vec3::Y, 45.0, 48, 32);
+    let cam = Camera::look_at(
+        Vec3::new(-4.0, 2.0, -4.0),
+        Vec3::new(0.5, 0.3, 0.5),
+        Vec3::Y,
+        45.0,
+        48,
+        32,
+    );
     let sources = assembly::mesh::load_sources(&m, Default::default()).unwrap();
     let scene = assembly::mesh::scene(&m, &sources);
     let accel = aggtool::trace::Accel::build(&scene);
     let settings = aggtool::render::reference::ReferenceSettings { spp: 16, seed: 1 };
-    let (reference, _) = aggtool::render::reference::render(&accel, &cam, &lights(), settings, &no_progress);
+    let (reference, _) =
+        aggtool::render::reference::render(&accel, &cam, &lights(), settings, &no_progress);
     let lod = render_asm(&Assembly::new(m).unwrap(), &cam, 16);
     let c = compare(&lod, &reference).unwrap();
     eprintln!("forest relmse LoD vs reference: {:.4}", c.relmse);

@@ -135,8 +135,14 @@ pub fn assemble(
                     std::fs::create_dir_all(dir)
                         .map_err(|e| fail(format!("cannot create {}: {e}", dir.display())))?;
                 }
-                bake_to_file(&scene, &source, settings, &a.aggregate, &crate::util::no_progress)
-                    .map_err(|e| fail(e.to_string()))?;
+                bake_to_file(
+                    &scene,
+                    &source,
+                    settings,
+                    &a.aggregate,
+                    &crate::util::no_progress,
+                )
+                .map_err(|e| fail(e.to_string()))?;
                 let text = serde_json::to_vec_pretty(&want).map_err(|e| fail(e.to_string()))?;
                 let sp = stamp_path(&a.aggregate);
                 crate::util::write_atomic(&sp, |tmp| {

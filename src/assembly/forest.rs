@@ -85,7 +85,10 @@ pub fn write(
     );
     ground.make_lambertian();
     assets.push(put("ground.glb", &to_glb(&ground, false))?);
-    asset_json.insert("ground".into(), serde_json::json!({ "source": "ground.glb" }));
+    asset_json.insert(
+        "ground".into(),
+        serde_json::json!({ "source": "ground.glb" }),
+    );
 
     let mut rng = Pcg32::new(seed, 0x666f_7265_7374);
     let mut inst = Vec::with_capacity(instances + 1);

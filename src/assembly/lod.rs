@@ -133,7 +133,11 @@ impl Assembly {
             .collect();
         let boxes: Vec<Aabb> = bvh_instances.iter().map(|&i| bounds[i as usize]).collect();
         let bvh = (!boxes.is_empty()).then(|| {
-            build_cwbvh(&boxes, BvhBuildParams::medium_build(), &mut Duration::default())
+            build_cwbvh(
+                &boxes,
+                BvhBuildParams::medium_build(),
+                &mut Duration::default(),
+            )
         });
         Ok(Assembly {
             manifest,
@@ -338,11 +342,17 @@ struct InstancePlace<'a> {
 impl Placement for InstancePlace<'_> {
     #[inline]
     fn to_world(&self, local: Vec3) -> Vec3 {
-        self.xf.to_world.transform_vector3(local).normalize_or_zero()
+        self.xf
+            .to_world
+            .transform_vector3(local)
+            .normalize_or_zero()
     }
     #[inline]
     fn to_local(&self, world: Vec3) -> Vec3 {
-        self.xf.to_local.transform_vector3(world).normalize_or_zero()
+        self.xf
+            .to_local
+            .transform_vector3(world)
+            .normalize_or_zero()
     }
     fn occlusion(&self, p: Vec3, wi: Vec3) -> f32 {
         // The shadow cone: the camera cone's aperture, its apex set back along -wi by the

@@ -246,7 +246,11 @@ fn instance_transform(raw: &RawInstance) -> Result<[f32; 12], String> {
             let t = raw.translation.unwrap_or([0.0; 3]);
             let q = raw.rotation.unwrap_or([0.0, 0.0, 0.0, 1.0]);
             let s = raw.scale.unwrap_or([1.0; 3]);
-            if t.iter().chain(q.iter()).chain(s.iter()).any(|v| !v.is_finite()) {
+            if t.iter()
+                .chain(q.iter())
+                .chain(s.iter())
+                .any(|v| !v.is_finite())
+            {
                 return Err("non-finite transform".into());
             }
             let len = q.iter().map(|v| v * v).sum::<f64>().sqrt();
@@ -259,9 +263,21 @@ fn instance_transform(raw: &RawInstance) -> Result<[f32; 12], String> {
             let [x, y, z, w] = q.map(|v| v / len);
             // Columns of R·S.
             let r = [
-                [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + z * w), 2.0 * (x * z - y * w)],
-                [2.0 * (x * y - z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + x * w)],
-                [2.0 * (x * z + y * w), 2.0 * (y * z - x * w), 1.0 - 2.0 * (x * x + y * y)],
+                [
+                    1.0 - 2.0 * (y * y + z * z),
+                    2.0 * (x * y + z * w),
+                    2.0 * (x * z - y * w),
+                ],
+                [
+                    2.0 * (x * y - z * w),
+                    1.0 - 2.0 * (x * x + z * z),
+                    2.0 * (y * z + x * w),
+                ],
+                [
+                    2.0 * (x * z + y * w),
+                    2.0 * (y * z - x * w),
+                    1.0 - 2.0 * (x * x + y * y),
+                ],
             ];
             let mut lin = [0.0; 9];
             for c in 0..3 {
@@ -438,7 +454,11 @@ impl Manifest {
         self.require(|a| &a.source, "source")
     }
 
-    fn require(&self, f: impl Fn(&Asset) -> &PathBuf, what: &'static str) -> Result<(), ManifestError> {
+    fn require(
+        &self,
+        f: impl Fn(&Asset) -> &PathBuf,
+        what: &'static str,
+    ) -> Result<(), ManifestError> {
         for a in &self.assets {
             if !f(a).is_file() {
                 return Err(ManifestError::MissingFile {
@@ -503,7 +523,10 @@ mod tests {
     fn errors_name_what_is_wrong() {
         let assets = r#""assets":{"a":{"source":"a.glb"}}"#;
         let e = parse(&format!(r#"{{"version":2,{assets},"instances":[]}}"#)).unwrap_err();
-        assert!(matches!(e, ManifestError::BadVersion { version: 2, .. }), "{e}");
+        assert!(
+            matches!(e, ManifestError::BadVersion { version: 2, .. }),
+            "{e}"
+        );
         let e = parse(&format!(
             r#"{{"version":1,{assets},"instances":[{{"asset":"a"}},{{"asset":"zz"}}]}}"#
         ))
@@ -516,13 +539,19 @@ mod tests {
             r#"{{"version":1,{assets},"instances":[{{"asset":"a"}},{{"asset":"a"}},{{"asset":"a","scale":[1,0,1]}}]}}"#
         ))
         .unwrap_err();
-        assert!(matches!(&e, ManifestError::BadTransform { index: 2, .. }), "{e}");
+        assert!(
+            matches!(&e, ManifestError::BadTransform { index: 2, .. }),
+            "{e}"
+        );
         assert!(e.to_string().contains("singular"), "{e}");
         let e = parse(&format!(
             r#"{{"version":1,{assets},"instances":[{{"asset":"a","translation":[1e39,0,0]}}]}}"#
         ))
         .unwrap_err();
-        assert!(matches!(&e, ManifestError::BadTransform { index: 0, .. }), "{e}");
+        assert!(
+            matches!(&e, ManifestError::BadTransform { index: 0, .. }),
+            "{e}"
+        );
         let e = parse(&format!(
             r#"{{"version":1,{assets},"instances":[{{"asset":"a","rotation":[0,0,0,2]}}]}}"#
         ))
@@ -538,12 +567,16 @@ mod tests {
         ))
         .unwrap_err();
         assert!(matches!(&e, ManifestError::Malformed { .. }), "{e}");
-        let e = parse(r#"{"version":1,"assets":{"a":{"source":"a.glb"}},"instances":[{"asset":"a""#)
-            .unwrap_err();
+        let e =
+            parse(r#"{"version":1,"assets":{"a":{"source":"a.glb"}},"instances":[{"asset":"a""#)
+                .unwrap_err();
         assert!(matches!(&e, ManifestError::Malformed { .. }), "{e}");
         let e = parse(r#"{"assets":{}}"#).unwrap_err();
         assert!(e.to_string().contains("version"), "{e}");
-        let m = parse(&format!(r#"{{"version":1,{assets},"instances":[{{"asset":"a"}}]}}"#)).unwrap();
+        let m = parse(&format!(
+            r#"{{"version":1,{assets},"instances":[{{"asset":"a"}}]}}"#
+        ))
+        .unwrap();
         let e = m.require_sources().unwrap_err();
         assert!(
             matches!(&e, ManifestError::MissingFile { asset, what: "source", .. } if asset == "a"),

@@ -63,8 +63,11 @@ pub fn scene(m: &Manifest, sources: &[Scene]) -> Scene {
             mesh.material += mat0;
             out.meshes.push(mesh);
         }
-        out.warnings
-            .extend(src.warnings.iter().map(|w| format!("asset '{}': {w}", a.id)));
+        out.warnings.extend(
+            src.warnings
+                .iter()
+                .map(|w| format!("asset '{}': {w}", a.id)),
+        );
     }
     let placements: usize = (0..m.instance_count())
         .map(|i| sources[m.asset_of(i)].instances.len())
@@ -163,9 +166,8 @@ pub fn summary(m: &Manifest, import_sources: bool) -> Result<Summary, MeshError>
             })
         })
         .collect::<Result<_, MeshError>>()?;
-    let all = |f: &dyn Fn(&AssetSummary) -> Option<u64>| -> Option<u64> {
-        per_asset.iter().map(f).sum()
-    };
+    let all =
+        |f: &dyn Fn(&AssetSummary) -> Option<u64>| -> Option<u64> { per_asset.iter().map(f).sum() };
     Ok(Summary {
         assets: m.assets.len(),
         instances: m.instance_count(),

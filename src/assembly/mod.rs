@@ -7,8 +7,8 @@ pub mod lod;
 pub mod manifest;
 pub mod mesh;
 
-pub use manifest::{Asset, Manifest, ManifestError};
 pub use lod::{render, Assembly, AssemblyError};
+pub use manifest::{Asset, Manifest, ManifestError};
 
 /// Whether a path names a manifest (a `.json` file) rather than an asset or an aggregate: what
 /// the CLI's `render`, `reference` and `inspect` go by.

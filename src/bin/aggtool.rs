@@ -1196,8 +1196,9 @@ fn run(cli: Cli) -> Result<()> {
             instances,
         } => {
             if name == "forest" {
-                let r = aggtool::assembly::forest::write(&output, species, instances, triangles, seed)
-                    .map_err(anyhow::Error::msg)?;
+                let r =
+                    aggtool::assembly::forest::write(&output, species, instances, triangles, seed)
+                        .map_err(anyhow::Error::msg)?;
                 for a in &r.assets {
                     println!("output: {}", a.display());
                 }
@@ -1350,11 +1351,8 @@ fn run(cli: Cli) -> Result<()> {
             };
             let m = aggtool::assembly::Manifest::load(&manifest)?;
             let t0 = std::time::Instant::now();
-            let outcomes = aggtool::assembly::bake::assemble(
-                &m,
-                &settings,
-                ImportOptions { strict },
-                &|o| {
+            let outcomes =
+                aggtool::assembly::bake::assemble(&m, &settings, ImportOptions { strict }, &|o| {
                     if !json {
                         match &o.reason {
                             Some(r) => println!(
@@ -1371,8 +1369,7 @@ fn run(cli: Cli) -> Result<()> {
                             ),
                         }
                     }
-                },
-            )?;
+                })?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&outcomes)?);
             } else {

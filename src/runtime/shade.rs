@@ -232,5 +232,11 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
             }
         }
     };
-    (surfaces, hits.transmittance(), hits.primitives(), coverage, first)
+    (
+        surfaces,
+        hits.transmittance(),
+        hits.primitives(),
+        coverage,
+        first,
+    )
 }
