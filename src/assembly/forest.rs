@@ -90,33 +90,31 @@ pub fn write(
         serde_json::json!({ "source": "ground.glb" }),
     );
 
+    // The manifest, one instance a line (a million trees is ~110 MB of text, written as it is
+    // generated rather than through a JSON tree).
+    use std::fmt::Write as _;
+    let mut text = String::with_capacity(128 * (instances + 8));
+    let assets_text = serde_json::to_string_pretty(&asset_json).map_err(|e| e.to_string())?;
+    let _ = write!(
+        text,
+        "{{\n\"version\": 1,\n\"assets\": {assets_text},\n\"instances\": [\n{{\"asset\": \"ground\"}}"
+    );
     let mut rng = Pcg32::new(seed, 0x666f_7265_7374);
-    let mut inst = Vec::with_capacity(instances + 1);
-    inst.push(serde_json::json!({ "asset": "ground" }));
     for i in 0..instances {
         let (gx, gz) = ((i % side) as f32, (i / side) as f32);
         let j = rng.next_2d();
         let x = gx + 0.25 + 0.5 * j.x - half;
         let z = gz + 0.25 + 0.5 * j.y - half;
         let k = ((rng.next_f32() * species as f32) as usize).min(species - 1);
-        let angle = rng.next_f32() * std::f32::consts::TAU;
+        let q = Quat::from_rotation_y(rng.next_f32() * std::f32::consts::TAU);
         let s = 0.8 + 0.4 * rng.next_f32();
-        let q = Quat::from_rotation_y(angle);
-        // Round to 4 decimals so the manifest is short and reads well.
-        let r4 = |v: f32| (v * 1e4).round() / 1e4;
-        inst.push(serde_json::json!({
-            "asset": format!("tree_{k:02}"),
-            "translation": [r4(x), 0.0, r4(z)],
-            "rotation": [0.0, q.y as f64, 0.0, q.w as f64],
-            "scale": [r4(s), r4(s), r4(s)],
-        }));
+        let _ = write!(
+            text,
+            ",\n{{\"asset\": \"tree_{k:02}\", \"translation\": [{x:.4}, 0, {z:.4}], \"rotation\": [0, {:.7}, 0, {:.7}], \"scale\": [{s:.4}, {s:.4}, {s:.4}]}}",
+            q.y, q.w
+        );
     }
-    let text = serde_json::to_string_pretty(&serde_json::json!({
-        "version": 1,
-        "assets": asset_json,
-        "instances": inst,
-    }))
-    .map_err(|e| e.to_string())?;
+    text.push_str("\n]\n}\n");
     let manifest = put("forest.json", text.as_bytes())?;
     Ok(ForestReport {
         manifest,

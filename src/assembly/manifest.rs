@@ -203,16 +203,15 @@ impl<'de> Deserialize<'de> for RawInstances {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawManifest {
-    /// Checked by the first pass ([`VersionOnly`]).
-    #[allow(dead_code)]
-    version: u64,
+    /// 1 (checked after the parse).
+    version: serde_json::Value,
     assets: BTreeMap<String, RawAsset>,
     #[serde(default)]
     instances: RawInstances,
 }
 
-/// Only the version, read first so that a future version's other changes are not reported as
-/// malformed.
+/// Only the version, read when the full parse failed, so that a future version's other
+/// changes are reported as a bad version rather than as malformed.
 #[derive(Deserialize)]
 struct VersionOnly {
     version: Option<serde_json::Value>,
@@ -309,44 +308,73 @@ impl Manifest {
     /// Files are not looked for (see [`Manifest::require_aggregates`] and
     /// [`Manifest::require_sources`]).
     pub fn load(path: &Path) -> Result<Manifest, ManifestError> {
-        let bytes = std::fs::read(path).map_err(|source| ManifestError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        Self::parse(&bytes, path)
+        // Streamed from the file (never held whole: a million-instance manifest is hundreds of
+        // MB of text; what stays is 52 bytes per instance).
+        let open = || {
+            std::fs::File::open(path)
+                .map(std::io::BufReader::new)
+                .map_err(|source| ManifestError::Io {
+                    path: path.to_path_buf(),
+                    source,
+                })
+        };
+        let reader = open()?;
+        Self::build(
+            serde_json::from_reader(reader),
+            || open().map(serde_json::from_reader),
+            path,
+        )
     }
 
     /// [`Manifest::load`] on bytes already read; `path` places relative paths and names the
     /// manifest in errors.
     pub fn parse(bytes: &[u8], path: &Path) -> Result<Manifest, ManifestError> {
-        let malformed = |e: serde_json::Error| ManifestError::Malformed {
+        Self::build(
+            serde_json::from_slice(bytes),
+            || Ok(serde_json::from_slice(bytes)),
+            path,
+        )
+    }
+
+    /// Checks the version and the parse, resolves assets and instances. `version_pass` reads
+    /// the version alone, once the full parse has failed or found a version other than 1, so
+    /// that another version's shape is reported as a bad version rather than as malformed.
+    fn build(
+        parsed: serde_json::Result<RawManifest>,
+        version_pass: impl FnOnce() -> Result<serde_json::Result<VersionOnly>, ManifestError>,
+        path: &Path,
+    ) -> Result<Manifest, ManifestError> {
+        let malformed = |message: String| ManifestError::Malformed {
             path: path.to_path_buf(),
-            message: e.to_string(),
+            message,
         };
-        // The version first (a cheap pass that skips everything else).
-        let v: VersionOnly = serde_json::from_slice(bytes).map_err(malformed)?;
-        match v.version {
-            Some(serde_json::Value::Number(n)) if n.as_u64() == Some(1) => {}
+        let version_error = |v: Option<&serde_json::Value>| match v {
+            Some(serde_json::Value::Number(n)) if n.as_u64() == Some(1) => None,
             Some(serde_json::Value::Number(n)) if n.as_u64().is_some() => {
-                return Err(ManifestError::BadVersion {
+                Some(ManifestError::BadVersion {
                     path: path.to_path_buf(),
                     version: n.as_u64().unwrap_or(0),
                 })
             }
-            Some(other) => {
-                return Err(ManifestError::Malformed {
-                    path: path.to_path_buf(),
-                    message: format!("\"version\" must be the integer 1, found {other}"),
-                })
+            Some(other) => Some(malformed(format!(
+                "\"version\" must be the integer 1, found {other}"
+            ))),
+            None => Some(malformed("missing \"version\" (1)".into())),
+        };
+        let raw = match parsed {
+            Ok(raw) => raw,
+            Err(e) => {
+                if let Ok(v) = version_pass()? {
+                    if let Some(ve) = version_error(v.version.as_ref()) {
+                        return Err(ve);
+                    }
+                }
+                return Err(malformed(e.to_string()));
             }
-            None => {
-                return Err(ManifestError::Malformed {
-                    path: path.to_path_buf(),
-                    message: "missing \"version\" (1)".into(),
-                })
-            }
+        };
+        if let Some(ve) = version_error(Some(&raw.version)) {
+            return Err(ve);
         }
-        let raw: RawManifest = serde_json::from_slice(bytes).map_err(malformed)?;
         let dir = path.parent().unwrap_or(Path::new("")).to_path_buf();
         let mut assets = Vec::with_capacity(raw.assets.len());
         for (id, a) in raw.assets {
@@ -571,6 +599,10 @@ mod tests {
             parse(r#"{"version":1,"assets":{"a":{"source":"a.glb"}},"instances":[{"asset":"a""#)
                 .unwrap_err();
         assert!(matches!(&e, ManifestError::Malformed { .. }), "{e}");
+        // A later version's new shape is a bad version, not a malformed manifest.
+        let e = parse(r#"{"version":2,"assets":{},"layers":[],"instances":[{"prototype":"a"}]}"#)
+            .unwrap_err();
+        assert!(matches!(e, ManifestError::BadVersion { version: 2, .. }), "{e}");
         let e = parse(r#"{"assets":{}}"#).unwrap_err();
         assert!(e.to_string().contains("version"), "{e}");
         let m = parse(&format!(
