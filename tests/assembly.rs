@@ -599,3 +599,99 @@ fn forest_generates_assembles_and_renders_like_the_reference() {
     // ground: 0.26 here (checked by making that change), 0.82 on a 400-tree forest.
     assert!(c.relmse < 0.15, "{c:?}");
 }
+
+/// The command line on a manifest: gen forest, assemble (baked, then reused), inspect, render,
+/// reference; a missing aggregate is an error naming the asset, not a panic.
+#[test]
+fn command_line_on_a_manifest() {
+    use std::process::Command;
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let run = |args: &[&str]| {
+        let o = Command::new(env!("CARGO_BIN_EXE_aggtool"))
+            .args(args)
+            .current_dir(d)
+            .output()
+            .unwrap();
+        (
+            o.status.success(),
+            String::from_utf8_lossy(&o.stdout).into_owned(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        )
+    };
+    let (okg, out, err) = run(&[
+        "gen",
+        "forest",
+        "-o",
+        "f",
+        "--species",
+        "2",
+        "--instances",
+        "9",
+        "--triangles",
+        "1200",
+    ]);
+    assert!(okg, "{err}");
+    assert!(out.contains("forest.json"), "{out}");
+    let (ok, _, err) = run(&["render", "f/forest.json", "--view", "v.json", "-o", "x.exr"]);
+    assert!(!ok && !err.contains("panicked"), "{err}");
+    std::fs::write(
+        d.join("v.json"),
+        r#"{"version":1,"camera":{"eye":[-4,2,-4],"target":[0,0.3,0],"width":24,"height":16},"spp":2}"#,
+    )
+    .unwrap();
+    let (ok, _, err) = run(&["render", "f/forest.json", "--view", "v.json", "-o", "x.exr"]);
+    assert!(
+        !ok && err.contains("asset 'ground'") && err.contains("aggregate"),
+        "{err}"
+    );
+    let bake = [
+        "--max-res",
+        "16",
+        "--min-res",
+        "4",
+        "--samples",
+        "8",
+        "--aiv-res",
+        "8",
+        "--aiv-rays",
+        "4",
+        "--abv-res",
+        "8",
+        "--abv-full-res",
+        "8",
+    ];
+    let args = |first: &[&'static str]| -> Vec<&'static str> {
+        first.iter().chain(bake.iter()).copied().collect()
+    };
+    let (ok, out, err) = run(&args(&["assemble", "f/forest.json"]));
+    assert!(ok, "{err}");
+    assert!(out.contains("3 assets: 3 baked, 0 reused"), "{out}");
+    let (ok, out, err) = run(&args(&["assemble", "f/forest.json"]));
+    assert!(ok && out.contains("0 baked, 3 reused"), "{out}{err}");
+    let (ok, out, err) = run(&["inspect", "f/forest.json", "--json"]);
+    assert!(ok, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(j["instances"], 10);
+    assert!(j["aggregate_bytes"].as_u64().unwrap() > 0);
+    assert!(j["instanced_triangles"].as_u64().unwrap() > j["unique_triangles"].as_u64().unwrap());
+    let (ok, out, err) = run(&[
+        "render",
+        "f/forest.json",
+        "--view",
+        "v.json",
+        "-o",
+        "lod.exr",
+    ]);
+    assert!(ok && out.contains("levels used"), "{out}{err}");
+    let (ok, out, err) = run(&[
+        "reference",
+        "f/forest.json",
+        "--view",
+        "v.json",
+        "-o",
+        "ref.exr",
+    ]);
+    assert!(ok && out.contains("TLAS entries"), "{out}{err}");
+    assert!(d.join("lod.exr").is_file() && d.join("ref.png").is_file());
+}
