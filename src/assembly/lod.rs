@@ -182,8 +182,8 @@ impl Assembly {
     }
 
     /// The instances whose bounds the centre ray of `cone` crosses within [tmin, tmax], as
-    /// (entry distance, instance), sorted by entry; `skip` is left out.
-    fn along(&self, cone: &Cone, skip: Option<usize>, out: &mut Vec<(f32, u32)>) {
+    /// (entry distance, instance), sorted by entry when `sort`; `skip` is left out.
+    fn along(&self, cone: &Cone, skip: Option<usize>, sort: bool, out: &mut Vec<(f32, u32)>) {
         out.clear();
         let Some(bvh) = &self.bvh else { return };
         if !(cone.dir.is_finite() && cone.origin.is_finite()) {
@@ -204,7 +204,9 @@ impl Assembly {
             }
             f32::INFINITY
         });
-        out.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        if sort {
+            out.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        }
     }
 
     /// Traces one camera cone through the assembly with the runtime's lights and shading.
@@ -217,7 +219,7 @@ impl Assembly {
     ) -> ConeResult {
         let background = lights.environment.eval(cone.dir);
         let mut list = Vec::new();
-        self.along(cone, None, &mut list);
+        self.along(cone, None, true, &mut list);
         let mut acc = Composite {
             radiance: Vec3::ZERO,
             transmittance: 1.0,
@@ -270,7 +272,7 @@ impl Assembly {
     /// their ABV transmittances.
     pub fn transmittance(&self, cone: &Cone, settings: &TraceSettings, skip: Option<usize>) -> f32 {
         let mut list = Vec::new();
-        self.along(cone, skip, &mut list);
+        self.along(cone, skip, false, &mut list);
         let mut t = 1.0f32;
         for &(_, i) in &list {
             let i = i as usize;

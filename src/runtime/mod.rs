@@ -407,9 +407,14 @@ impl LodScene {
     /// (1 when it meets no primitive): what the aggregate lets through, for a host's shadow
     /// rays.
     pub fn transmittance(&self, cone: &Cone, settings: &TraceSettings) -> f32 {
+        // The ABV is read at the first occupied voxel and counts from the first primitive met:
+        // final there, so the walk stops (the rest of it cannot change the value).
         let mut h = self.hits(cone, settings);
-        while h.next_primitive().is_some() {}
-        h.transmittance()
+        if h.next_primitive().is_some() {
+            h.transmittance()
+        } else {
+            1.0
+        }
     }
 }
 
