@@ -61,6 +61,10 @@ pub enum AssemblyError {
 /// at most this fraction of its radiance.
 const MIN_TRANSMITTANCE: f32 = 1e-4;
 
+/// Transmittance below which a camera cone's walk through further instances is continued by
+/// Russian roulette.
+const ROULETTE_BELOW: f32 = 0.05;
+
 /// An assembly ready for cone tracing.
 pub struct Assembly {
     manifest: Manifest,
@@ -233,6 +237,16 @@ impl Assembly {
             acc.flush(&mut pending, entry);
             if acc.transmittance <= MIN_TRANSMITTANCE {
                 break;
+            }
+            // Russian roulette on what is left to see: below ROULETTE_BELOW the walk goes on
+            // with probability T / ROULETTE_BELOW, its transmittance raised to ROULETTE_BELOW
+            // (unbiased; instances traced but not yet composed share the fate of the rest).
+            if acc.transmittance < ROULETTE_BELOW {
+                if sampler.next_1d() * ROULETTE_BELOW >= acc.transmittance {
+                    acc.transmittance = 0.0;
+                    break;
+                }
+                acc.transmittance = ROULETTE_BELOW;
             }
             let i = i as usize;
             let xf = self.xf(i);

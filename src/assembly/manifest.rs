@@ -602,7 +602,10 @@ mod tests {
         // A later version's new shape is a bad version, not a malformed manifest.
         let e = parse(r#"{"version":2,"assets":{},"layers":[],"instances":[{"prototype":"a"}]}"#)
             .unwrap_err();
-        assert!(matches!(e, ManifestError::BadVersion { version: 2, .. }), "{e}");
+        assert!(
+            matches!(e, ManifestError::BadVersion { version: 2, .. }),
+            "{e}"
+        );
         let e = parse(r#"{"assets":{}}"#).unwrap_err();
         assert!(e.to_string().contains("version"), "{e}");
         let m = parse(&format!(
