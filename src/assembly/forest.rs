@@ -14,7 +14,7 @@ use crate::gen::glb::{to_glb, MaterialData, SceneData};
 use crate::gen::{generate, shapes, GenSettings};
 use crate::math::rng::Pcg32;
 
-/// What [`write`] wrote.
+/// What [`write()`] wrote.
 #[derive(Clone, Debug)]
 pub struct ForestReport {
     /// The manifest (`DIR/forest.json`).

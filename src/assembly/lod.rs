@@ -4,7 +4,7 @@
 //!
 //! - **Camera cones.** The instances whose bounds the centre ray crosses are visited in order
 //!   of entry distance; each is traced in its own space ([`LodScene::trace_placed`]) with the
-//!   cone carried there ([`local_cone`]), so that it picks its level by its own footprint.
+//!   cone carried there (`local_cone`), so that it picks its level by its own footprint.
 //!   The instances met are then composed in order of their **first primitive** along the ray
 //!   (not of their bounds, which overlap: a ground's bounds hold the whole forest standing on
 //!   it): the radiance of each is added through the transmittance of those before it, and its
