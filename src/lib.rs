@@ -21,9 +21,12 @@
 //! - [`gen`]: generators for the paper's hard cases;
 //! - [`eval`]: the quality and speed studies (our LoD against the reference and the
 //!   alternatives: cube primitives, an exponential volume, a meshopt-simplified mesh);
+//! - [`assembly`]: manifests of instanced assets, rendered with the runtime and the reference;
 //! - [`validation`]: shared test harnesses (chi-square).
 
 pub mod absdf;
+#[deny(missing_docs)]
+pub mod assembly;
 pub mod bake;
 pub mod bsdf;
 pub mod eval;

@@ -73,9 +73,11 @@ enum Command {
         #[arg(short, long, default_value = "aggtool-eval")]
         output: PathBuf,
     },
-    /// Render an asset with the reference path tracer (direct illumination) to EXR and PNG.
+    /// Render an asset, or an assembly manifest, with the reference path tracer (direct
+    /// illumination) to EXR and PNG.
     Reference {
-        /// The asset (.gltf, .glb or .obj).
+        /// The asset (.gltf, .glb or .obj), or an assembly manifest (.json): each mesh loaded
+        /// once and instanced by the two-level BVH.
         asset: PathBuf,
         /// View file (JSON); see the README.
         #[arg(long, conflicts_with = "auto_view")]
@@ -120,9 +122,10 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Write a generated hard-case scene as GLB.
+    /// Write a generated hard-case scene as GLB; or, with `forest`, an assembly: --species
+    /// trees of --triangles each and a manifest (forest.json) placing --instances of them.
     Gen {
-        /// One of: plane45, lattice, foliage, displaced-sphere, rings, buildings, or all.
+        /// One of: plane45, lattice, foliage, displaced-sphere, rings, buildings, all, or forest.
         name: String,
         /// Output folder.
         #[arg(short, long, default_value = ".")]
@@ -138,6 +141,12 @@ enum Command {
         quantize: bool,
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// forest: distinct trees.
+        #[arg(long, default_value_t = 4)]
+        species: usize,
+        /// forest: trees placed.
+        #[arg(long, default_value_t = 100)]
+        instances: usize,
     },
     /// Print what an asset imports as: counts, bounds, materials, warnings.
     Info {
@@ -192,9 +201,10 @@ enum Command {
         #[arg(long)]
         progress_json: bool,
     },
-    /// Render an .agg aggregate with the LoD runtime (cone tracing, Eq. 30) to EXR and PNG.
+    /// Render an .agg aggregate, or an assembly manifest (.json), with the LoD runtime (cone
+    /// tracing, Eq. 30) to EXR and PNG.
     Render {
-        /// The aggregate (.agg).
+        /// The aggregate (.agg), or an assembly manifest (.json; see the README's "Assemblies").
         agg: PathBuf,
         /// View file (JSON), the same as for `aggtool reference`.
         #[arg(long)]
@@ -225,7 +235,23 @@ enum Command {
         #[arg(long, default_value_t = 0.0)]
         exposure: f32,
     },
-    /// Print what an .agg file holds: header, settings, levels, effects kept and dropped.
+    /// Bake every asset of an assembly manifest whose aggregate is missing or stale (a stamp
+    /// NAME.agg.stamp.json beside each records its source's and settings' checksums), assets
+    /// in parallel; says what it baked and what it reused. The bake settings are `convert`'s.
+    Assemble {
+        /// The manifest (.json).
+        manifest: PathBuf,
+        #[command(flatten)]
+        bake: BakeArgs,
+        /// Treat import warnings as errors.
+        #[arg(long)]
+        strict: bool,
+        /// Print the outcomes as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Print what an .agg file holds: header, settings, levels, effects kept and dropped; or,
+    /// for an assembly manifest (.json): assets, instances, aggregate bytes, triangles.
     Inspect {
         file: PathBuf,
         #[arg(long)]
@@ -501,6 +527,25 @@ fn load_scene(path: &Path, strict: bool) -> Result<Scene> {
     Ok(scene)
 }
 
+/// An assembly's meshes as one scene, each source imported once (see
+/// `aggtool::assembly::mesh`).
+fn load_assembly_scene(path: &Path, strict: bool) -> Result<Scene> {
+    use aggtool::assembly::{mesh, Manifest};
+    let m = Manifest::load(path)?;
+    let sources = mesh::load_sources(&m, ImportOptions { strict })?;
+    let scene = mesh::scene(&m, &sources);
+    for w in &scene.warnings {
+        eprintln!("warning: {w}");
+    }
+    println!(
+        "input: {}: {} assets, {} instances",
+        path.display(),
+        m.assets.len(),
+        m.instance_count()
+    );
+    Ok(scene)
+}
+
 fn png_beside(exr: &Path) -> PathBuf {
     exr.with_extension("png")
 }
@@ -665,6 +710,103 @@ fn run_lod(
         png_beside(output).display()
     );
     Ok((prepare, seconds))
+}
+
+/// Renders an assembly (a manifest) with the LoD runtime; returns the render seconds.
+fn run_assembly_lod(
+    manifest: &Path,
+    view: &View,
+    output: &Path,
+    exposure: f32,
+    settings: &aggtool::runtime::TraceSettings,
+) -> Result<f64> {
+    let lights = view.lights()?;
+    let t0 = std::time::Instant::now();
+    let asm = aggtool::assembly::Assembly::open(manifest)?;
+    let m = asm.manifest();
+    println!(
+        "input: {}: {} assets, {} instances (opened with the instance BVH in {:.1} ms)",
+        manifest.display(),
+        m.assets.len(),
+        m.instance_count(),
+        t0.elapsed().as_secs_f64() * 1e3
+    );
+    let bars = TerminalProgress::new();
+    let (img, stats) = aggtool::assembly::render(
+        &asm,
+        &view.camera(),
+        &lights,
+        view.spp,
+        view.seed,
+        settings,
+        &|s, d, n| bars.report(s, d, n),
+    );
+    bars.finish();
+    for (a, asset) in m.assets.iter().enumerate() {
+        if let Some(e) = asm.scene(a).first_error() {
+            bail!("asset '{}': {}: {e}", asset.id, asset.aggregate.display());
+        }
+    }
+    img.write_exr(output)?;
+    img.write_png(&png_beside(output), exposure)?;
+    println!("{}", stats.line("LoD"));
+    for (a, asset) in m.assets.iter().enumerate() {
+        let s = asm.scene(a);
+        println!(
+            "stats: asset '{}': levels used {:?}",
+            asset.id,
+            s.prepared()
+                .iter()
+                .enumerate()
+                .filter(|(_, p)| **p)
+                .map(|(l, _)| s.grid(l).res)
+                .collect::<Vec<_>>()
+        );
+    }
+    println!(
+        "output: {} and {}",
+        output.display(),
+        png_beside(output).display()
+    );
+    Ok(stats.seconds)
+}
+
+/// `inspect MANIFEST`: assets, instances, bytes of the aggregates, triangles.
+fn inspect_assembly(path: &Path, json: bool) -> Result<()> {
+    let m = aggtool::assembly::Manifest::load(path)?;
+    let s = aggtool::assembly::mesh::summary(&m, true)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&s)?);
+        return Ok(());
+    }
+    let opt = |v: Option<u64>| v.map_or("?".to_string(), |v| v.to_string());
+    println!(
+        "{}: {} assets, {} instances ({} in memory)",
+        path.display(),
+        s.assets,
+        s.instances,
+        mib(s.instance_bytes as u64)
+    );
+    for a in &s.per_asset {
+        println!(
+            "asset '{}': {} instances, source {}{}, aggregate {} ({}), {} triangles ({} placed)",
+            a.id,
+            a.instances,
+            a.source,
+            if a.source_present { "" } else { " (missing)" },
+            a.aggregate,
+            a.aggregate_bytes.map_or("missing".into(), mib),
+            opt(a.unique_triangles),
+            opt(a.placed_triangles),
+        );
+    }
+    println!(
+        "aggregates: {} present; triangles: {} unique, {} instanced",
+        mib(s.aggregate_bytes),
+        opt(s.unique_triangles),
+        opt(s.instanced_triangles)
+    );
+    Ok(())
 }
 
 /// Writes images side by side (same size) into one sRGB PNG.
@@ -1037,7 +1179,11 @@ fn run(cli: Cli) -> Result<()> {
             strict,
             save_view,
         } => {
-            let scene = load_scene(&asset, strict)?;
+            let scene = if aggtool::assembly::is_manifest(&asset) {
+                load_assembly_scene(&asset, strict)?
+            } else {
+                load_scene(&asset, strict)?
+            };
             println!("input: {}: {}", asset.display(), scene.summary());
             let mut view = match (view, auto_view) {
                 (Some(v), _) => View::load(&v)?,
@@ -1089,7 +1235,25 @@ fn run(cli: Cli) -> Result<()> {
             lambertian,
             quantize,
             seed,
+            species,
+            instances,
         } => {
+            if name == "forest" {
+                let r =
+                    aggtool::assembly::forest::write(&output, species, instances, triangles, seed)
+                        .map_err(anyhow::Error::msg)?;
+                for a in &r.assets {
+                    println!("output: {}", a.display());
+                }
+                println!(
+                    "output: {} ({} trees of {} species, {} triangles each)",
+                    r.manifest.display(),
+                    r.instances,
+                    species,
+                    r.tree_triangles
+                );
+                return Ok(());
+            }
             let settings = GenSettings {
                 triangles,
                 lambertian,
@@ -1178,6 +1342,50 @@ fn run(cli: Cli) -> Result<()> {
                 progress_json,
             )
         }
+        Command::Assemble {
+            manifest,
+            bake,
+            strict,
+            json,
+        } => {
+            let settings = bake.settings();
+            let m = aggtool::assembly::Manifest::load(&manifest)?;
+            let t0 = std::time::Instant::now();
+            let outcomes =
+                aggtool::assembly::bake::assemble(&m, &settings, ImportOptions { strict }, &|o| {
+                    if !json {
+                        match &o.reason {
+                            Some(r) => println!(
+                                "baked: asset '{}' ({r}) -> {} ({}, {:.1} s)",
+                                o.asset,
+                                o.aggregate.display(),
+                                mib(o.bytes),
+                                o.seconds
+                            ),
+                            None => println!(
+                                "reused: asset '{}': {} is up to date",
+                                o.asset,
+                                o.aggregate.display()
+                            ),
+                        }
+                    }
+                })?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&outcomes)?);
+            } else {
+                let baked = outcomes.iter().filter(|o| o.baked).count();
+                println!(
+                    "stats: {} assets: {baked} baked, {} reused, {:.1} s",
+                    outcomes.len(),
+                    outcomes.len() - baked,
+                    t0.elapsed().as_secs_f64()
+                );
+            }
+            Ok(())
+        }
+        Command::Inspect { file, json } if aggtool::assembly::is_manifest(&file) => {
+            inspect_assembly(&file, json)
+        }
         Command::Inspect { file, json } => inspect(&file, json),
         Command::Render {
             agg,
@@ -1211,7 +1419,14 @@ fn run(cli: Cli) -> Result<()> {
                     aggtool::runtime::PrimitiveKind::TruncatedEllipsoid
                 },
             };
-            run_lod(&agg, &view, &output, exposure, &settings)?;
+            if aggtool::assembly::is_manifest(&agg) {
+                if volume {
+                    bail!("--volume is not supported for assemblies");
+                }
+                run_assembly_lod(&agg, &view, &output, exposure, &settings)?;
+            } else {
+                run_lod(&agg, &view, &output, exposure, &settings)?;
+            }
             Ok(())
         }
         Command::Flatten { asset, output } => {

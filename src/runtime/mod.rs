@@ -41,7 +41,7 @@ use crate::spatial::Grid;
 
 pub use crate::lights::{EnvMap, Environment, LightSample, Lights, Sun};
 pub use hits::{Hit, Hits};
-pub use shade::shade;
+pub use shade::{shade, Placement};
 
 /// A cone: a centre ray and the full angle of its aperture (Algorithm 1's r and θ).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -351,6 +351,35 @@ impl LodScene {
         shade::trace(self, cone, lights, settings, sampler)
     }
 
+    /// [`LodScene::trace`] for a scene placed in a larger world (an instance of an assembly):
+    /// `cone` is in the scene's own space, `lights` in the world's, directions are carried
+    /// between the two by `place`, and light reaching a voxel is attenuated by
+    /// [`Placement::occlusion`] besides the voxel's own AIV. The result's `radiance` holds the
+    /// surfaces alone, **without the background**: the caller composes what lies behind through
+    /// `transmittance`; with it comes the ray parameter of the first primitive met (infinite
+    /// when none), by which a caller orders overlapping scenes along the cone.
+    /// [`PrimitiveKind::Volume`] is not supported here (it is shaded as
+    /// [`PrimitiveKind::TruncatedEllipsoid`]).
+    pub fn trace_placed<S: Sampler + ?Sized, P: Placement + ?Sized>(
+        &self,
+        cone: &Cone,
+        lights: &Lights,
+        settings: &TraceSettings,
+        sampler: &mut S,
+        place: &P,
+    ) -> (ConeResult, f32) {
+        let mut settings = *settings;
+        if settings.primitive == PrimitiveKind::Volume {
+            settings.primitive = PrimitiveKind::TruncatedEllipsoid;
+        }
+        let (surfaces, transmittance, primitives, coverage, first) =
+            shade::trace_surfaces(self, cone, lights, &settings, sampler, place);
+        (
+            ConeResult::compose(surfaces, Vec3::ZERO, transmittance, primitives, coverage),
+            first,
+        )
+    }
+
     /// Traces a batch of cones in parallel with [`LodScene::trace`]: four floats per cone in
     /// `rgba` (radiance RGB, background transmittance). Cone `i` draws stream `i` of `seed`,
     /// so the result does not depend on the thread count. What the C ABI and the Python
@@ -378,9 +407,14 @@ impl LodScene {
     /// (1 when it meets no primitive): what the aggregate lets through, for a host's shadow
     /// rays.
     pub fn transmittance(&self, cone: &Cone, settings: &TraceSettings) -> f32 {
+        // The ABV is read at the first occupied voxel and counts from the first primitive met:
+        // final there, so the walk stops (the rest of it cannot change the value).
         let mut h = self.hits(cone, settings);
-        while h.next_primitive().is_some() {}
-        h.transmittance()
+        if h.next_primitive().is_some() {
+            h.transmittance()
+        } else {
+            1.0
+        }
     }
 }
 

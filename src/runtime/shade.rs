@@ -71,6 +71,89 @@ pub(crate) fn shade_with<S: Sampler + ?Sized>(
 /// Most reservoirs one cone keeps (picks beyond are folded into this many).
 const MAX_PICKS: usize = 8;
 
+/// Where a cone is traced from when the scene sits inside a larger one (an instance of an
+/// assembly, [`crate::assembly`]): the hook of [`LodScene::trace_placed`]. The cone and the
+/// hits are in the scene's own space; the lights, and the directions the ABSDF is evaluated
+/// and sampled in, are the world's; and light reaching a voxel is attenuated by whatever the
+/// rest of the world puts in its way ([`Placement::occlusion`]), on top of the voxel's own
+/// interior visibility (the AIV holds only the scene's own occlusion).
+pub trait Placement {
+    /// The world direction of a unit direction of the scene's own space (unit).
+    fn to_world(&self, local: Vec3) -> Vec3;
+    /// The scene's own direction of a unit world direction (unit).
+    fn to_local(&self, world: Vec3) -> Vec3;
+    /// What the rest of the world lets through, in [0, 1], of light arriving from world
+    /// direction `wi` at the point `p` of the scene's own space.
+    fn occlusion(&self, p: Vec3, wi: Vec3) -> f32;
+}
+
+/// The scene on its own: the world is its space and nothing else is in it ([`LodScene::trace`];
+/// everything it does compiles away).
+pub(crate) struct Alone;
+
+impl Placement for Alone {
+    #[inline(always)]
+    fn to_world(&self, local: Vec3) -> Vec3 {
+        local
+    }
+    #[inline(always)]
+    fn to_local(&self, world: Vec3) -> Vec3 {
+        world
+    }
+    #[inline(always)]
+    fn occlusion(&self, _p: Vec3, _wi: Vec3) -> f32 {
+        1.0
+    }
+}
+
+/// A voxel's ABSDF seen through a placement: world directions in and out.
+struct Placed<'a, 'v, P: Placement + ?Sized> {
+    voxel: &'a VoxelHandle<'v>,
+    place: &'a P,
+}
+
+impl<P: Placement + ?Sized> Bsdf for Placed<'_, '_, P> {
+    #[inline]
+    fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {
+        self.voxel
+            .eval(self.place.to_local(wi), self.place.to_local(wo))
+    }
+    #[inline]
+    fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {
+        self.voxel
+            .pdf(self.place.to_local(wi), self.place.to_local(wo))
+    }
+    #[inline]
+    fn eval_pdf(&self, wi: Vec3, wo: Vec3) -> (Vec3, f32) {
+        self.voxel
+            .eval_pdf(self.place.to_local(wi), self.place.to_local(wo))
+    }
+    #[inline]
+    fn sample(&self, wo: Vec3, u_lobe: f32, u: glam::Vec2) -> Option<crate::bsdf::BsdfSample> {
+        let mut s = self.voxel.sample(self.place.to_local(wo), u_lobe, u)?;
+        s.wi = self.place.to_world(s.wi);
+        Some(s)
+    }
+}
+
+/// [`shade`] of hit `h` of `cone` through a placement: `wo` is the world direction.
+#[inline]
+fn shade_placed<S: Sampler + ?Sized, P: Placement + ?Sized>(
+    h: &Hit,
+    cone: &Cone,
+    wo: Vec3,
+    lights: &Lights,
+    nee: u32,
+    sampler: &mut S,
+    place: &P,
+) -> Vec3 {
+    let voxel = &h.voxel;
+    let p = cone.origin + cone.dir * h.t;
+    shade_with(&Placed { voxel, place }, wo, lights, nee, sampler, |w| {
+        voxel.incident_visibility(place.to_local(w)) * place.occlusion(p, w)
+    })
+}
+
 /// [`LodScene::trace`].
 pub(crate) fn trace<S: Sampler + ?Sized>(
     scene: &LodScene,
@@ -83,13 +166,31 @@ pub(crate) fn trace<S: Sampler + ?Sized>(
     if settings.primitive == PrimitiveKind::Volume {
         return scene.trace_volume(cone, lights, settings, sampler);
     }
-    let wo = -cone.dir;
+    let (surfaces, transmittance, primitives, coverage, _) =
+        trace_surfaces(scene, cone, lights, settings, sampler, &Alone);
+    ConeResult::compose(surfaces, background, transmittance, primitives, coverage)
+}
+
+/// [`LodScene::trace_placed`]: the surfaces' radiance (no background), the background's
+/// weight, the primitives met, the coverage, and the ray parameter of the first primitive met
+/// (infinite when none).
+pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
+    scene: &LodScene,
+    cone: &Cone,
+    lights: &Lights,
+    settings: &TraceSettings,
+    sampler: &mut S,
+    place: &P,
+) -> (Vec3, f32, u32, f32, f32) {
+    let wo = place.to_world(-cone.dir);
     let mut hits = scene.hits(cone, settings);
+    let mut first = f32::INFINITY;
     let (surfaces, coverage) = match settings.shading {
         Shading::Every => {
             let (mut sum, mut cov) = (Vec3::ZERO, 0.0f32);
             for h in &mut hits {
-                sum += shade(&h.voxel, wo, lights, settings.nee, sampler) * h.weight;
+                first = first.min(h.t);
+                sum += shade_placed(&h, cone, wo, lights, settings.nee, sampler, place) * h.weight;
                 cov += h.weight;
             }
             (sum, cov)
@@ -104,6 +205,7 @@ pub(crate) fn trace<S: Sampler + ?Sized>(
             let mut kept: [Option<Hit>; MAX_PICKS] = [None; MAX_PICKS];
             let mut wsum = 0.0f32;
             for h in &mut hits {
+                first = first.min(h.t);
                 wsum += h.weight;
                 let p = h.weight / wsum;
                 for slot in kept.iter_mut().take(n) {
@@ -121,7 +223,7 @@ pub(crate) fn trace<S: Sampler + ?Sized>(
                 for h in kept.iter().take(n).flatten() {
                     let k = hits.exact_factor(h);
                     if k > 0.0 {
-                        sum += shade(&h.voxel, wo, lights, settings.nee, sampler) * k;
+                        sum += shade_placed(h, cone, wo, lights, settings.nee, sampler, place) * k;
                         cov += k;
                     }
                 }
@@ -130,11 +232,11 @@ pub(crate) fn trace<S: Sampler + ?Sized>(
             }
         }
     };
-    ConeResult::compose(
+    (
         surfaces,
-        background,
         hits.transmittance(),
         hits.primitives(),
         coverage,
+        first,
     )
 }

@@ -1,0 +1,165 @@
+//! `aggtool assemble`: bake every asset whose aggregate is missing or stale.
+//!
+//! Staleness is decided by a stamp beside each aggregate, `NAME.agg.stamp.json`: the source's
+//! length and CRC-32, and the CRC-32 of the bake settings as JSON. (The `.agg` format is being
+//! changed elsewhere, so the stamp lives beside the file rather than in it; CRC-32 is a change
+//! detector, not a cryptographic hash: an accidental collision has odds of 2⁻³² per edit.)
+//! Only the source file itself is stamped: a `.gltf`'s external buffers and textures are not.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use super::manifest::{Asset, Manifest};
+use crate::bake::{bake_to_file, BakeSettings};
+use crate::import::{self, ImportOptions};
+
+/// The stamp of one bake.
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Stamp {
+    /// Stamp layout version (1).
+    pub version: u32,
+    /// The source's length in bytes.
+    pub source_bytes: u64,
+    /// CRC-32 of the source's bytes.
+    pub source_crc32: u32,
+    /// CRC-32 of the bake settings serialised as JSON.
+    pub settings_crc32: u32,
+}
+
+/// What happened to one asset.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Outcome {
+    /// The asset id.
+    pub asset: String,
+    /// The aggregate.
+    pub aggregate: PathBuf,
+    /// Baked now (false: the aggregate was up to date and reused).
+    pub baked: bool,
+    /// Why it was baked: "missing", "no stamp", "source changed", "settings changed".
+    pub reason: Option<String>,
+    /// Seconds spent (import and bake).
+    pub seconds: f64,
+    /// Size of the aggregate.
+    pub bytes: u64,
+}
+
+/// Why `assemble` failed.
+#[derive(Debug, thiserror::Error)]
+pub enum AssembleError {
+    /// Bad settings.
+    #[error("{0}")]
+    Settings(String),
+    /// A source is missing.
+    #[error(transparent)]
+    Manifest(#[from] super::ManifestError),
+    /// An asset could not be read, baked or stamped.
+    #[error("asset '{asset}': {message}")]
+    Asset {
+        /// The asset id.
+        asset: String,
+        /// What went wrong.
+        message: String,
+    },
+}
+
+/// The path of an aggregate's stamp.
+pub fn stamp_path(aggregate: &Path) -> PathBuf {
+    let mut s = aggregate.as_os_str().to_owned();
+    s.push(".stamp.json");
+    PathBuf::from(s)
+}
+
+/// The stamp the asset's aggregate should carry for `settings`.
+pub fn stamp(asset: &Asset, settings: &BakeSettings) -> Result<Stamp, String> {
+    let bytes = std::fs::read(&asset.source)
+        .map_err(|e| format!("cannot read {}: {e}", asset.source.display()))?;
+    let settings_json = serde_json::to_vec(settings).map_err(|e| e.to_string())?;
+    Ok(Stamp {
+        version: 1,
+        source_bytes: bytes.len() as u64,
+        source_crc32: crc32fast::hash(&bytes),
+        settings_crc32: crc32fast::hash(&settings_json),
+    })
+}
+
+/// Why the asset's aggregate must be baked, or `None` when it is up to date.
+fn stale(asset: &Asset, want: &Stamp) -> Option<String> {
+    if !asset.aggregate.is_file() {
+        return Some("missing".into());
+    }
+    let have: Option<Stamp> = std::fs::read(stamp_path(&asset.aggregate))
+        .ok()
+        .and_then(|b| serde_json::from_slice(&b).ok());
+    match have {
+        None => Some("no stamp".into()),
+        Some(h) if h.source_bytes != want.source_bytes || h.source_crc32 != want.source_crc32 => {
+            Some("source changed".into())
+        }
+        Some(h) if h.settings_crc32 != want.settings_crc32 || h.version != want.version => {
+            Some("settings changed".into())
+        }
+        Some(_) => None,
+    }
+}
+
+/// Bakes every asset of `m` whose aggregate is missing or stale, assets in parallel;
+/// `report(outcome)` hears of each as it finishes. The outcomes come back in asset order.
+pub fn assemble(
+    m: &Manifest,
+    settings: &BakeSettings,
+    options: ImportOptions,
+    report: &(dyn Fn(&Outcome) + Sync),
+) -> Result<Vec<Outcome>, AssembleError> {
+    settings.validate().map_err(AssembleError::Settings)?;
+    m.require_sources()?;
+    m.assets
+        .par_iter()
+        .map(|a| {
+            let fail = |message: String| AssembleError::Asset {
+                asset: a.id.clone(),
+                message,
+            };
+            let t0 = Instant::now();
+            let want = stamp(a, settings).map_err(fail)?;
+            let reason = stale(a, &want);
+            if reason.is_some() {
+                let scene = import::load(&a.source, options).map_err(|e| fail(e.to_string()))?;
+                let source = a
+                    .source
+                    .file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_default();
+                if let Some(dir) = a.aggregate.parent().filter(|d| !d.as_os_str().is_empty()) {
+                    std::fs::create_dir_all(dir)
+                        .map_err(|e| fail(format!("cannot create {}: {e}", dir.display())))?;
+                }
+                bake_to_file(
+                    &scene,
+                    &source,
+                    settings,
+                    &a.aggregate,
+                    &crate::util::no_progress,
+                )
+                .map_err(|e| fail(e.to_string()))?;
+                let text = serde_json::to_vec_pretty(&want).map_err(|e| fail(e.to_string()))?;
+                let sp = stamp_path(&a.aggregate);
+                crate::util::write_atomic(&sp, |tmp| {
+                    std::fs::write(tmp, &text).map_err(|e| e.to_string())
+                })
+                .map_err(|e| fail(format!("{}: {e}", sp.display())))?;
+            }
+            let out = Outcome {
+                asset: a.id.clone(),
+                aggregate: a.aggregate.clone(),
+                baked: reason.is_some(),
+                reason,
+                seconds: t0.elapsed().as_secs_f64(),
+                bytes: std::fs::metadata(&a.aggregate).map_or(0, |md| md.len()),
+            };
+            report(&out);
+            Ok(out)
+        })
+        .collect()
+}

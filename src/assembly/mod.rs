@@ -1,0 +1,19 @@
+//! Assemblies: scenes of many instances of a few assets, read from a manifest
+//! ([`manifest`]), rendered with the LoD runtime and with the reference renderer.
+
+pub mod bake;
+pub mod forest;
+pub mod lod;
+pub mod manifest;
+pub mod mesh;
+
+pub use lod::{render, Assembly, AssemblyError};
+pub use manifest::{Asset, Manifest, ManifestError};
+
+/// Whether a path names a manifest (a `.json` file) rather than an asset or an aggregate: what
+/// the CLI's `render`, `reference` and `inspect` go by.
+pub fn is_manifest(path: &std::path::Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("json"))
+}
