@@ -5,9 +5,11 @@
 //!
 //! ```text
 //! cargo run --release --example requantize -- IN.agg OUT.agg [--lossless] [--bytes-only]
+//!     [--compression-level N]
 //! ```
 //!
-//! `--bytes-only` skips the error figures (they evaluate every cell of every map: minutes at
+//! `--compression-level N` compresses the blocks with Zstandard at level N (format 1.5; 0 for
+//! none; the default is the bake's). `--bytes-only` skips the error figures (they evaluate every cell of every map: minutes at
 //! 256³); `SIMULATE_8BIT=1` adds what an 8-bit fixed point would give the trees and unorm8 the
 //! moments.
 //!
@@ -149,18 +151,30 @@ fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let lossless = args.iter().any(|a| a == "--lossless");
     let bytes_only = args.iter().any(|a| a == "--bytes-only");
+    let compression = match args.iter().position(|a| a == "--compression-level") {
+        Some(i) => args
+            .get(i + 1)
+            .and_then(|v| v.parse().ok())
+            .ok_or_else(|| anyhow::anyhow!("--compression-level needs a number"))?,
+        None => aggtool::format::DEFAULT_COMPRESSION,
+    };
     let paths: Vec<PathBuf> = args
         .iter()
-        .filter(|a| !a.starts_with("--"))
-        .map(PathBuf::from)
+        .enumerate()
+        .filter(|(i, a)| !a.starts_with("--") && (*i == 0 || args[i - 1] != "--compression-level"))
+        .map(|(_, a)| PathBuf::from(a))
         .collect();
     let [input, output] = paths.as_slice() else {
-        anyhow::bail!("usage: requantize IN.agg OUT.agg [--lossless]");
+        anyhow::bail!(
+            "usage: requantize IN.agg OUT.agg [--lossless] [--bytes-only] [--compression-level N]"
+        );
     };
     let agg = Aggregate::open(input)?;
     let mut settings = agg.settings().clone();
     settings.lossless = lossless;
+    settings.compression = compression;
     let mut writer = Writer::create(output)?;
+    writer.set_compression(compression);
     let mut entries = Vec::new();
     let mut sizes = ComponentBytes::default();
     for l in 0..agg.level_count() {
@@ -177,7 +191,7 @@ fn main() -> anyhow::Result<()> {
                 &mut sizes,
             );
             let (first, last) = (chunk[0].key, chunk[chunk.len() - 1].key);
-            voxel_blocks.push(writer.write_blob(&blob, first, last, chunk.len() as u32)?);
+            voxel_blocks.push(writer.write_block(&blob, first, last, chunk.len() as u32)?);
         }
         let mut face_blocks = Vec::new();
         for chunk in lv.faces.chunks(aggtool::bake::pipeline::BLOCK_FACES) {
@@ -186,7 +200,7 @@ fn main() -> anyhow::Result<()> {
                 encode::face_key(&chunk[0]),
                 encode::face_key(&chunk[chunk.len() - 1]),
             );
-            face_blocks.push(writer.write_blob(&blob, first, last, chunk.len() as u32)?);
+            face_blocks.push(writer.write_block(&blob, first, last, chunk.len() as u32)?);
         }
         entries.push(LevelEntry {
             res: lv.grid.res,

@@ -252,7 +252,8 @@ fn export_writes_views_instances_and_textures() {
     assert!(!p.join("x").join("scene.json").exists());
 }
 
-/// `convert` writes format 1.4 quantized by default and the float layout with `--lossless`;
+/// `convert` writes format 1.4's quantized layout by default, its blocks compressed (1.5), and
+/// the float layout with `--lossless`;
 /// `--no-cpca` is accepted and changes nothing (CPCA is not implemented); `inspect --json`
 /// gives each level's bytes per component and layout, and the quantized file is smaller in
 /// every node, lobe and moment component.
@@ -294,8 +295,26 @@ fn lossless_and_quantized_layouts() {
         std::fs::read(p.join("n.agg")).unwrap(),
         "--no-cpca changes nothing"
     );
-    assert_eq!(q["format"], "1.4");
+    assert_eq!(q["format"], "1.5");
     assert_eq!(q["settings"]["lossless"], false);
+    assert_eq!(q["settings"]["compression"], 19);
+    // Blocks compressed by default (1.5), stored as they are with level 0: same content.
+    let z = bake(&["--compression-level", "0"], "z.agg");
+    assert_eq!(z["settings"]["compression"], 0);
+    for (a, b) in q["levels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(z["levels"].as_array().unwrap())
+    {
+        assert_eq!(a["components"], b["components"]);
+        assert_eq!(a["inflated_bytes"], b["bytes"]);
+        assert!(a["bytes"].as_u64() < b["bytes"].as_u64(), "{a} vs {b}");
+        assert!(a["compression_ratio"].as_f64().unwrap() > 1.0);
+    }
+    let e = aggtool(&["convert", "foliage.glb", "--compression-level", "23"], p);
+    assert!(!e.status.success());
+    assert!(String::from_utf8_lossy(&e.stderr).contains("--compression-level"));
     assert_eq!(l["settings"]["lossless"], true);
     for (a, b) in q["levels"]
         .as_array()
@@ -319,4 +338,114 @@ fn lossless_and_quantized_layouts() {
         text.contains("bytes per component") && text.contains("quantized"),
         "{text}"
     );
+}
+
+/// `convert --progress-json` (for programs that run the bake, e.g. the Blender extension):
+/// stderr holds only JSON progress lines, each stage of every level from 0 to its total, and
+/// the file is the same as without the flag.
+#[test]
+fn convert_progress_json() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    ok(&aggtool(
+        &["gen", "foliage", "-o", ".", "--triangles", "400"],
+        p,
+    ));
+    let bake = |extra: &[&str], out: &str| {
+        let mut args = vec![
+            "convert",
+            "foliage.glb",
+            "--max-res",
+            "8",
+            "--min-res",
+            "4",
+            "--samples",
+            "4",
+            "--aiv-res",
+            "8",
+            "--abv-res",
+            "8",
+            "-o",
+            out,
+        ];
+        args.extend_from_slice(extra);
+        let o = aggtool(&args, p);
+        ok(&o);
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    let err = bake(&["--progress-json"], "j.agg");
+    let lines: Vec<serde_json::Value> = err
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{l}: {e}")))
+        .collect();
+    for stage in ["8³ voxels", "8³ faces", "4³ voxels", "4³ faces"] {
+        let s: Vec<_> = lines.iter().filter(|l| l["stage"] == stage).collect();
+        assert!(!s.is_empty(), "no {stage} in {err}");
+        assert_eq!(s.first().unwrap()["done"], 0, "{err}");
+        assert_eq!(
+            s.last().unwrap()["done"],
+            s.last().unwrap()["total"],
+            "{err}"
+        );
+    }
+    bake(&[], "n.agg");
+    assert_eq!(
+        std::fs::read(p.join("j.agg")).unwrap(),
+        std::fs::read(p.join("n.agg")).unwrap()
+    );
+}
+
+/// `--preset` starts from the library's preset and flags beside it override it: the file
+/// records the preset's values where no flag was given (draft: 2 lobes, 4 AIV rays, fast
+/// compression; max: nothing truncated, quantized or compressed) and the flag's where one was.
+#[test]
+fn presets_and_overrides() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    ok(&aggtool(
+        &["gen", "foliage", "-o", ".", "--triangles", "300"],
+        p,
+    ));
+    let settings = |extra: &[&str], out: &str| {
+        let mut args = vec![
+            "convert",
+            "foliage.glb",
+            "--max-res",
+            "8",
+            "--samples",
+            "4",
+            "-o",
+            out,
+        ];
+        args.extend_from_slice(extra);
+        ok(&aggtool(&args, p));
+        let j = ok(&aggtool(&["inspect", out, "--json"], p));
+        serde_json::from_str::<serde_json::Value>(&j).unwrap()["settings"].clone()
+    };
+    let draft = settings(&["--preset", "draft", "--aiv-res", "8"], "d.agg");
+    assert_eq!(
+        (
+            &draft["ndf_lobes"],
+            &draft["aiv_rays"],
+            &draft["compression"]
+        ),
+        (&2.into(), &4.into(), &3.into())
+    );
+    assert_eq!(
+        (&draft["aiv_res"], &draft["max_res"]),
+        (&8.into(), &8.into()),
+        "flags win"
+    );
+    let max = settings(
+        &["--preset", "max", "--aiv-res", "8", "--abv-res", "8"],
+        "m.agg",
+    );
+    assert_eq!((&max["keep"], &max["energy"]), (&1.0.into(), &1.0.into()));
+    assert_eq!(
+        (&max["lossless"], &max["denoise"], &max["compression"]),
+        (&true.into(), &false.into(), &0.into())
+    );
+    let e = aggtool(&["convert", "foliage.glb", "--preset", "fast"], p);
+    assert!(!e.status.success());
+    assert!(String::from_utf8_lossy(&e.stderr).contains("possible values"));
 }

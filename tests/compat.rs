@@ -200,3 +200,29 @@ fn format_1_4_quantized_file_renders_as_the_float_one() {
         assert!(rel(*p, f) <= 0.02, "pixel {p} vs {f}");
     }
 }
+
+/// The committed 1.5 file (`foliage-1.5.agg`: `cargo run --example requantize --
+/// tests/data/foliage-1.3.agg tests/data/foliage-1.5.agg`, the quantized layout with its blocks
+/// compressed at the default level) opens, verifies, holds exactly what the 1.4 file holds, and
+/// renders exactly as it does: compression is lossless.
+#[test]
+fn format_1_5_compressed_file_renders_as_the_1_4_one() {
+    let z = open("foliage-1.5.agg");
+    let q = open("foliage-1.4.agg");
+    assert_eq!((z.header().major, z.header().minor), (1, 5));
+    assert_eq!(
+        z.settings().compression,
+        aggtool::format::DEFAULT_COMPRESSION
+    );
+    assert!(z.bytes().len() < q.bytes().len());
+    for l in 0..z.level_count() {
+        assert_eq!(z.read_level(l), q.read_level(l), "level {l}");
+        let (stored, inflated) = z.stored_and_inflated_bytes(l);
+        assert!(stored < inflated, "level {l}: {stored} of {inflated} bytes");
+    }
+    assert!(aggtool::format::read::exercise(&z) > 0);
+    let (mean, px) = render(z);
+    let (mean4, px4) = render(q);
+    assert_eq!(mean, mean4);
+    assert_eq!(px, px4);
+}

@@ -217,6 +217,7 @@ fn round_trip_and_rejection() {
     // The float layout reads back exactly; the quantized one within its tolerances.
     let s = BakeSettings {
         lossless: true,
+        compression: 0,
         ..small()
     };
     let (bytes, report) = bake(&sc, &s, dir.path(), "a.agg");
@@ -257,11 +258,16 @@ fn round_trip_and_rejection() {
     assert!(agg.settings().lossless && !agg.component_bytes(0).1);
     check_rejection(&bytes, &agg);
 
-    // Format 1.4's quantized layout (the default): within its tolerances at every level,
-    // smaller, and refused by the rejection checks alike.
-    let (qbytes, _) = bake(&sc, &small(), dir.path(), "q.agg");
+    // Format 1.4's quantized layout, blocks uncompressed: within its tolerances at every
+    // level, smaller, and refused by the rejection checks alike.
+    let uncompressed = BakeSettings {
+        compression: 0,
+        ..small()
+    };
+    let (qbytes, _) = bake(&sc, &uncompressed, dir.path(), "q.agg");
     let q = Aggregate::from_bytes(qbytes.clone()).unwrap();
-    assert_eq!(q.header().minor, 4);
+    assert_eq!(q.header().minor, MINOR);
+    assert_eq!(q.settings().compression, 0);
     assert!(!q.settings().lossless);
     for l in 0..q.level_count() {
         assert!(q.component_bytes(l).1, "level {l} not quantized");
@@ -294,6 +300,35 @@ fn round_trip_and_rejection() {
         .err()
         .expect("1.3 with quantized arrays refused");
     assert!(e.to_string().contains("older than 1.4"), "{e}");
+
+    // Format 1.5's compressed blocks (the default): the same content as the uncompressed
+    // file, fewer bytes, every block compressed, refused by the rejection checks alike, and
+    // refused in a file that claims 1.4.
+    let (zbytes, _) = bake(&sc, &small(), dir.path(), "z.agg");
+    let z = Aggregate::from_bytes(zbytes.clone()).unwrap();
+    assert_eq!(
+        z.settings().compression,
+        aggtool::format::DEFAULT_COMPRESSION
+    );
+    assert!(
+        zbytes.len() < qbytes.len(),
+        "{} vs {}",
+        zbytes.len(),
+        qbytes.len()
+    );
+    for l in 0..z.level_count() {
+        assert_eq!(z.read_level(l), q.read_level(l), "level {l}");
+        assert_eq!(z.component_bytes(l), q.component_bytes(l), "level {l}");
+        let (stored, inflated) = z.stored_and_inflated_bytes(l);
+        let (plain, same) = q.stored_and_inflated_bytes(l);
+        assert_eq!((inflated, plain), (same, same), "level {l}");
+        assert!(stored < inflated, "level {l}: {stored} of {inflated} bytes");
+    }
+    check_rejection(&zbytes, &z);
+    let e = Aggregate::from_bytes(with_version(&zbytes, MAJOR, 4))
+        .err()
+        .expect("1.4 with compressed blocks refused");
+    assert!(e.to_string().contains("older than 1.5"), "{e}");
 }
 
 #[test]
@@ -501,12 +536,14 @@ fn writer_is_atomic() {
 fn damaged_files_never_panic() {
     let dir = tempfile::tempdir().unwrap();
     let (bytes, _) = bake(&scene("foliage", 300, false), &small(), dir.path(), "f.agg");
-    // The quantized bake, then the committed files of each layout (1.3 floats, 1.4 quantized).
+    // The default bake (quantized, blocks compressed), then the committed files of each layout
+    // (1.3 floats, 1.4 quantized, 1.5 compressed).
     let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
     let files = [
         (bytes, 3000),
         (std::fs::read(data.join("foliage-1.3.agg")).unwrap(), 1000),
         (std::fs::read(data.join("foliage-1.4.agg")).unwrap(), 1000),
+        (std::fs::read(data.join("foliage-1.5.agg")).unwrap(), 1000),
     ];
     for (bytes, runs) in files {
         damage(&bytes, runs);

@@ -75,6 +75,8 @@ def describe(path):
         "abv_full_res": s.AbvFullRes(),
         # 1.4: the float layout kept (--lossless); older files are float whatever it says.
         "lossless": s.Lossless() if header["minor"] >= 4 else True,
+        # 1.5: the Zstandard level of the blocks (0: stored as FlatBuffers).
+        "compression": s.Compression() if header["minor"] >= 5 else 0,
         "effects_kept": ix.EffectsKept(),
         "tables_version": ix.TablesVersion(),
         "levels": levels,
@@ -95,6 +97,8 @@ def main(argv):
         return 0
     print(f"{d['file']}: aggtool format {d['format']}, {d['bytes']} bytes, written by {d['generator']}")
     layout = "float" if d["lossless"] else "quantized (1.4)"
+    if d["compression"]:
+        layout += f", blocks zstd level {d['compression']} (1.5)"
     print(f"source: {d['source']}; max-res {d['max_res']}, AIV {d['aiv_res']}², ABV {d['abv_res']}²; effects 0x{d['effects_kept']:x}; tables v{d['tables_version']}; layout {layout}")
     print(f"{'level':>6} {'voxels':>10} {'faces':>10} {'vblocks':>7} {'fblocks':>7} {'bytes':>12}")
     for l in d["levels"]:

@@ -58,6 +58,9 @@ pub struct BakeSettings {
     /// format 1.4's quantized one (`format::quantize`, `math::haar::QNode`), for measuring
     /// what quantization costs; renders differ by the quantization error only.
     pub lossless: bool,
+    /// Zstandard level of the block blobs (format 1.5; 0 stores them uncompressed): lossless,
+    /// inflated by readers the first time a block is read.
+    pub compression: i32,
 }
 
 impl Default for BakeSettings {
@@ -79,11 +82,86 @@ impl Default for BakeSettings {
             denoise: true,
             keep_all_effects: false,
             lossless: false,
+            compression: crate::format::DEFAULT_COMPRESSION,
         }
     }
 }
 
+/// Named starting points for [`BakeSettings`] (`aggtool convert --preset`); flags given beside
+/// a preset override its values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Preset {
+    /// A quick look: 64³ finest level, a quarter of the samples and visibility rays, 16² AIV
+    /// and 32² ABV maps, at most two lobes, fast compression.
+    Draft,
+    /// [`BakeSettings::default`].
+    Default,
+    /// Twice the samples and visibility rays, two ABV rays per cell, and a finer truncation
+    /// (15% of the coefficients, 98% of the detail energy).
+    High,
+    /// The paper's ablation control (Table 4 "Maximum"): up to 4 lobes, no truncation or
+    /// denoising of the visibility wavelets, no quantization, no compression.
+    Max,
+}
+
+impl Preset {
+    /// Every preset, for help texts and sweeps.
+    pub const ALL: [Preset; 4] = [Preset::Draft, Preset::Default, Preset::High, Preset::Max];
+
+    /// The preset's name on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Draft => "draft",
+            Preset::Default => "default",
+            Preset::High => "high",
+            Preset::Max => "max",
+        }
+    }
+
+    /// The preset named `name`.
+    pub fn from_name(name: &str) -> Option<Preset> {
+        Preset::ALL.into_iter().find(|p| p.name() == name)
+    }
+}
+
 impl BakeSettings {
+    /// The settings of a preset.
+    pub fn preset(p: Preset) -> BakeSettings {
+        let d = BakeSettings::default();
+        match p {
+            Preset::Draft => BakeSettings {
+                max_res: 64,
+                samples: 4,
+                aiv_res: 16,
+                aiv_rays: 4,
+                abv_res: 32,
+                abv_full_res: 32,
+                ndf_lobes: 2,
+                compression: 3,
+                ..d
+            },
+            Preset::Default => d,
+            Preset::High => BakeSettings {
+                samples: 32,
+                aiv_rays: 32,
+                abv_rays: 2,
+                keep: 0.15,
+                energy: 0.98,
+                ..d
+            },
+            Preset::Max => BakeSettings {
+                ndf_lobes: 4,
+                keep: 1.0,
+                energy: 1.0,
+                denoise: false,
+                lossless: true,
+                compression: 0,
+                ..d
+            },
+        }
+    }
+
     /// Checks the settings, with a message naming the option at fault.
     pub fn validate(&self) -> Result<(), String> {
         let pow2 = |name: &str, v: u32, lo: u32, hi: u32| {
@@ -115,6 +193,12 @@ impl BakeSettings {
             return Err(format!(
                 "--moment-res must be 1 to 16, got {}",
                 self.moment_res
+            ));
+        }
+        if !(0..=22).contains(&self.compression) {
+            return Err(format!(
+                "--compression-level must be 0 (none) to 22, got {}",
+                self.compression
             ));
         }
         if !(self.keep > 0.0 && self.keep <= 1.0) || !(self.energy >= 0.0 && self.energy <= 1.0) {
@@ -168,6 +252,7 @@ impl BakeSettings {
             denoise: self.denoise,
             aiv_weighting: crate::format::AivWeighting::ProjectedArea,
             lossless: self.lossless,
+            compression: self.compression,
         }
     }
 
@@ -196,6 +281,32 @@ impl BakeSettings {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every preset is valid and round-trips its name; `default` is `Default`; `max` is the
+    /// paper's control (4 lobes, nothing truncated, quantized or compressed); `draft` costs
+    /// less than `default` in every ray and sample count, `high` more.
+    #[test]
+    fn presets() {
+        for p in Preset::ALL {
+            BakeSettings::preset(p).validate().unwrap();
+            assert_eq!(Preset::from_name(p.name()), Some(p));
+        }
+        assert_eq!(Preset::from_name("fast"), None);
+        let (d, draft, high, max) = (
+            BakeSettings::preset(Preset::Default),
+            BakeSettings::preset(Preset::Draft),
+            BakeSettings::preset(Preset::High),
+            BakeSettings::preset(Preset::Max),
+        );
+        assert_eq!(d, BakeSettings::default());
+        assert_eq!((max.ndf_lobes, max.keep, max.energy), (4, 1.0, 1.0));
+        assert!(max.lossless && max.compression == 0 && !max.denoise);
+        for (lo, hi) in [(&draft, &d), (&d, &high)] {
+            assert!(lo.samples < hi.samples && lo.aiv_rays < hi.aiv_rays);
+            assert!(lo.aiv_res <= hi.aiv_res && lo.abv_res <= hi.abv_res);
+            assert!(lo.abv_rays <= hi.abv_rays && lo.keep <= hi.keep);
+        }
+    }
 
     /// A ray per ABV cell up to --abv-full-res, then blocks of (res / full)² cells per ray
     /// (never larger than the map), so every level from there on traces about as many.

@@ -115,6 +115,7 @@ pub fn bake_to_file(
     let accel = Accel::build(scene);
     let (lo, hi) = scene.bounds();
     let mut writer = Writer::create(out).map_err(io)?;
+    writer.set_compression(settings.compression);
     let mut entries = Vec::new();
     let mut reports = Vec::new();
     let mut components = ComponentBytes::default();
@@ -173,7 +174,7 @@ pub fn bake_to_file(
             );
             bytes += blob.len() as u64;
             let r = writer
-                .write_blob(
+                .write_block(
                     &blob,
                     voxels[0].key,
                     voxels[voxels.len() - 1].key,
@@ -214,7 +215,7 @@ pub fn bake_to_file(
             );
             bytes += blob.len() as u64;
             let r = writer
-                .write_blob(
+                .write_block(
                     &blob,
                     encode::face_key(&data[0]),
                     encode::face_key(&data[data.len() - 1]),

@@ -185,61 +185,8 @@ enum Command {
         /// Output file (default: the asset's path with the extension .agg).
         #[arg(short, long)]
         output: Option<PathBuf>,
-        /// Finest level resolution (a power of two); levels halve down to --min-res.
-        #[arg(long, default_value_t = 256)]
-        max_res: u32,
-        /// Coarsest level resolution.
-        #[arg(long, default_value_t = 4)]
-        min_res: u32,
-        /// Surface samples per voxel at the finest level; a level of resolution r gets
-        /// samples·(max_res/r)², at most --max-samples.
-        #[arg(long, default_value_t = 16)]
-        samples: u32,
-        #[arg(long, default_value_t = 1024)]
-        max_samples: u32,
-        /// Interior-visibility map resolution (Clarberg equal-area, per voxel).
-        #[arg(long, default_value_t = 32)]
-        aiv_res: u32,
-        /// Interior-visibility rays per surface sample.
-        #[arg(long, default_value_t = 16)]
-        aiv_rays: u32,
-        /// Boundary-visibility map resolution (concentric, per boundary face).
-        #[arg(long, default_value_t = 64)]
-        abv_res: u32,
-        /// Boundary-visibility rays per direction cell.
-        #[arg(long, default_value_t = 1)]
-        abv_rays: u32,
-        /// Levels finer than this share each face's boundary-visibility rays among blocks of
-        /// (res / N)² direction cells, so that each finer level costs about as many ABV rays as
-        /// this one; set it to --max-res for a ray per cell on every level (the paper's budget).
-        #[arg(long, default_value_t = 64)]
-        abv_full_res: u32,
-        /// Most SGGX lobes per voxel (1 to 4).
-        #[arg(long, default_value_t = 4)]
-        ndf_lobes: u32,
-        /// Directional-moment grid resolution (Eq. 23).
-        #[arg(long, default_value_t = 3)]
-        moment_res: u32,
-        /// Fraction of wavelet coefficients kept.
-        #[arg(long, default_value_t = 0.10)]
-        keep: f32,
-        /// Detail energy kept by the wavelet truncation (more coefficients kept until reached).
-        #[arg(long, default_value_t = 0.95)]
-        energy: f32,
-        /// Store every effect in full even where the asset does not need it.
-        #[arg(long)]
-        keep_all_effects: bool,
-        /// Keep the Monte Carlo noise in the visibility wavelets (the paper's truncation alone).
-        #[arg(long)]
-        no_denoise: bool,
-        /// Keep the float layout of format 1.0–1.3 (f32 Haar nodes, lobes and moments) instead
-        /// of format 1.4's quantized one (about 2.3× smaller; visibility values within 0.035).
-        #[arg(long)]
-        lossless: bool,
-        /// No clustered PCA of the visibility. CPCA is not implemented yet, so this changes
-        /// nothing today; it is accepted so that scripts written for it keep working.
-        #[arg(long)]
-        no_cpca: bool,
+        #[command(flatten)]
+        bake: BakeArgs,
         /// Write the stats as JSON to this file.
         #[arg(long)]
         report: Option<PathBuf>,
@@ -249,6 +196,10 @@ enum Command {
         /// Treat import warnings as errors.
         #[arg(long)]
         strict: bool,
+        /// Report progress on stderr as JSON lines ({"stage", "done", "total"}: at each stage's
+        /// start, whole percent and end) instead of bars, for programs that run the bake.
+        #[arg(long)]
+        progress_json: bool,
     },
     /// Render an .agg aggregate, or an assembly manifest (.json), with the LoD runtime (cone
     /// tracing, Eq. 30) to EXR and PNG.
@@ -474,6 +425,118 @@ fn absdf_plot(case: &str, output: &Path, samples: u32, slice: u32, exposure: f32
         println!("{name}: lobes {} rmse {:.5} (ground truth rms {:.5}, relative {:.3}); difference white = {scale:.4}; output: {}", r.lobes, r.rmse, r.gt_rms, r.rmse / r.gt_rms, path.display());
     }
     Ok(())
+}
+
+/// The bake's settings on the command line: a preset, and flags that override its values.
+/// Defaults live in `aggtool::bake::BakeSettings` and its presets alone (see `--preset`).
+#[derive(clap::Args, Debug, Clone)]
+struct BakeArgs {
+    /// Starting point for every setting below: draft (64³, a quarter of the rays), default,
+    /// high (twice the rays, finer truncation), max (the paper's ablation control: 4 lobes, no
+    /// truncation, quantization or compression). Flags given beside it override it.
+    #[arg(long, default_value = "default", value_parser = ["draft", "default", "high", "max"])]
+    preset: String,
+    /// Finest level resolution (a power of two); levels halve down to --min-res [preset
+    /// default: 256; draft 64].
+    #[arg(long)]
+    max_res: Option<u32>,
+    /// Coarsest level resolution [default: 4].
+    #[arg(long)]
+    min_res: Option<u32>,
+    /// Surface samples per voxel at the finest level; a level of resolution r gets
+    /// samples·(max_res/r)², at most --max-samples [default: 16; draft 4, high 32].
+    #[arg(long)]
+    samples: Option<u32>,
+    /// Cap on the surface samples per voxel of coarser levels [default: 1024].
+    #[arg(long)]
+    max_samples: Option<u32>,
+    /// Interior-visibility map resolution (Clarberg equal-area, per voxel) [default: 32;
+    /// draft 16].
+    #[arg(long)]
+    aiv_res: Option<u32>,
+    /// Interior-visibility rays per surface sample [default: 16; draft 4, high 32].
+    #[arg(long)]
+    aiv_rays: Option<u32>,
+    /// Boundary-visibility map resolution (concentric, per boundary face) [default: 64;
+    /// draft 32].
+    #[arg(long)]
+    abv_res: Option<u32>,
+    /// Boundary-visibility rays per direction cell [default: 1; high 2].
+    #[arg(long)]
+    abv_rays: Option<u32>,
+    /// Levels finer than this share each face's boundary-visibility rays among blocks of
+    /// (res / N)² direction cells, so that each finer level costs about as many ABV rays as
+    /// this one; set it to --max-res for a ray per cell on every level (the paper's budget)
+    /// [default: 64; draft 32].
+    #[arg(long)]
+    abv_full_res: Option<u32>,
+    /// Most SGGX lobes per voxel, 1 to 4 [default: 4; draft 2].
+    #[arg(long)]
+    ndf_lobes: Option<u32>,
+    /// Directional-moment grid resolution (Eq. 23) [default: 3].
+    #[arg(long)]
+    moment_res: Option<u32>,
+    /// Fraction of wavelet coefficients kept [default: 0.1; high 0.15, max 1].
+    #[arg(long)]
+    keep: Option<f32>,
+    /// Detail energy kept by the wavelet truncation (more coefficients kept until reached)
+    /// [default: 0.95; high 0.98, max 1].
+    #[arg(long)]
+    energy: Option<f32>,
+    /// Store every effect in full even where the asset does not need it.
+    #[arg(long)]
+    keep_all_effects: bool,
+    /// Keep the Monte Carlo noise in the visibility wavelets (the paper's truncation alone;
+    /// the max preset does).
+    #[arg(long)]
+    no_denoise: bool,
+    /// Keep the float layout of format 1.0–1.3 (f32 Haar nodes, lobes and moments) instead
+    /// of format 1.4's quantized one (about 2.3× smaller; visibility values within 0.035; the
+    /// max preset does).
+    #[arg(long)]
+    lossless: bool,
+    /// Zstandard level of the blocks (format 1.5; 1 to 22, 0 for none). Lossless: readers
+    /// inflate a block the first time they read it. 19 gives the maple at 64³ 2.2× fewer
+    /// bytes than level 0 for a few seconds of bake [default: 19; draft 3, max 0].
+    #[arg(long)]
+    compression_level: Option<i32>,
+    /// No clustered PCA of the visibility. Accepted and ignored: CPCA was measured
+    /// (examples/cpca_probe.rs) and does not pay on the quantized, truncated trees, so no
+    /// file stores it.
+    #[arg(long)]
+    no_cpca: bool,
+}
+
+impl BakeArgs {
+    /// The preset's settings with every flag given applied over them.
+    fn settings(&self) -> aggtool::bake::BakeSettings {
+        use aggtool::bake::{BakeSettings, Preset};
+        let mut s =
+            BakeSettings::preset(Preset::from_name(&self.preset).unwrap_or(Preset::Default));
+        let set = |dst: &mut u32, v: Option<u32>| {
+            if let Some(v) = v {
+                *dst = v;
+            }
+        };
+        set(&mut s.max_res, self.max_res);
+        set(&mut s.min_res, self.min_res);
+        set(&mut s.samples, self.samples);
+        set(&mut s.max_samples, self.max_samples);
+        set(&mut s.aiv_res, self.aiv_res);
+        set(&mut s.aiv_rays, self.aiv_rays);
+        set(&mut s.abv_res, self.abv_res);
+        set(&mut s.abv_rays, self.abv_rays);
+        set(&mut s.abv_full_res, self.abv_full_res);
+        set(&mut s.ndf_lobes, self.ndf_lobes);
+        set(&mut s.moment_res, self.moment_res);
+        s.keep = self.keep.unwrap_or(s.keep);
+        s.energy = self.energy.unwrap_or(s.energy);
+        s.compression = self.compression_level.unwrap_or(s.compression);
+        s.keep_all_effects |= self.keep_all_effects;
+        s.denoise &= !self.no_denoise;
+        s.lossless |= self.lossless;
+        s
+    }
 }
 
 fn load_scene(path: &Path, strict: bool) -> Result<Scene> {
@@ -1244,6 +1307,9 @@ fn run(cli: Cli) -> Result<()> {
                         "instances": scene.instances.len(),
                         "triangles": scene.unique_triangle_count(),
                         "instanced_triangles": scene.instanced_triangle_count(),
+                        // Each mesh once, 32 B a vertex and 12 a triangle: what the quality
+                        // and compression studies weigh an aggregate against.
+                        "geometry_bytes": aggtool::eval::simplify::scene_bytes(&scene),
                         "bounds": [lo.to_array(), hi.to_array()],
                         "materials": mats,
                         "textures": scene.textures.len(),
@@ -1279,45 +1345,13 @@ fn run(cli: Cli) -> Result<()> {
         Command::Convert {
             asset,
             output,
-            max_res,
-            min_res,
-            samples,
-            max_samples,
-            aiv_res,
-            aiv_rays,
-            abv_res,
-            abv_rays,
-            abv_full_res,
-            ndf_lobes,
-            moment_res,
-            keep,
-            energy,
-            keep_all_effects,
-            no_denoise,
-            lossless,
-            no_cpca: _,
+            bake,
             report,
             verbose,
             strict,
+            progress_json,
         } => {
-            let settings = aggtool::bake::BakeSettings {
-                max_res,
-                min_res,
-                samples,
-                max_samples,
-                aiv_res,
-                aiv_rays,
-                abv_res,
-                abv_rays,
-                abv_full_res,
-                ndf_lobes,
-                moment_res,
-                keep,
-                energy,
-                denoise: !no_denoise,
-                keep_all_effects,
-                lossless,
-            };
+            let settings = bake.settings();
             convert(
                 &asset,
                 output,
@@ -1325,6 +1359,7 @@ fn run(cli: Cli) -> Result<()> {
                 report.as_deref(),
                 verbose,
                 strict,
+                progress_json,
             )
         }
         Command::Assemble {
@@ -1461,6 +1496,7 @@ fn convert(
     report: Option<&Path>,
     verbose: bool,
     strict: bool,
+    progress_json: bool,
 ) -> Result<()> {
     settings.validate().map_err(anyhow::Error::msg)?;
     let out = output.unwrap_or_else(|| asset.with_extension("agg"));
@@ -1477,8 +1513,10 @@ fn convert(
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     let bars = TerminalProgress::new();
-    let r = aggtool::bake::bake_to_file(&scene, &source, settings, &out, &|s, d, n| {
-        bars.report(s, d, n)
+    let json = progress_json.then(aggtool::util::JsonProgress::stderr);
+    let r = aggtool::bake::bake_to_file(&scene, &source, settings, &out, &|s, d, n| match &json {
+        Some(j) => j.report(s, d, n),
+        None => bars.report(s, d, n),
     })
     .with_context(|| format!("baking {}", asset.display()))?;
     bars.finish();
@@ -1618,28 +1656,34 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
     );
     if h.minor >= 4 {
         println!(
-            "layout: {}",
+            "layout: {}{}",
             if s.lossless {
                 "lossless (the 1.0–1.3 floats)"
             } else {
                 "quantized (1.4)"
+            },
+            match s.compression {
+                0 => String::new(),
+                z => format!(", blocks compressed (zstd level {z}, 1.5)"),
             }
         );
     }
     println!(
-        "{:>6} {:>10} {:>10} {:>7} {:>7} {:>12}",
-        "level", "voxels", "faces", "vblocks", "fblocks", "bytes"
+        "{:>6} {:>10} {:>10} {:>7} {:>7} {:>12} {:>12} {:>6}",
+        "level", "voxels", "faces", "vblocks", "fblocks", "bytes", "inflated", "ratio"
     );
     for l in &level_info {
         println!(
-            "{:>5}³ {:>10} {:>10} {:>7} {:>7} {:>12}",
+            "{:>5}³ {:>10} {:>10} {:>7} {:>7} {:>12} {:>12} {:>5.2}×",
             // As numbers: serde_json's Display ignores the widths.
             l["res"].as_u64().unwrap_or(0),
             l["voxels"].as_u64().unwrap_or(0),
             l["faces"].as_u64().unwrap_or(0),
             l["voxel_blocks"].as_u64().unwrap_or(0),
             l["face_blocks"].as_u64().unwrap_or(0),
-            l["bytes"].as_u64().unwrap_or(0)
+            l["bytes"].as_u64().unwrap_or(0),
+            l["inflated_bytes"].as_u64().unwrap_or(0),
+            l["compression_ratio"].as_f64().unwrap_or(1.0)
         );
     }
     println!("bytes per component (payloads, without FlatBuffers headers and padding):");

@@ -3388,6 +3388,7 @@ impl<'a> BakeSettings<'a> {
   pub const VT_AIV_WEIGHTING: ::flatbuffers::VOffsetT = 32;
   pub const VT_ABV_FULL_RES: ::flatbuffers::VOffsetT = 34;
   pub const VT_LOSSLESS: ::flatbuffers::VOffsetT = 36;
+  pub const VT_COMPRESSION: ::flatbuffers::VOffsetT = 38;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3399,6 +3400,7 @@ impl<'a> BakeSettings<'a> {
     args: &'args BakeSettingsArgs
   ) -> ::flatbuffers::WIPOffset<BakeSettings<'bldr>> {
     let mut builder = BakeSettingsBuilder::new(_fbb);
+    builder.add_compression(args.compression);
     builder.add_abv_full_res(args.abv_full_res);
     builder.add_min_res(args.min_res);
     builder.add_energy(args.energy);
@@ -3550,6 +3552,16 @@ impl<'a> BakeSettings<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<bool>(BakeSettings::VT_LOSSLESS, Some(false)).unwrap()}
   }
+  /// Added in 1.5: the Zstandard level the bake compressed blocks at (0, also absent in older
+  /// files: none). Readers need not know it: a compressed blob tells itself apart by its first
+  /// bytes (see `Block`).
+  #[inline]
+  pub fn compression(&self) -> i32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<i32>(BakeSettings::VT_COMPRESSION, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for BakeSettings<'_> {
@@ -3575,6 +3587,7 @@ impl ::flatbuffers::Verifiable for BakeSettings<'_> {
      .visit_field::<AivWeighting>("aiv_weighting", Self::VT_AIV_WEIGHTING, false)?
      .visit_field::<u32>("abv_full_res", Self::VT_ABV_FULL_RES, false)?
      .visit_field::<bool>("lossless", Self::VT_LOSSLESS, false)?
+     .visit_field::<i32>("compression", Self::VT_COMPRESSION, false)?
      .finish();
     Ok(())
   }
@@ -3597,6 +3610,7 @@ pub struct BakeSettingsArgs {
     pub aiv_weighting: AivWeighting,
     pub abv_full_res: u32,
     pub lossless: bool,
+    pub compression: i32,
 }
 impl<'a> Default for BakeSettingsArgs {
   #[inline]
@@ -3619,6 +3633,7 @@ impl<'a> Default for BakeSettingsArgs {
       aiv_weighting: AivWeighting::Area,
       abv_full_res: 0,
       lossless: false,
+      compression: 0,
     }
   }
 }
@@ -3697,6 +3712,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> BakeSettingsBuilder<'a, 'b, A
     self.fbb_.push_slot::<bool>(BakeSettings::VT_LOSSLESS, lossless, false);
   }
   #[inline]
+  pub fn add_compression(&mut self, compression: i32) {
+    self.fbb_.push_slot::<i32>(BakeSettings::VT_COMPRESSION, compression, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> BakeSettingsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     BakeSettingsBuilder {
@@ -3731,6 +3750,7 @@ impl ::core::fmt::Debug for BakeSettings<'_> {
       ds.field("aiv_weighting", &self.aiv_weighting());
       ds.field("abv_full_res", &self.abv_full_res());
       ds.field("lossless", &self.lossless());
+      ds.field("compression", &self.compression());
       ds.finish()
   }
 }
@@ -4493,6 +4513,10 @@ impl ::core::fmt::Debug for Index<'_> {
 pub enum BlockOffset {}
 #[derive(Copy, Clone, PartialEq)]
 
+/// A block blob holds a `Block` FlatBuffer, or (from 1.5) one Zstandard frame (RFC 8878,
+/// first bytes 28 B5 2F FD, content size stated, at most 1 GiB) whose content is that
+/// FlatBuffer. The index's CRC-32 and size are of the stored bytes. Readers inflate a block the
+/// first time they read it and keep it; a FlatBuffer never starts with those bytes.
 pub struct Block<'a> {
   pub _tab: ::flatbuffers::Table<'a>,
 }

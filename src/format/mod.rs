@@ -45,7 +45,7 @@ pub const MAGIC: [u8; 8] = [0x89, b'A', b'G', b'G', b'\r', b'\n', 0x1a, b'\n'];
 /// The format version this build writes. Readers accept any minor of their major.
 pub const MAJOR: u16 = 1;
 /// The minor version this build writes.
-pub const MINOR: u16 = 4;
+pub const MINOR: u16 = 5;
 /// Bytes of the fixed header.
 pub const HEADER_SIZE: usize = 64;
 /// Alignment of every blob.
@@ -54,6 +54,51 @@ pub const ALIGN: u64 = 64;
 pub const INDEX_ID: &str = "AGGI";
 /// See [`INDEX_ID`].
 pub const BLOCK_ID: &str = "AGGB";
+/// The first four bytes of a Zstandard frame (RFC 8878): from format 1.5 a block blob may be
+/// one frame whose content is the block's FlatBuffer. A FlatBuffer never starts with them (its
+/// first four bytes are a small root offset), so the two are told apart by these bytes alone.
+pub const ZSTD_MAGIC: [u8; 4] = [0x28, 0xb5, 0x2f, 0xfd];
+/// The largest block a compressed blob may inflate to (its frame must state its size).
+pub const MAX_BLOCK_BYTES: u64 = 1 << 30;
+/// The Zstandard level blocks are written with by default (`--compression-level`): measured
+/// on the maple at 64³ (whole file), level 9 gives 2.10× in 0.3 s, 15 gives 2.15× in 2.9 s,
+/// 19 gives 2.23× in 8.7 s, 22 no more than 19.
+pub const DEFAULT_COMPRESSION: i32 = 19;
+
+/// A block's FlatBuffer compressed as one Zstandard frame (with its content size, which
+/// readers require), or `None` when compression would not make it smaller.
+pub fn compress_block(block: &[u8], level: i32) -> Option<Vec<u8>> {
+    let mut c = zstd::bulk::Compressor::new(level).ok()?;
+    c.include_contentsize(true).ok()?;
+    c.include_checksum(false).ok()?;
+    let out = c.compress(block).ok()?;
+    (out.len() < block.len()).then_some(out)
+}
+
+/// Most bytes a compressed blob may inflate to per stored byte (the blocks of the shared
+/// assets inflate 2–3×); with [`MAX_BLOCK_BYTES`] it bounds what a damaged size field can
+/// make a reader allocate.
+pub const MAX_INFLATION: u64 = 1024;
+
+/// The FlatBuffer inside a compressed blob: its frame must state a content size of at most
+/// [`MAX_BLOCK_BYTES`] and [`MAX_INFLATION`] times its own, and inflate to exactly that many
+/// bytes.
+pub fn inflate_block(blob: &[u8]) -> Result<Vec<u8>, String> {
+    let limit = MAX_BLOCK_BYTES.min(MAX_INFLATION * blob.len() as u64);
+    let size = match zstd::zstd_safe::get_frame_content_size(blob) {
+        Ok(Some(n)) if n <= limit => n as usize,
+        Ok(Some(n)) => return Err(format!("compressed block inflates to {n} bytes")),
+        _ => return Err("compressed block without a readable content size".into()),
+    };
+    let out = zstd::bulk::decompress(blob, size).map_err(|e| format!("compressed block: {e}"))?;
+    if out.len() != size {
+        return Err(format!(
+            "compressed block inflates to {} bytes, its frame says {size}",
+            out.len()
+        ));
+    }
+    Ok(out)
+}
 
 /// Why a file could not be read.
 #[derive(Debug, thiserror::Error)]
@@ -196,6 +241,8 @@ pub struct Writer {
     tmp: PathBuf,
     dest: PathBuf,
     pos: u64,
+    /// Zstandard level of [`Writer::write_block`] (0: blocks stored as they are).
+    compression: i32,
 }
 
 impl Writer {
@@ -218,7 +265,32 @@ impl Writer {
             tmp,
             dest: dest.to_path_buf(),
             pos: HEADER_SIZE as u64,
+            compression: 0,
         })
+    }
+
+    /// Compresses the blocks [`Writer::write_block`] writes from now on at this Zstandard
+    /// level (1 to 22; 0 stores them as they are).
+    pub fn set_compression(&mut self, level: i32) {
+        self.compression = level;
+    }
+
+    /// Appends a block's FlatBuffer, compressed (format 1.5) where that makes it smaller and
+    /// compression is on ([`Writer::set_compression`]). The returned reference's CRC-32 is of
+    /// the stored bytes.
+    pub fn write_block(
+        &mut self,
+        block: &[u8],
+        first_key: u64,
+        last_key: u64,
+        count: u32,
+    ) -> std::io::Result<fb::BlobRef> {
+        if self.compression > 0 {
+            if let Some(z) = compress_block(block, self.compression) {
+                return self.write_blob(&z, first_key, last_key, count);
+            }
+        }
+        self.write_blob(block, first_key, last_key, count)
     }
 
     /// Appends a blob at the next aligned offset.

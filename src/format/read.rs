@@ -54,7 +54,9 @@ struct Blob {
     kind: BlobKind,
     /// Where the next blob (or the index) starts: the bytes in between must be zero.
     gap_end: u64,
-    checked: OnceLock<Result<(), String>>,
+    /// Verified: `Some(bytes)` for a compressed blob (format 1.5), the FlatBuffer it inflated
+    /// to, kept for the aggregate's life; `None` for a blob read in place from the file.
+    checked: OnceLock<Result<Option<Box<[u8]>>, String>>,
 }
 
 /// A level's grid, counts and blobs.
@@ -521,16 +523,37 @@ impl Aggregate {
             )
         });
         match state {
-            Ok(()) => Ok(self.block_unchecked(b)),
+            Ok(inflated) => Ok(self.block_unchecked(b, inflated.as_deref())),
             Err(e) => Err(FormatError::Corrupt(e.clone())),
         }
     }
 
-    fn block_unchecked(&self, b: &Blob) -> fb::Block<'_> {
-        let bytes = &self.bytes()[b.offset as usize..(b.offset + b.size) as usize];
+    /// The block of a verified blob: in the file, or inflated (`inflated`, a compressed blob).
+    fn block_unchecked<'s>(&'s self, b: &Blob, inflated: Option<&'s [u8]>) -> fb::Block<'s> {
+        let bytes =
+            inflated.unwrap_or(&self.bytes()[b.offset as usize..(b.offset + b.size) as usize]);
         // SAFETY: only called for a blob that passed `check_blob` (the FlatBuffers verifier and
         // the invariants), and the bytes are immutable.
         unsafe { flatbuffers::root_unchecked::<fb::Block>(bytes) }
+    }
+
+    /// Bytes of level `l`'s blocks as stored and as read (inflated; the same for blocks
+    /// stored uncompressed), over its blocks that verify.
+    pub fn stored_and_inflated_bytes(&self, l: usize) -> (u64, u64) {
+        let lv = &self.levels[l];
+        let (mut stored, mut inflated) = (0, 0);
+        for i in lv.voxel_blobs.clone().chain(lv.face_blobs.clone()) {
+            if self.check(i).is_err() {
+                continue;
+            }
+            let b = &self.blobs[i];
+            stored += b.size;
+            inflated += match b.checked.get() {
+                Some(Ok(Some(z))) => z.len() as u64,
+                _ => b.size,
+            };
+        }
+        (stored, inflated)
     }
 
     /// Voxel block `i` of level `l`, verified.
@@ -1019,7 +1042,7 @@ fn verify_index(
                 return Err(corrupt(format!("blob at {}: checksum mismatch", b.offset)));
             }
             check_gap(data, b)?;
-            let _ = b.checked.set(Ok(()));
+            let _ = b.checked.set(Ok(None));
         }
     }
     Ok((settings, infos, blobs))
@@ -1051,12 +1074,30 @@ fn check_blob(
     checksums: bool,
     trees: bool,
     minor: u16,
-) -> Result<(), String> {
-    let inner = || -> Result<(), FormatError> {
-        let b = &data[r.offset as usize..(r.offset + r.size) as usize];
-        if checksums && crc32fast::hash(b) != r.crc32 {
+) -> Result<Option<Box<[u8]>>, String> {
+    let inner = || -> Result<Option<Box<[u8]>>, FormatError> {
+        let stored = &data[r.offset as usize..(r.offset + r.size) as usize];
+        if checksums && crc32fast::hash(stored) != r.crc32 {
             return Err(corrupt(format!("block at {}: checksum mismatch", r.offset)));
         }
+        // From 1.5 a block may be one Zstandard frame holding its FlatBuffer.
+        let compressed = stored.starts_with(&super::ZSTD_MAGIC);
+        if compressed && minor < 5 {
+            return Err(corrupt(format!(
+                "block at {}: compressed, in a file older than 1.5",
+                r.offset
+            )));
+        }
+        let inflated = if compressed {
+            Some(
+                super::inflate_block(stored)
+                    .map_err(|e| corrupt(format!("block at {}: {e}", r.offset)))?
+                    .into_boxed_slice(),
+            )
+        } else {
+            None
+        };
+        let b: &[u8] = inflated.as_deref().unwrap_or(stored);
         if !has_identifier(b, BLOCK_ID) {
             return Err(corrupt(format!("block at {}: wrong identifier", r.offset)));
         }
@@ -1073,7 +1114,8 @@ fn check_blob(
             }
             BlobKind::Reserved => {}
         }
-        check_gap(data, r)
+        check_gap(data, r)?;
+        Ok(inflated)
     };
     inner().map_err(|e| match e {
         FormatError::Corrupt(s) => s,

@@ -58,6 +58,9 @@ pub struct RecordedSettings {
     /// which are float whatever it says.
     #[serde(default)]
     pub lossless: bool,
+    /// The Zstandard level of the blocks (format 1.5); 0 in older files: none.
+    #[serde(default)]
+    pub compression: i32,
 }
 
 impl RecordedSettings {
@@ -85,6 +88,7 @@ impl RecordedSettings {
                 AivWeighting::Area
             },
             lossless: s.lossless(),
+            compression: s.compression(),
         }
     }
 
@@ -111,6 +115,7 @@ impl RecordedSettings {
             },
             abv_full_res: self.abv_full_res,
             lossless: self.lossless,
+            compression: self.compression,
         }
     }
 }

@@ -8,7 +8,8 @@ use super::encode::Counts;
 use super::Aggregate;
 
 /// Header, provenance, bounds, tables, settings, per level its counts, blocks and bytes per
-/// component (`components`, `quantized`), and the effects kept and dropped.
+/// component (`components`, `quantized`), stored (`bytes`) and inflated (`inflated_bytes`,
+/// `compression_ratio`: format 1.5's compressed blocks), and the effects kept and dropped.
 pub fn summary(agg: &Aggregate, file: &Path) -> serde_json::Value {
     let h = agg.header();
     let s = agg.settings();
@@ -21,7 +22,10 @@ pub fn summary(agg: &Aggregate, file: &Path) -> serde_json::Value {
             let (vb, fb) = agg.level_bytes(l);
             let (nv, nf) = agg.block_counts(l);
             let (components, quantized) = agg.component_bytes(l);
+            let (stored, inflated) = agg.stored_and_inflated_bytes(l);
             serde_json::json!({
+                "inflated_bytes": inflated,
+                "compression_ratio": if stored > 0 { inflated as f64 / stored as f64 } else { 1.0 },
                 "components": components,
                 "quantized": quantized,
                 "res": agg.grid(l).res,

@@ -3,6 +3,7 @@
 
 pub mod beta;
 pub mod color;
+pub mod cpca;
 pub mod distribution;
 pub mod frame;
 pub mod haar;

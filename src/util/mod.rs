@@ -6,7 +6,7 @@ pub mod atomic;
 pub mod progress;
 
 pub use atomic::write_atomic;
-pub use progress::{no_progress, Progress, TerminalProgress};
+pub use progress::{no_progress, JsonProgress, Progress, TerminalProgress};
 
 /// CPU seconds this process has spent so far (user + system, all threads): the figure to
 /// compare on a shared machine, where wall-clock time depends on what else runs. Zero where

@@ -112,3 +112,80 @@ impl<'a> StageCounter<'a> {
         (self.progress)(&self.stage, d.min(self.total), self.total);
     }
 }
+
+/// Progress as JSON lines, for programs that run the command line as a subprocess and show
+/// their own progress (the Blender extension): `{"stage":"16³ voxels","done":3,"total":10}`,
+/// one line when a stage starts, at each whole percent it passes and when it ends, so that a
+/// bake of millions of units prints a few hundred lines, not millions.
+pub struct JsonProgress<W: std::io::Write + Send> {
+    /// The writer, the stage last reported and its last whole percent.
+    state: Mutex<(W, String, u64)>,
+}
+
+impl JsonProgress<std::io::Stderr> {
+    /// Lines on stderr (stdout keeps the `input:`/`output:`/`stats:` report).
+    pub fn stderr() -> Self {
+        Self::new(std::io::stderr())
+    }
+}
+
+impl<W: std::io::Write + Send> JsonProgress<W> {
+    pub fn new(writer: W) -> Self {
+        JsonProgress {
+            state: Mutex::new((writer, String::new(), 0)),
+        }
+    }
+
+    /// Reports progress (the [`Progress`] signature); write errors are ignored, as a closed
+    /// pipe must not stop a bake.
+    pub fn report(&self, stage: &str, done: u64, total: u64) {
+        let Ok(mut guard) = self.state.lock() else {
+            return;
+        };
+        let (writer, last_stage, last_percent) = &mut *guard;
+        let percent = (done.min(total) * 100).checked_div(total).unwrap_or(100);
+        if last_stage == stage && percent <= *last_percent {
+            return;
+        }
+        let line = serde_json::json!({ "stage": stage, "done": done.min(total), "total": total });
+        let _ = writeln!(writer, "{line}");
+        let _ = writer.flush();
+        *last_stage = stage.to_string();
+        *last_percent = percent;
+    }
+
+    /// The writer back (tests read what was written).
+    pub fn into_inner(self) -> W {
+        match self.state.into_inner() {
+            Ok(s) => s.0,
+            Err(p) => p.into_inner().0,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn json_progress_prints_a_line_per_stage_start_and_whole_percent() {
+        let p = JsonProgress::new(Vec::new());
+        p.report("16³ voxels", 0, 1000);
+        for d in 1..=1000 {
+            p.report("16³ voxels", d, 1000);
+        }
+        p.report("16³ voxels", 500, 1000); // late report of a parallel worker: dropped
+        p.report("16³ faces", 0, 0); // an empty stage is done at once
+        let text = String::from_utf8(p.into_inner()).unwrap();
+        let lines: Vec<serde_json::Value> = text
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
+        // 0%, then 1% .. 100%, then the empty stage.
+        assert_eq!(lines.len(), 102, "{text}");
+        assert_eq!(lines[0]["done"], 0);
+        assert_eq!(lines[100]["done"], 1000);
+        assert_eq!(lines[100]["total"], 1000);
+        assert_eq!(lines[101]["stage"], "16³ faces");
+    }
+}

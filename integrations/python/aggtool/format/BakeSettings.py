@@ -158,8 +158,18 @@ class BakeSettings(object):
             return bool(self._tab.Get(flatbuffers.number_types.BoolFlags, o + self._tab.Pos))
         return False
 
+    # Added in 1.5: the Zstandard level the bake compressed blocks at (0, also absent in older
+    # files: none). Readers need not know it: a compressed blob tells itself apart by its first
+    # bytes (see `Block`).
+    # BakeSettings
+    def Compression(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(38))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Int32Flags, o + self._tab.Pos)
+        return 0
+
 def BakeSettingsStart(builder):
-    builder.StartObject(17)
+    builder.StartObject(18)
 
 def Start(builder):
     BakeSettingsStart(builder)
@@ -265,6 +275,12 @@ def BakeSettingsAddLossless(builder, lossless):
 
 def AddLossless(builder, lossless):
     BakeSettingsAddLossless(builder, lossless)
+
+def BakeSettingsAddCompression(builder, compression):
+    builder.PrependInt32Slot(17, compression, 0)
+
+def AddCompression(builder, compression):
+    BakeSettingsAddCompression(builder, compression)
 
 def BakeSettingsEnd(builder):
     return builder.EndObject()

@@ -6,6 +6,10 @@ import flatbuffers
 from flatbuffers.compat import import_numpy
 np = import_numpy()
 
+# A block blob holds a `Block` FlatBuffer, or (from 1.5) one Zstandard frame (RFC 8878,
+# first bytes 28 B5 2F FD, content size stated, at most 1 GiB) whose content is that
+# FlatBuffer. The index's CRC-32 and size are of the stored bytes. Readers inflate a block the
+# first time they read it and keep it; a FlatBuffer never starts with those bytes.
 class Block(object):
     __slots__ = ['_tab']
 
