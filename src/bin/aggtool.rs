@@ -200,6 +200,22 @@ enum Command {
         /// start, whole percent and end) instead of bars, for programs that run the bake.
         #[arg(long)]
         progress_json: bool,
+        /// Bake only shard I of N (e.g. 2/8) into a part file (default: ASSET's path with
+        /// .I-of-N.aggpart); `aggtool merge` joins the N parts into the bytes of the one-machine
+        /// bake with the same settings. See the README's "Farm bakes".
+        #[arg(long, value_parser = parse_shard)]
+        shard: Option<aggtool::format::part::Shard>,
+    },
+    /// Join the part files of a sharded bake (`convert --shard I/N`) into the .agg a
+    /// one-machine bake writes, byte for byte; refuses missing, duplicate or mismatched parts
+    /// and then writes nothing.
+    Merge {
+        /// The part files, every shard once, in any order.
+        #[arg(required = true)]
+        parts: Vec<PathBuf>,
+        /// The aggregate to write.
+        #[arg(short, long)]
+        output: PathBuf,
     },
     /// Render an .agg aggregate, or an assembly manifest (.json), with the LoD runtime (cone
     /// tracing, Eq. 30) to EXR and PNG.
@@ -242,27 +258,12 @@ enum Command {
     Assemble {
         /// The manifest (.json).
         manifest: PathBuf,
-        /// Finest level resolution (a power of two).
-        #[arg(long, default_value_t = 256)]
-        max_res: u32,
-        /// Coarsest level resolution.
-        #[arg(long, default_value_t = 4)]
-        min_res: u32,
-        /// Surface samples per voxel at the finest level.
-        #[arg(long, default_value_t = 16)]
-        samples: u32,
-        /// Interior-visibility map resolution.
-        #[arg(long, default_value_t = 32)]
-        aiv_res: u32,
-        /// Interior-visibility rays per surface sample.
-        #[arg(long, default_value_t = 16)]
-        aiv_rays: u32,
-        /// Boundary-visibility map resolution.
-        #[arg(long, default_value_t = 64)]
-        abv_res: u32,
-        /// See `convert --abv-full-res`.
-        #[arg(long, default_value_t = 64)]
-        abv_full_res: u32,
+        #[command(flatten)]
+        bake: BakeArgs,
+        /// Consider only this asset (repeatable): a farm task bakes one asset of the manifest
+        /// (see the README's "Farm bakes").
+        #[arg(long = "asset")]
+        assets: Vec<String>,
         /// Treat import warnings as errors.
         #[arg(long)]
         strict: bool,
@@ -1335,6 +1336,18 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Tables { action } => tables_cmd(action),
+        Command::Merge { parts, output } => {
+            let t0 = std::time::Instant::now();
+            let size = aggtool::format::part::merge(&parts, &output)?;
+            println!(
+                "output: {} ({}) from {} parts in {:.2} s",
+                output.display(),
+                mib(size),
+                parts.len(),
+                t0.elapsed().as_secs_f64()
+            );
+            Ok(())
+        }
         Command::AbsdfPlot {
             case,
             output,
@@ -1350,11 +1363,13 @@ fn run(cli: Cli) -> Result<()> {
             verbose,
             strict,
             progress_json,
+            shard,
         } => {
             let settings = bake.settings();
             convert(
                 &asset,
                 output,
+                shard,
                 &settings,
                 report.as_deref(),
                 verbose,
@@ -1364,27 +1379,21 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Assemble {
             manifest,
-            max_res,
-            min_res,
-            samples,
-            aiv_res,
-            aiv_rays,
-            abv_res,
-            abv_full_res,
+            bake,
+            assets,
             strict,
             json,
         } => {
-            let settings = aggtool::bake::BakeSettings {
-                max_res,
-                min_res,
-                samples,
-                aiv_res,
-                aiv_rays,
-                abv_res,
-                abv_full_res,
-                ..Default::default()
-            };
-            let m = aggtool::assembly::Manifest::load(&manifest)?;
+            let settings = bake.settings();
+            let mut m = aggtool::assembly::Manifest::load(&manifest)?;
+            if !assets.is_empty() {
+                for id in &assets {
+                    if !m.assets.iter().any(|a| &a.id == id) {
+                        anyhow::bail!("{}: no asset '{id}'", manifest.display());
+                    }
+                }
+                m.assets.retain(|a| assets.contains(&a.id));
+            }
             let t0 = std::time::Instant::now();
             let outcomes =
                 aggtool::assembly::bake::assemble(&m, &settings, ImportOptions { strict }, &|o| {
@@ -1489,9 +1498,15 @@ fn mib(b: u64) -> String {
     format!("{:.2} MiB", b as f64 / (1024.0 * 1024.0))
 }
 
+fn parse_shard(s: &str) -> Result<aggtool::format::part::Shard, String> {
+    aggtool::format::part::Shard::parse(s)
+}
+
+#[allow(clippy::too_many_arguments)]
 fn convert(
     asset: &Path,
     output: Option<PathBuf>,
+    shard: Option<aggtool::format::part::Shard>,
     settings: &aggtool::bake::BakeSettings,
     report: Option<&Path>,
     verbose: bool,
@@ -1499,7 +1514,10 @@ fn convert(
     progress_json: bool,
 ) -> Result<()> {
     settings.validate().map_err(anyhow::Error::msg)?;
-    let out = output.unwrap_or_else(|| asset.with_extension("agg"));
+    let out = output.unwrap_or_else(|| match shard {
+        Some(s) => asset.with_extension(format!("{}-of-{}.aggpart", s.index, s.count)),
+        None => asset.with_extension("agg"),
+    });
     let t0 = std::time::Instant::now();
     let scene = load_scene(asset, strict)?;
     let t_import = t0.elapsed().as_secs_f64();
@@ -1514,10 +1532,16 @@ fn convert(
         .unwrap_or_default();
     let bars = TerminalProgress::new();
     let json = progress_json.then(aggtool::util::JsonProgress::stderr);
-    let r = aggtool::bake::bake_to_file(&scene, &source, settings, &out, &|s, d, n| match &json {
+    let progress = |s: &str, d: u64, n: u64| match &json {
         Some(j) => j.report(s, d, n),
         None => bars.report(s, d, n),
-    })
+    };
+    let r = match shard {
+        None => aggtool::bake::bake_to_file(&scene, &source, settings, &out, &progress),
+        Some(sh) => {
+            aggtool::bake::bake_shard_to_file(&scene, &source, settings, sh, &out, &progress)
+        }
+    }
     .with_context(|| format!("baking {}", asset.display()))?;
     bars.finish();
     println!("output: {} ({})", out.display(), mib(r.bytes));
