@@ -227,3 +227,100 @@ fn merge_refuses_missing_duplicate_and_mismatched_parts() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("0 <= I < N"));
 }
+
+/// What the farm templates run without openjd: `assemble --list`, one asset per task
+/// (`--asset-number`), then `--require-reuse`; `merge --parts-of` and `--remove-parts`.
+#[test]
+fn farm_commands_one_asset_per_task_then_assemble_reuses() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    ok(
+        &[
+            "gen",
+            "forest",
+            "-o",
+            "f",
+            "--species",
+            "2",
+            "--instances",
+            "4",
+            "--triangles",
+            "400",
+        ],
+        d,
+    );
+    let ids = ok(&["assemble", "f/forest.json", "--list"], d);
+    let ids: Vec<&str> = ids.lines().collect();
+    assert_eq!(ids.len(), 3, "{ids:?}");
+    let t = tiny("16");
+    // Before the tasks, --require-reuse fails (it would bake).
+    let mut args = vec!["assemble", "f/forest.json", "--require-reuse"];
+    args.extend(&t);
+    let o = aggtool(&args, d);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("had to be baked"));
+    std::fs::remove_dir_all(d.join("f")).unwrap();
+    ok(
+        &[
+            "gen",
+            "forest",
+            "-o",
+            "f",
+            "--species",
+            "2",
+            "--instances",
+            "4",
+            "--triangles",
+            "400",
+        ],
+        d,
+    );
+    for k in 1..=3 {
+        let k = k.to_string();
+        let mut args = vec!["assemble", "f/forest.json", "--asset-number", &k];
+        args.extend(&t);
+        let s = ok(&args, d);
+        assert!(s.contains("1 assets: 1 baked, 0 reused"), "{s}");
+    }
+    let mut args = vec!["assemble", "f/forest.json", "--require-reuse"];
+    args.extend(&t);
+    let s = ok(&args, d);
+    assert!(s.contains("3 assets: 0 baked, 3 reused"), "{s}");
+    let o = aggtool(&["assemble", "f/forest.json", "--asset-number", "4"], d);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("no asset number 4"));
+    let o = aggtool(&["assemble", "f/forest.json", "--asset", "nope"], d);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("no asset 'nope'"));
+
+    // Sharded: parts named as the template names them, merged and removed.
+    ok(&["gen", "foliage", "--triangles", "1000", "-o", "."], d);
+    let mut args = vec!["convert", "foliage.glb", "-o", "one.agg"];
+    args.extend(&t);
+    ok(&args, d);
+    for i in 0..2 {
+        let shard = format!("{i}/2");
+        let mut args = vec!["convert", "foliage.glb", "--shard", &shard, "-o"];
+        let out = format!("out/x.agg.{i}-of-2.aggpart");
+        args.push(&out);
+        args.extend(&t);
+        ok(&args, d);
+    }
+    ok(
+        &[
+            "merge",
+            "--parts-of",
+            "out/x.agg",
+            "--shards",
+            "2",
+            "--remove-parts",
+            "-o",
+            "out/x.agg",
+        ],
+        d,
+    );
+    assert_eq!(
+        std::fs::read(d.join("one.agg")).unwrap(),
+        std::fs::read(d.join("out/x.agg")).unwrap()
+    );
+    let left: Vec<_> = std::fs::read_dir(d.join("out")).unwrap().collect();
+    assert_eq!(left.len(), 1, "parts left after --remove-parts");
+}

@@ -211,11 +211,26 @@ enum Command {
     /// and then writes nothing.
     Merge {
         /// The part files, every shard once, in any order.
-        #[arg(required = true)]
+        #[arg(required_unless_present = "parts_of")]
         parts: Vec<PathBuf>,
         /// The aggregate to write.
         #[arg(short, long)]
         output: PathBuf,
+        /// Instead of listing the parts: merge PREFIX.I-of-N.aggpart for I in 0..N (as the
+        /// farm template names them), with --shards N.
+        #[arg(
+            long,
+            value_name = "PREFIX",
+            requires = "shards",
+            conflicts_with = "parts"
+        )]
+        parts_of: Option<PathBuf>,
+        /// N, with --parts-of.
+        #[arg(long, requires = "parts_of")]
+        shards: Option<u32>,
+        /// Delete the part files once the aggregate is written.
+        #[arg(long)]
+        remove_parts: bool,
     },
     /// Render an .agg aggregate, or an assembly manifest (.json), with the LoD runtime (cone
     /// tracing, Eq. 30) to EXR and PNG.
@@ -264,6 +279,17 @@ enum Command {
         /// (see the README's "Farm bakes").
         #[arg(long = "asset")]
         assets: Vec<String>,
+        /// Consider only the K-th asset of the manifest, 1-based, in the order `--list` prints
+        /// (repeatable; for farm tasks over a range of numbers).
+        #[arg(long = "asset-number")]
+        asset_numbers: Vec<usize>,
+        /// Print the manifest's asset ids, one a line, in order, and bake nothing.
+        #[arg(long)]
+        list: bool,
+        /// Fail if any aggregate had to be baked (a farm's last step, after every asset's
+        /// task, checks that they all did their part).
+        #[arg(long)]
+        require_reuse: bool,
         /// Treat import warnings as errors.
         #[arg(long)]
         strict: bool,
@@ -1336,9 +1362,30 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Tables { action } => tables_cmd(action),
-        Command::Merge { parts, output } => {
+        Command::Merge {
+            parts,
+            output,
+            parts_of,
+            shards,
+            remove_parts,
+        } => {
             let t0 = std::time::Instant::now();
+            let parts = match (parts_of, shards) {
+                (Some(prefix), Some(n)) => (0..n)
+                    .map(|i| {
+                        let mut p = prefix.clone().into_os_string();
+                        p.push(format!(".{i}-of-{n}.aggpart"));
+                        PathBuf::from(p)
+                    })
+                    .collect(),
+                _ => parts,
+            };
             let size = aggtool::format::part::merge(&parts, &output)?;
+            if remove_parts {
+                for p in &parts {
+                    std::fs::remove_file(p).with_context(|| format!("removing {}", p.display()))?;
+                }
+            }
             println!(
                 "output: {} ({}) from {} parts in {:.2} s",
                 output.display(),
@@ -1380,12 +1427,34 @@ fn run(cli: Cli) -> Result<()> {
         Command::Assemble {
             manifest,
             bake,
-            assets,
+            mut assets,
+            asset_numbers,
+            list,
+            require_reuse,
             strict,
             json,
         } => {
             let settings = bake.settings();
             let mut m = aggtool::assembly::Manifest::load(&manifest)?;
+            if list {
+                for a in &m.assets {
+                    println!("{}", a.id);
+                }
+                return Ok(());
+            }
+            for &k in &asset_numbers {
+                let a = k
+                    .checked_sub(1)
+                    .and_then(|i| m.assets.get(i))
+                    .with_context(|| {
+                        format!(
+                            "{}: no asset number {k} (it has {}, numbered from 1)",
+                            manifest.display(),
+                            m.assets.len()
+                        )
+                    })?;
+                assets.push(a.id.clone());
+            }
             if !assets.is_empty() {
                 for id in &assets {
                     if !m.assets.iter().any(|a| &a.id == id) {
@@ -1414,15 +1483,22 @@ fn run(cli: Cli) -> Result<()> {
                         }
                     }
                 })?;
+            let baked = outcomes.iter().filter(|o| o.baked).count();
             if json {
                 println!("{}", serde_json::to_string_pretty(&outcomes)?);
             } else {
-                let baked = outcomes.iter().filter(|o| o.baked).count();
                 println!(
                     "stats: {} assets: {baked} baked, {} reused, {:.1} s",
                     outcomes.len(),
                     outcomes.len() - baked,
                     t0.elapsed().as_secs_f64()
+                );
+            }
+            if require_reuse && baked > 0 {
+                anyhow::bail!(
+                    "{}: {baked} aggregate(s) had to be baked (--require-reuse: every asset's \
+                     bake task should have written them)",
+                    manifest.display()
                 );
             }
             Ok(())
