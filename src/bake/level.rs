@@ -74,6 +74,52 @@ fn compress(map: &[f32], res: u32, rays_per_cell: f32, s: &LevelSettings) -> Spa
     SparseHaar::new(c, &d, res as usize)
 }
 
+fn voxel_seed(key: u64) -> u32 {
+    (key as u32) ^ ((key >> 32) as u32).rotate_left(16)
+}
+
+/// The surface samples of a voxel, their coverage, the ABSDF statistics and the ellipsoid:
+/// everything of [`bake_voxel`] but the AIV.
+#[allow(clippy::type_complexity)]
+fn voxel_statistics(
+    scene: &Scene,
+    grid: &Grid,
+    pieces: &[super::sampling::Piece],
+    s: &LevelSettings,
+    seed: u32,
+) -> (
+    Vec<super::sampling::PointSample>,
+    f32,
+    Option<crate::absdf::VoxelAppearance>,
+    Option<Ellipsoid>,
+) {
+    let samples = sample_voxel(scene, pieces, s.samples_per_voxel, seed);
+    let surf: Vec<_> = samples.iter().map(|p| p.surface).collect();
+    let coverage: f32 = surf.iter().map(|x| x.weight).sum();
+    let appearance = estimate(&surf, &s.estimate);
+    let pts: Vec<Vec3> = samples.iter().map(|p| p.position).collect();
+    let corners: Vec<Vec3> = pieces
+        .iter()
+        .flat_map(|p| p.polygon.iter().copied())
+        .collect();
+    let ellipsoid = fit_ellipsoid_bounding(&pts, &corners, 1e-3 * grid.voxel_size());
+    (samples, coverage, appearance, ellipsoid)
+}
+
+/// The primitive [`bake_voxel`] would give this voxel (the same seed, samples and fit), without
+/// its AIV: `None` where `bake_voxel` keeps no voxel. A sharded bake computes these for the
+/// voxels of other shards, whose boundary faces need every primitive of the level.
+pub fn voxel_primitive(
+    scene: &Scene,
+    grid: &Grid,
+    key: u64,
+    pieces: &[super::sampling::Piece],
+    s: &LevelSettings,
+) -> Option<Ellipsoid> {
+    let (_, _, appearance, ellipsoid) = voxel_statistics(scene, grid, pieces, s, voxel_seed(key));
+    appearance.and(ellipsoid)
+}
+
 /// Bakes one voxel from the pieces of surface inside it: samples, ABSDF statistics, the
 /// ellipsoid and the AIV tree. `None` when every sample was cut out (nothing to keep). Also
 /// returns the rays traced and the CPU seconds spent on (statistics, AIV).
@@ -87,17 +133,8 @@ pub fn bake_voxel(
 ) -> (Option<VoxelData>, u64, [f64; 2]) {
     let t0 = std::time::Instant::now();
     let area: f64 = pieces.iter().map(|p| p.area).sum();
-    let seed = (key as u32) ^ ((key >> 32) as u32).rotate_left(16);
-    let samples = sample_voxel(scene, pieces, s.samples_per_voxel, seed);
-    let surf: Vec<_> = samples.iter().map(|p| p.surface).collect();
-    let coverage: f32 = surf.iter().map(|x| x.weight).sum();
-    let appearance = estimate(&surf, &s.estimate);
-    let pts: Vec<Vec3> = samples.iter().map(|p| p.position).collect();
-    let corners: Vec<Vec3> = pieces
-        .iter()
-        .flat_map(|p| p.polygon.iter().copied())
-        .collect();
-    let ellipsoid = fit_ellipsoid_bounding(&pts, &corners, 1e-3 * grid.voxel_size());
+    let seed = voxel_seed(key);
+    let (samples, coverage, appearance, ellipsoid) = voxel_statistics(scene, grid, pieces, s, seed);
     let (Some(appearance), Some(ellipsoid)) = (appearance, ellipsoid) else {
         return (None, 0, [t0.elapsed().as_secs_f64(), 0.0]);
     };

@@ -14,7 +14,7 @@ pub mod sampling;
 pub mod visibility;
 pub mod voxelize;
 
-pub use pipeline::{bake_to_file, BakeReport};
+pub use pipeline::{bake_shard_to_file, bake_to_file, BakeReport};
 
 use crate::absdf::estimate::EstimateSettings;
 use level::LevelSettings;

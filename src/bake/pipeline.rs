@@ -9,11 +9,14 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::level::{bake_face, bake_voxel, primitive_level, sorted_boundary_faces};
+use super::level::{
+    bake_face, bake_voxel, primitive_level, sorted_boundary_faces, voxel_primitive,
+};
 use super::sampling::pieces_by_voxel;
 use super::BakeSettings;
 use crate::format::effects::{effect_lines, EffectLine};
 use crate::format::encode::{self, ComponentBytes, Counts, IndexEntry, LevelEntry};
+use crate::format::part::{BlockKind, PartLevel, PartMeta, PartWriter, Shard};
 use crate::format::{VoxelData, Writer};
 use crate::scene::Scene;
 use crate::spatial::{Ellipsoid, Grid};
@@ -94,39 +97,51 @@ pub fn peak_memory() -> Option<u64> {
     Some(kb * 1024)
 }
 
-/// Bakes `scene` into `out` (written atomically). `source` is the asset's file name, recorded
-/// in the index; `progress` hears of every voxel and face done, stage by stage.
-pub fn bake_to_file(
+/// Where the blocks go: an `.agg` file, or a shard's part file.
+enum Sink<'a> {
+    Agg(&'a mut Writer),
+    Part(&'a mut PartWriter),
+}
+
+/// The levels as baked: index entries, reports, and for a shard what its part records.
+struct Baked {
+    bounds: (glam::Vec3, glam::Vec3),
+    entries: Vec<LevelEntry>,
+    reports: Vec<LevelReport>,
+    components: ComponentBytes,
+    total: StageSeconds,
+    rays: u64,
+    part_levels: Vec<PartLevel>,
+}
+
+/// The bake's levels, block by block into `sink`. With a shard, only the chunks it owns are
+/// baked to the end and written (see [`crate::format::part`]); the voxels of other chunks get
+/// their primitive alone, which the boundary faces need.
+fn bake_levels(
     scene: &Scene,
-    source: &str,
     settings: &BakeSettings,
-    out: &Path,
+    shard: Option<Shard>,
+    sink: &mut Sink,
     progress: Progress,
-) -> Result<BakeReport, BakeError> {
-    settings.validate().map_err(BakeError::Settings)?;
-    if !(scene.world_area() > 0.0) {
-        return Err(BakeError::Empty);
-    }
-    let io = |e: std::io::Error| BakeError::Io {
-        path: out.display().to_string(),
-        source: e,
-    };
-    let t_start = Instant::now();
+) -> std::io::Result<Baked> {
     let accel = Accel::build(scene);
     let (lo, hi) = scene.bounds();
-    let mut writer = Writer::create(out).map_err(io)?;
-    writer.set_compression(settings.compression);
     let mut entries = Vec::new();
     let mut reports = Vec::new();
     let mut components = ComponentBytes::default();
     let mut total = StageSeconds::default();
     let mut rays = 0u64;
+    let mut part_levels = Vec::new();
+    // Chunks counted across levels: shard I bakes chunk g where g mod N == I.
+    let mut g = 0u64;
+    let owns = |g: u64| shard.is_none_or(|s| s.owns(g));
     for (li, res) in settings.resolutions().into_iter().enumerate() {
         let grid = Grid::around(lo, hi, res);
         let ls = settings.level(res);
         let mut sec = StageSeconds::default();
         let mut counts = Counts::default();
         let mut bytes = 0u64;
+        let mut level_components = ComponentBytes::default();
         // Voxelize: exact pieces of surface per voxel, in Morton order.
         let t = Instant::now();
         let pieces: Vec<(u64, Vec<super::sampling::Piece>)> =
@@ -139,8 +154,23 @@ pub fn bake_to_file(
         let mut aiv_rays = 0u64;
         let mut keys_prims: Vec<(u64, Ellipsoid)> = Vec::with_capacity(pieces.len());
         let mut voxel_blocks = Vec::new();
-        for chunk in pieces.chunks(BLOCK_VOXELS) {
+        let voxel_chunks = pieces.len().div_ceil(BLOCK_VOXELS) as u64;
+        for (ci, chunk) in pieces.chunks(BLOCK_VOXELS).enumerate() {
             let t = Instant::now();
+            if !owns(g + ci as u64) {
+                // Another shard's chunk: the primitives alone, for the faces.
+                let prims: Vec<Option<(u64, Ellipsoid)>> = chunk
+                    .par_iter()
+                    .map(|(key, p)| {
+                        let e = voxel_primitive(scene, &grid, *key, p, &ls);
+                        bar.add(1);
+                        e.map(|e| (*key, e))
+                    })
+                    .collect();
+                keys_prims.extend(prims.into_iter().flatten());
+                sec.voxels += t.elapsed().as_secs_f64();
+                continue;
+            }
             let baked: Vec<(Option<VoxelData>, u64)> = chunk
                 .par_iter()
                 .map(|(key, p)| {
@@ -170,29 +200,50 @@ pub fn bake_to_file(
                 settings.keep_all_effects,
                 settings.lossless,
                 &mut counts,
-                &mut components,
+                &mut level_components,
             );
             bytes += blob.len() as u64;
-            let r = writer
-                .write_block(
+            let (first, last) = (voxels[0].key, voxels[voxels.len() - 1].key);
+            match sink {
+                Sink::Agg(w) => {
+                    voxel_blocks.push(w.write_block(&blob, first, last, voxels.len() as u32)?)
+                }
+                Sink::Part(w) => w.write_block(
+                    li as u32,
+                    BlockKind::Voxel,
+                    ci as u64,
                     &blob,
-                    voxels[0].key,
-                    voxels[voxels.len() - 1].key,
+                    first,
+                    last,
                     voxels.len() as u32,
-                )
-                .map_err(io)?;
-            voxel_blocks.push(r);
+                )?,
+            }
             sec.write += t.elapsed().as_secs_f64();
         }
         drop(pieces);
         // Boundary faces, block by block.
         let t = Instant::now();
+        // Every shard has every key: a CRC-32 of them lets the merge check the shards agree.
+        let keys_crc32 = shard.map_or(0, |_| {
+            let mut h = crc32fast::Hasher::new();
+            for (k, _) in &keys_prims {
+                h.update(&k.to_le_bytes());
+            }
+            h.finalize()
+        });
+        let kept_voxels = keys_prims.len() as u64;
         let faces = sorted_boundary_faces(keys_prims.iter().map(|k| k.0), res);
         let prims = primitive_level(grid, keys_prims.into_iter());
         let bar = StageCounter::new(progress, format!("{res}³ faces"), faces.len() as u64);
         let mut abv_rays = 0u64;
         let mut face_blocks = Vec::new();
-        for chunk in faces.chunks(BLOCK_FACES) {
+        g += voxel_chunks;
+        let face_chunks = faces.len().div_ceil(BLOCK_FACES) as u64;
+        for (ci, chunk) in faces.chunks(BLOCK_FACES).enumerate() {
+            if !owns(g + ci as u64) {
+                bar.add(chunk.len() as u64);
+                continue;
+            }
             let t = Instant::now();
             let baked: Vec<_> = chunk
                 .par_iter()
@@ -211,21 +262,45 @@ pub fn bake_to_file(
                 &data,
                 settings.lossless,
                 &mut counts,
-                &mut components,
+                &mut level_components,
             );
             bytes += blob.len() as u64;
-            let r = writer
-                .write_block(
+            let (first, last) = (
+                encode::face_key(&data[0]),
+                encode::face_key(&data[data.len() - 1]),
+            );
+            match sink {
+                Sink::Agg(w) => {
+                    face_blocks.push(w.write_block(&blob, first, last, data.len() as u32)?)
+                }
+                Sink::Part(w) => w.write_block(
+                    li as u32,
+                    BlockKind::Face,
+                    ci as u64,
                     &blob,
-                    encode::face_key(&data[0]),
-                    encode::face_key(&data[data.len() - 1]),
+                    first,
+                    last,
                     data.len() as u32,
-                )
-                .map_err(io)?;
-            face_blocks.push(r);
+                )?,
+            }
             sec.write += t.elapsed().as_secs_f64();
         }
         let _ = t;
+        g += face_chunks;
+        components.add(&level_components);
+        if shard.is_some() {
+            part_levels.push(PartLevel {
+                res,
+                origin_bits: grid.origin.to_array().map(f32::to_bits),
+                size_bits: grid.size.to_bits(),
+                voxel_chunks,
+                face_chunks,
+                voxels: kept_voxels,
+                keys_crc32,
+                counts,
+                components: level_components,
+            });
+        }
         rays += aiv_rays + abv_rays;
         total.voxelize += sec.voxelize;
         total.voxels += sec.voxels;
@@ -255,6 +330,42 @@ pub fn bake_to_file(
             counts,
         });
     }
+    Ok(Baked {
+        bounds: (lo, hi),
+        entries,
+        reports,
+        components,
+        total,
+        rays,
+        part_levels,
+    })
+}
+
+/// Bakes `scene` into `out` (written atomically). `source` is the asset's file name, recorded
+/// in the index; `progress` hears of every voxel and face done, stage by stage.
+pub fn bake_to_file(
+    scene: &Scene,
+    source: &str,
+    settings: &BakeSettings,
+    out: &Path,
+    progress: Progress,
+) -> Result<BakeReport, BakeError> {
+    settings.validate().map_err(BakeError::Settings)?;
+    if !(scene.world_area() > 0.0) {
+        return Err(BakeError::Empty);
+    }
+    let io = |e: std::io::Error| BakeError::Io {
+        path: out.display().to_string(),
+        source: e,
+    };
+    let t_start = Instant::now();
+    let mut writer = Writer::create(out).map_err(io)?;
+    writer.set_compression(settings.compression);
+    let b =
+        bake_levels(scene, settings, None, &mut Sink::Agg(&mut writer), progress).map_err(io)?;
+    let (lo, hi) = b.bounds;
+    let entries = b.entries;
+    let mut total = b.total;
     let index = encode::index(&IndexEntry {
         generator: concat!("aggtool ", env!("CARGO_PKG_VERSION")),
         source,
@@ -266,6 +377,7 @@ pub fn bake_to_file(
     });
     let t = Instant::now();
     let size = writer.finish(&index).map_err(io)?;
+    let (reports, components, rays) = (b.reports, b.components, b.rays);
     total.write += t.elapsed().as_secs_f64();
     let total_seconds = t_start.elapsed().as_secs_f64();
     let per_level: Vec<(u32, Counts)> = entries.iter().map(|e| (e.res, e.counts)).collect();
@@ -279,6 +391,77 @@ pub fn bake_to_file(
         rays,
         rays_per_second: rays as f64 / (total.voxels + total.faces).max(1e-9),
         components,
+        peak_memory: peak_memory(),
+        effects: effect_lines(&per_level, settings.keep_all_effects),
+    })
+}
+
+/// Bakes shard `shard` of `scene` into the part file `out` (written atomically; see
+/// [`crate::format::part`]): the blocks of the chunks it owns, encoded and compressed as
+/// [`bake_to_file`] writes them, and what `aggtool merge` needs. The report's counts and bytes
+/// are this shard's.
+pub fn bake_shard_to_file(
+    scene: &Scene,
+    source: &str,
+    settings: &BakeSettings,
+    shard: Shard,
+    out: &Path,
+    progress: Progress,
+) -> Result<BakeReport, BakeError> {
+    settings.validate().map_err(BakeError::Settings)?;
+    if shard.count == 0 || shard.index >= shard.count {
+        return Err(BakeError::Settings(format!(
+            "shard {}/{}: need 0 <= I < N",
+            shard.index, shard.count
+        )));
+    }
+    if !(scene.world_area() > 0.0) {
+        return Err(BakeError::Empty);
+    }
+    let io = |e: std::io::Error| BakeError::Io {
+        path: out.display().to_string(),
+        source: e,
+    };
+    let t_start = Instant::now();
+    let mut writer = PartWriter::create(out, settings.compression).map_err(io)?;
+    let b = bake_levels(
+        scene,
+        settings,
+        Some(shard),
+        &mut Sink::Part(&mut writer),
+        progress,
+    )
+    .map_err(io)?;
+    let (lo, hi) = b.bounds;
+    let recorded = settings.recorded();
+    let meta = PartMeta {
+        shard: shard.index,
+        shards: shard.count,
+        generator: concat!("aggtool ", env!("CARGO_PKG_VERSION")).to_string(),
+        source: source.to_string(),
+        bounds_bits: [lo.x, lo.y, lo.z, hi.x, hi.y, hi.z].map(f32::to_bits),
+        settings_float_bits: [recorded.keep.to_bits(), recorded.energy.to_bits()],
+        settings: recorded,
+        tables_version: crate::tables::TABLES_VERSION,
+        tables_crc32: crc32fast::hash(crate::tables::EMBEDDED),
+        levels: b.part_levels,
+        blocks: Vec::new(),
+    };
+    let mut total = b.total;
+    let t = Instant::now();
+    let size = writer.finish(meta).map_err(io)?;
+    total.write += t.elapsed().as_secs_f64();
+    let per_level: Vec<(u32, Counts)> = b.entries.iter().map(|e| (e.res, e.counts)).collect();
+    Ok(BakeReport {
+        output: out.display().to_string(),
+        bytes: size,
+        settings: settings.clone(),
+        levels: b.reports,
+        seconds: total,
+        total_seconds: t_start.elapsed().as_secs_f64(),
+        rays: b.rays,
+        rays_per_second: b.rays as f64 / (total.voxels + total.faces).max(1e-9),
+        components: b.components,
         peak_memory: peak_memory(),
         effects: effect_lines(&per_level, settings.keep_all_effects),
     })

@@ -200,6 +200,37 @@ enum Command {
         /// start, whole percent and end) instead of bars, for programs that run the bake.
         #[arg(long)]
         progress_json: bool,
+        /// Bake only shard I of N (e.g. 2/8) into a part file (default: ASSET's path with
+        /// .I-of-N.aggpart); `aggtool merge` joins the N parts into the bytes of the one-machine
+        /// bake with the same settings. See the README's "Farm bakes".
+        #[arg(long, value_parser = parse_shard)]
+        shard: Option<aggtool::format::part::Shard>,
+    },
+    /// Join the part files of a sharded bake (`convert --shard I/N`) into the .agg a
+    /// one-machine bake writes, byte for byte; refuses missing, duplicate or mismatched parts
+    /// and then writes nothing.
+    Merge {
+        /// The part files, every shard once, in any order.
+        #[arg(required_unless_present = "parts_of")]
+        parts: Vec<PathBuf>,
+        /// The aggregate to write.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Instead of listing the parts: merge PREFIX.I-of-N.aggpart for I in 0..N (as the
+        /// farm template names them), with --shards N.
+        #[arg(
+            long,
+            value_name = "PREFIX",
+            requires = "shards",
+            conflicts_with = "parts"
+        )]
+        parts_of: Option<PathBuf>,
+        /// N, with --parts-of.
+        #[arg(long, requires = "parts_of")]
+        shards: Option<u32>,
+        /// Delete the part files once the aggregate is written.
+        #[arg(long)]
+        remove_parts: bool,
     },
     /// Render an .agg aggregate, or an assembly manifest (.json), with the LoD runtime (cone
     /// tracing, Eq. 30) to EXR and PNG.
@@ -243,6 +274,21 @@ enum Command {
         manifest: PathBuf,
         #[command(flatten)]
         bake: BakeArgs,
+        /// Consider only this asset (repeatable): a farm task bakes one asset of the manifest
+        /// (see the README's "Farm bakes").
+        #[arg(long = "asset")]
+        assets: Vec<String>,
+        /// Consider only the K-th asset of the manifest, 1-based, in the order `--list` prints
+        /// (repeatable; for farm tasks over a range of numbers).
+        #[arg(long = "asset-number")]
+        asset_numbers: Vec<usize>,
+        /// Print the manifest's asset ids, one a line, in order, and bake nothing.
+        #[arg(long)]
+        list: bool,
+        /// Fail if any aggregate had to be baked (a farm's last step, after every asset's
+        /// task, checks that they all did their part).
+        #[arg(long)]
+        require_reuse: bool,
         /// Treat import warnings as errors.
         #[arg(long)]
         strict: bool,
@@ -1315,6 +1361,39 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Tables { action } => tables_cmd(action),
+        Command::Merge {
+            parts,
+            output,
+            parts_of,
+            shards,
+            remove_parts,
+        } => {
+            let t0 = std::time::Instant::now();
+            let parts = match (parts_of, shards) {
+                (Some(prefix), Some(n)) => (0..n)
+                    .map(|i| {
+                        let mut p = prefix.clone().into_os_string();
+                        p.push(format!(".{i}-of-{n}.aggpart"));
+                        PathBuf::from(p)
+                    })
+                    .collect(),
+                _ => parts,
+            };
+            let size = aggtool::format::part::merge(&parts, &output)?;
+            if remove_parts {
+                for p in &parts {
+                    std::fs::remove_file(p).with_context(|| format!("removing {}", p.display()))?;
+                }
+            }
+            println!(
+                "output: {} ({}) from {} parts in {:.2} s",
+                output.display(),
+                mib(size),
+                parts.len(),
+                t0.elapsed().as_secs_f64()
+            );
+            Ok(())
+        }
         Command::AbsdfPlot {
             case,
             output,
@@ -1330,11 +1409,13 @@ fn run(cli: Cli) -> Result<()> {
             verbose,
             strict,
             progress_json,
+            shard,
         } => {
             let settings = bake.settings();
             convert(
                 &asset,
                 output,
+                shard,
                 &settings,
                 report.as_deref(),
                 verbose,
@@ -1345,11 +1426,42 @@ fn run(cli: Cli) -> Result<()> {
         Command::Assemble {
             manifest,
             bake,
+            mut assets,
+            asset_numbers,
+            list,
+            require_reuse,
             strict,
             json,
         } => {
             let settings = bake.settings();
-            let m = aggtool::assembly::Manifest::load(&manifest)?;
+            let mut m = aggtool::assembly::Manifest::load(&manifest)?;
+            if list {
+                for a in &m.assets {
+                    println!("{}", a.id);
+                }
+                return Ok(());
+            }
+            for &k in &asset_numbers {
+                let a = k
+                    .checked_sub(1)
+                    .and_then(|i| m.assets.get(i))
+                    .with_context(|| {
+                        format!(
+                            "{}: no asset number {k} (it has {}, numbered from 1)",
+                            manifest.display(),
+                            m.assets.len()
+                        )
+                    })?;
+                assets.push(a.id.clone());
+            }
+            if !assets.is_empty() {
+                for id in &assets {
+                    if !m.assets.iter().any(|a| &a.id == id) {
+                        anyhow::bail!("{}: no asset '{id}'", manifest.display());
+                    }
+                }
+                m.assets.retain(|a| assets.contains(&a.id));
+            }
             let t0 = std::time::Instant::now();
             let outcomes =
                 aggtool::assembly::bake::assemble(&m, &settings, ImportOptions { strict }, &|o| {
@@ -1370,15 +1482,22 @@ fn run(cli: Cli) -> Result<()> {
                         }
                     }
                 })?;
+            let baked = outcomes.iter().filter(|o| o.baked).count();
             if json {
                 println!("{}", serde_json::to_string_pretty(&outcomes)?);
             } else {
-                let baked = outcomes.iter().filter(|o| o.baked).count();
                 println!(
                     "stats: {} assets: {baked} baked, {} reused, {:.1} s",
                     outcomes.len(),
                     outcomes.len() - baked,
                     t0.elapsed().as_secs_f64()
+                );
+            }
+            if require_reuse && baked > 0 {
+                anyhow::bail!(
+                    "{}: {baked} aggregate(s) had to be baked (--require-reuse: every asset's \
+                     bake task should have written them)",
+                    manifest.display()
                 );
             }
             Ok(())
@@ -1454,9 +1573,15 @@ fn mib(b: u64) -> String {
     format!("{:.2} MiB", b as f64 / (1024.0 * 1024.0))
 }
 
+fn parse_shard(s: &str) -> Result<aggtool::format::part::Shard, String> {
+    aggtool::format::part::Shard::parse(s)
+}
+
+#[allow(clippy::too_many_arguments)]
 fn convert(
     asset: &Path,
     output: Option<PathBuf>,
+    shard: Option<aggtool::format::part::Shard>,
     settings: &aggtool::bake::BakeSettings,
     report: Option<&Path>,
     verbose: bool,
@@ -1464,7 +1589,10 @@ fn convert(
     progress_json: bool,
 ) -> Result<()> {
     settings.validate().map_err(anyhow::Error::msg)?;
-    let out = output.unwrap_or_else(|| asset.with_extension("agg"));
+    let out = output.unwrap_or_else(|| match shard {
+        Some(s) => asset.with_extension(format!("{}-of-{}.aggpart", s.index, s.count)),
+        None => asset.with_extension("agg"),
+    });
     let t0 = std::time::Instant::now();
     let scene = load_scene(asset, strict)?;
     let t_import = t0.elapsed().as_secs_f64();
@@ -1479,10 +1607,16 @@ fn convert(
         .unwrap_or_default();
     let bars = TerminalProgress::new();
     let json = progress_json.then(aggtool::util::JsonProgress::stderr);
-    let r = aggtool::bake::bake_to_file(&scene, &source, settings, &out, &|s, d, n| match &json {
+    let progress = |s: &str, d: u64, n: u64| match &json {
         Some(j) => j.report(s, d, n),
         None => bars.report(s, d, n),
-    })
+    };
+    let r = match shard {
+        None => aggtool::bake::bake_to_file(&scene, &source, settings, &out, &progress),
+        Some(sh) => {
+            aggtool::bake::bake_shard_to_file(&scene, &source, settings, sh, &out, &progress)
+        }
+    }
     .with_context(|| format!("baking {}", asset.display()))?;
     bars.finish();
     println!("output: {} ({})", out.display(), mib(r.bytes));

@@ -16,7 +16,7 @@ use crate::math::haar::{quantize_tree, Node, QNode, SparseHaar};
 use crate::spatial::morton3;
 
 /// What a level stores, counted while encoding.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct Counts {
     /// Voxels.
     pub voxels: u64,
@@ -109,7 +109,7 @@ impl Counts {
 }
 
 /// Bytes stored per component (FlatBuffer payloads, without per-vector headers and padding).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct ComponentBytes {
     /// Morton keys.
     pub keys: u64,

@@ -25,6 +25,7 @@ mod aggregate_generated;
 pub mod effects;
 pub mod encode;
 pub mod level;
+pub mod part;
 pub mod quantize;
 pub mod read;
 pub mod settings;
