@@ -51,9 +51,15 @@ phases loop over rays in Python (slow: keep images small there). Pixels are box-
 (uniform jitter over the pixel) whatever the film's `rfilter`; the sampler's seed is
 `mi.render`'s `seed` (numpy's PCG64), not the scene's sampler.
 
+An `agg_<name>` may also name an assembly manifest (`.json`, the README's "Assemblies"): each
+instance becomes one placed aggregate, `agg_<name>_to_world` composed with the instance's
+transform, and each aggregate file is opened once however many instances share it.
+
 Limits: `to_world` must be a similarity (rotation, uniform scale, translation): cone apertures
-and ABSDF directions do not survive shear or non-uniform scale, so those are refused. Only
-`.agg` files: `aggtool.open` does not read assembly manifests yet. Where a mesh pierces an
+and ABSDF directions do not survive shear or non-uniform scale, so those are refused. Every
+instance of a manifest is an aggregate of its own in the integrator's loops: fine for tens of
+instances, slow for thousands (`aggtool render MANIFEST` traces those through one instance
+BVH). Where a mesh pierces an
 aggregate (the cone clipped inside its bounds), the transmittance in front of the mesh is
 max(ABV, 1 − coverage in front), an approximation.
 """
@@ -184,14 +190,12 @@ def _matrix(to_world, what):
 class Aggregate:
     """An aggtool aggregate placed in the scene by `to_world` (a similarity transform)."""
 
-    def __init__(self, path, to_world=None, name="aggregate"):
+    def __init__(self, path, to_world=None, name="aggregate", scene=None):
         path = Path(path)
-        if path.suffix.lower() == ".json":
-            raise ValueError(f"{path}: assembly manifests are not supported yet (the aggtool "
-                             f"module opens .agg files only); place each aggregate instead")
         self.name = name
         self.path = path
-        self.scene = aggtool.open(str(path))  # aggtool.AggError naming the file
+        # aggtool.AggError naming the file; a manifest's instances share one opened scene.
+        self.scene = scene if scene is not None else aggtool.open(str(path))
         self.to_world = _matrix(to_world, f"{name}_to_world")
         self.linear = self.to_world[:3, :3]
         self.scale = float(np.sqrt(np.trace(self.linear.T @ self.linear) / 3))
@@ -229,6 +233,54 @@ class Aggregate:
                                         aperture, self.t_to_local(tmax))
 
 
+def _quat_matrix(q):
+    x, y, z, w = (float(v) for v in q)
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if not (abs(n - 1.0) < 1e-3):
+        raise ValueError(f"rotation {q} is not a unit quaternion [x, y, z, w]")
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def manifest_instances(path):
+    """The (aggregate path, 4×4 to_world) of every instance of an assembly manifest (version
+    1: paths relative to its folder, `aggregate` defaulting to the source with `.agg`,
+    translation/rotation [x, y, z, w]/scale or a column-major `matrix`, as glTF)."""
+    import json
+    path = Path(path)
+    try:
+        m = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: {e}") from None
+    if not isinstance(m, dict) or m.get("version") != 1:
+        raise ValueError(f"{path}: not a version 1 assembly manifest")
+    assets = {}
+    for aid, a in (m.get("assets") or {}).items():
+        src = a.get("source") if isinstance(a, dict) else None
+        agg = a.get("aggregate") if isinstance(a, dict) else None
+        if not isinstance(src, str):
+            raise ValueError(f"{path}: asset '{aid}': no source")
+        assets[aid] = path.parent / (agg if isinstance(agg, str) else str(Path(src).with_suffix(".agg")))
+    out = []
+    for i, inst in enumerate(m.get("instances") or []):
+        aid = inst.get("asset") if isinstance(inst, dict) else None
+        if aid not in assets:
+            raise ValueError(f"{path}: instance {i}: unknown asset {aid!r}")
+        if "matrix" in inst:
+            mat = np.array(inst["matrix"], np.float64).reshape(4, 4).T
+        else:
+            mat = np.eye(4)
+            mat[:3, :3] = _quat_matrix(inst.get("rotation", [0, 0, 0, 1])) * \
+                np.array(inst.get("scale", [1, 1, 1]), np.float64)[None, :]
+            mat[:3, 3] = inst.get("translation", [0, 0, 0])
+        if not np.all(np.isfinite(mat)):
+            raise ValueError(f"{path}: instance {i}: non-finite transform")
+        out.append((assets[aid], mat))
+    return out
+
+
 def _parse(props):
     aggs = []
     keys = list(props.keys())
@@ -238,8 +290,16 @@ def _parse(props):
             continue
         path = props[k]
         if not isinstance(path, str):
-            raise ValueError(f"aggtool_lod: {k} must be the path of an .agg file")
+            raise ValueError(f"aggtool_lod: {k} must be the path of an .agg file or manifest")
         tw = props[k + "_to_world"] if (k + "_to_world") in keys else None
+        if Path(path).suffix.lower() == ".json":
+            outer = _matrix(tw, f"{k}_to_world")
+            opened = {}
+            for i, (agg, mat) in enumerate(manifest_instances(path)):
+                if agg not in opened:
+                    opened[agg] = aggtool.open(str(agg))
+                aggs.append(Aggregate(agg, outer @ mat, f"{k}[{i}]", opened[agg]))
+            continue
         aggs.append(Aggregate(path, tw, k))
     for k in keys:
         if k.endswith("_to_world") and k[: -len("_to_world")] not in keys:

@@ -6,9 +6,11 @@ pub mod forest;
 pub mod lod;
 pub mod manifest;
 pub mod mesh;
+pub mod opened;
 
 pub use lod::{render, Assembly, AssemblyError};
 pub use manifest::{Asset, Manifest, ManifestError};
+pub use opened::{OpenError, Opened};
 
 /// Whether a path names a manifest (a `.json` file) rather than an asset or an aggregate: what
 /// the CLI's `render`, `reference` and `inspect` go by.

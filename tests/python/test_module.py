@@ -219,3 +219,46 @@ def test_traversal_layer(aggtool_module):
         empty = np.zeros((0, 3), np.float32)
         assert scene.hits(empty, empty, ap)["offsets"].tolist() == [0]
         assert scene.voxel_eval(lv[:0], ky[:0], empty, empty)[0].shape == (0, 3)
+
+
+def test_open_a_manifest(aggtool_module):
+    """`aggtool.open` takes an assembly manifest: levels and bounds of its instances, `trace`
+    and `transmittance` through every instance (a cone missing the first tree meets the
+    second), `inspect` per asset; the traversal layer refuses it with a message; a manifest
+    naming a missing aggregate is an AggError naming the asset."""
+    aggtool = aggtool_module
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        agg = tree(tmp)
+        single = aggtool.open(str(agg))
+        (lo, hi) = single.bounds
+        width = hi[0] - lo[0]
+        m = tmp / "pair.json"
+        m.write_text(json.dumps({
+            "version": 1,
+            "assets": {"tree": {"source": "foliage.glb"}},
+            "instances": [{"asset": "tree"},
+                          {"asset": "tree", "translation": [3 * width, 0, 0]}]}))
+        scene = aggtool.open(str(m))
+        assert scene.levels == single.levels
+        (mlo, mhi) = scene.bounds
+        assert mhi[0] - mlo[0] >= 3.9 * width
+        c = [(lo[i] + hi[i]) / 2 for i in range(3)]
+        o = np.array([[c[0], c[1], hi[2] + width], [c[0] + 3 * width, c[1], hi[2] + width],
+                      [c[0] + 1.5 * width, c[1], hi[2] + width]], np.float32)
+        d = np.tile(np.array([[0, 0, -1]], np.float32), (3, 1))
+        t = scene.transmittance(o, d, 0.001)
+        assert t[0] < 1 and t[1] < 1 and t[2] == 1, t
+        rgba = scene.trace(o, d, 0.001, seed=5)
+        assert rgba.shape == (3, 4) and np.isfinite(rgba).all()
+        assert rgba[2, 3] == 1 and rgba[0, 3] < 1
+        info = scene.inspect()
+        assert info["instances"] == 2 and info["assets"][0]["id"] == "tree"
+        assert info["assets"][0]["instances"] == 2
+        with pytest.raises(aggtool.AggError, match="assembly"):
+            scene.hits(o, d, 0.001)
+        m.write_text(json.dumps({"version": 1,
+                                 "assets": {"oak": {"source": "foliage.glb", "aggregate": "gone.agg"}},
+                                 "instances": [{"asset": "oak"}]}))
+        with pytest.raises(aggtool.AggError, match="oak"):
+            aggtool.open(str(m))

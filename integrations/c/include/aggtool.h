@@ -52,7 +52,8 @@
 typedef struct AggLights AggLights;
 
 /*
- An opened `.agg` file (levels are prepared lazily, thread-safely, as cones need them).
+ An opened `.agg` file or assembly manifest (levels are prepared lazily, thread-safely, as
+ cones need them).
  */
 typedef struct AggScene AggScene;
 
@@ -115,9 +116,10 @@ uint32_t agg_abi_version(void);
 const char *agg_last_error(void);
 
 /*
- Opens an `.agg` file: maps it and verifies its header and index (milliseconds); levels are
- read and verified when cones first need them. NULL on error (see [`agg_last_error`]).
- Assembly manifests are not supported by this version of the library.
+ Opens an `.agg` file, or an assembly manifest (a path ending in `.json`: each aggregate it
+ names mapped once): maps and verifies headers and indices (milliseconds); levels are read
+ and verified when cones first need them. NULL on error (see [`agg_last_error`]): a missing
+ or damaged file, a bad manifest, a manifest naming a missing aggregate.
  */
 struct AggScene *agg_open(const char *path);
 
@@ -127,13 +129,15 @@ struct AggScene *agg_open(const char *path);
 void agg_close(struct AggScene *scene);
 
 /*
- The bounds of the asset the aggregate was baked from (inside the finest level's cube):
- `lo` and `hi` receive three floats each. [`AGG_ERR_NOT_FOUND`] for an empty aggregate.
+ The bounds of the asset the aggregate was baked from (inside the finest level's cube), or
+ of an assembly's instances: `lo` and `hi` receive three floats each. [`AGG_ERR_NOT_FOUND`]
+ for an empty aggregate.
  */
 int agg_bounds(const struct AggScene *scene, float *lo, float *hi);
 
 /*
- The number of levels (0 when `scene` is not valid).
+ The number of levels (0 when `scene` is not valid); for an assembly, of distinct level
+ resolutions over its aggregates.
  */
 uint32_t agg_level_count(const struct AggScene *scene);
 

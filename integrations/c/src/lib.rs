@@ -20,6 +20,7 @@ use std::ffi::{c_char, c_int, CStr, CString};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::Path;
 
+use aggtool::assembly::Opened;
 use aggtool::bsdf::Bsdf;
 use aggtool::runtime::{Cone, EnvMap, Environment, Lights, LodScene, Sun, TraceSettings};
 use glam::{Vec2, Vec3};
@@ -44,10 +45,23 @@ pub const AGG_ERR_INTERNAL: c_int = -5;
 const SCENE_MAGIC: u64 = 0x4147_4753_4345_4e45; // "AGGSCENE"
 const LIGHTS_MAGIC: u64 = 0x4147_474c_4947_4854; // "AGGLIGHT"
 
-/// An opened `.agg` file (levels are prepared lazily, thread-safely, as cones need them).
+/// An opened `.agg` file or assembly manifest (levels are prepared lazily, thread-safely, as
+/// cones need them).
 pub struct AggScene {
     magic: u64,
-    scene: LodScene,
+    scene: Opened,
+}
+
+impl AggScene {
+    /// The single aggregate the hit-level traversal works on.
+    fn lod(&self) -> Result<&LodScene, (c_int, String)> {
+        self.scene.aggregate().ok_or((
+            AGG_ERR_VALUE,
+            "an assembly: agg_hits and agg_voxel_* take one aggregate (open an asset's .agg); \
+             agg_trace_cones takes either"
+                .to_string(),
+        ))
+    }
 }
 
 /// Lights for [`agg_trace_cones`]: an environment (constant or equirectangular map) and an
@@ -178,9 +192,10 @@ pub extern "C" fn agg_last_error() -> *const c_char {
     LAST_ERROR.with(|e| e.borrow().as_ptr())
 }
 
-/// Opens an `.agg` file: maps it and verifies its header and index (milliseconds); levels are
-/// read and verified when cones first need them. NULL on error (see [`agg_last_error`]).
-/// Assembly manifests are not supported by this version of the library.
+/// Opens an `.agg` file, or an assembly manifest (a path ending in `.json`: each aggregate it
+/// names mapped once): maps and verifies headers and indices (milliseconds); levels are read
+/// and verified when cones first need them. NULL on error (see [`agg_last_error`]): a missing
+/// or damaged file, a bad manifest, a manifest naming a missing aggregate.
 #[no_mangle]
 pub unsafe extern "C" fn agg_open(path: *const c_char) -> *mut AggScene {
     let mut out = std::ptr::null_mut();
@@ -191,8 +206,7 @@ pub unsafe extern "C" fn agg_open(path: *const c_char) -> *mut AggScene {
         let p = CStr::from_ptr(path)
             .to_str()
             .map_err(|_| (AGG_ERR_VALUE, "path is not UTF-8".to_string()))?;
-        let scene =
-            LodScene::open(Path::new(p)).map_err(|e| (AGG_ERR_FILE, format!("{p}: {e}")))?;
+        let scene = Opened::open(Path::new(p)).map_err(|e| (AGG_ERR_FILE, format!("{p}: {e}")))?;
         out = Box::into_raw(Box::new(AggScene {
             magic: SCENE_MAGIC,
             scene,
@@ -219,8 +233,9 @@ pub unsafe extern "C" fn agg_close(scene: *mut AggScene) {
     });
 }
 
-/// The bounds of the asset the aggregate was baked from (inside the finest level's cube):
-/// `lo` and `hi` receive three floats each. [`AGG_ERR_NOT_FOUND`] for an empty aggregate.
+/// The bounds of the asset the aggregate was baked from (inside the finest level's cube), or
+/// of an assembly's instances: `lo` and `hi` receive three floats each. [`AGG_ERR_NOT_FOUND`]
+/// for an empty aggregate.
 #[no_mangle]
 pub unsafe extern "C" fn agg_bounds(scene: *const AggScene, lo: *mut f32, hi: *mut f32) -> c_int {
     guard(|| {
@@ -228,22 +243,22 @@ pub unsafe extern "C" fn agg_bounds(scene: *const AggScene, lo: *mut f32, hi: *m
         if lo.is_null() || hi.is_null() {
             return Err(arg("lo or hi"));
         }
-        if s.scene.level_count() == 0 {
+        let Some((a, b)) = s.scene.bounds() else {
             return Err((AGG_ERR_NOT_FOUND, "the aggregate is empty".to_string()));
-        }
-        let (a, b) = s.scene.aggregate().bounds();
+        };
         write3(lo, a);
         write3(hi, b);
         Ok(())
     })
 }
 
-/// The number of levels (0 when `scene` is not valid).
+/// The number of levels (0 when `scene` is not valid); for an assembly, of distinct level
+/// resolutions over its aggregates.
 #[no_mangle]
 pub unsafe extern "C" fn agg_level_count(scene: *const AggScene) -> u32 {
     let mut n = 0;
     guard(|| {
-        n = scene_ref(scene)?.scene.level_count() as u32;
+        n = scene_ref(scene)?.scene.level_resolutions().len() as u32;
         Ok(())
     });
     n
@@ -411,7 +426,7 @@ pub unsafe extern "C" fn agg_hits(
             return Err(arg("out, count or transmittance"));
         }
         let cone = cone(c).map_err(|e| (AGG_ERR_VALUE, e))?;
-        let mut hits = s.scene.hits(&cone, &TraceSettings::default());
+        let mut hits = s.lod()?.hits(&cone, &TraceSettings::default());
         let mut n = 0usize;
         for h in &mut hits {
             if n < capacity {
@@ -435,7 +450,7 @@ fn voxel<'s>(
     level: u32,
     key: u64,
 ) -> Result<aggtool::runtime::VoxelHandle<'s>, (c_int, String)> {
-    s.scene.voxel(level as usize, key).ok_or((
+    s.lod()?.voxel(level as usize, key).ok_or((
         AGG_ERR_NOT_FOUND,
         format!("no voxel with key {key} at level {level}"),
     ))

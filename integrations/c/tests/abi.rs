@@ -237,3 +237,96 @@ fn cones_and_hits_agree_with_the_rust_api() {
         agg_close(scene);
     }
 }
+
+/// `agg_open` takes an assembly manifest too: two instances of the tree trace through the C
+/// ABI exactly as the library's `Opened` traces them, their bounds cover both instances, the
+/// hit layer refuses the assembly with a message, and a manifest naming a missing aggregate
+/// is refused at open with the asset's id.
+#[test]
+fn a_manifest_opens_and_traces_as_the_library_does() {
+    unsafe {
+        let (dir, path) = baked();
+        let agg = std::path::Path::new(path.to_str().unwrap());
+        let manifest = dir.path().join("pair.json");
+        std::fs::write(
+            &manifest,
+            format!(
+                r#"{{ "version": 1,
+                     "assets": {{ "tree": {{ "source": "t.glb", "aggregate": "{}" }} }},
+                     "instances": [ {{ "asset": "tree" }},
+                                    {{ "asset": "tree", "translation": [40, 0, 0] }} ] }}"#,
+                agg.file_name().unwrap().to_str().unwrap()
+            ),
+        )
+        .unwrap();
+        // The source need not exist to render from aggregates; give it anyway.
+        std::fs::write(dir.path().join("t.glb"), b"").unwrap();
+        let m = CString::new(manifest.to_str().unwrap()).unwrap();
+        let s = agg_open(m.as_ptr());
+        assert!(!s.is_null(), "{}", last_error());
+        let (mut lo, mut hi) = ([0f32; 3], [0f32; 3]);
+        assert_eq!(agg_bounds(s, lo.as_mut_ptr(), hi.as_mut_ptr()), AGG_OK);
+        let (alo, ahi) = aggtool::format::Aggregate::open(agg).unwrap().bounds();
+        assert!(
+            hi[0] - lo[0] >= 40.0 + (ahi.x - alo.x) * 0.99,
+            "{lo:?} {hi:?}"
+        );
+        let l = agg_lights_new();
+        let c = 0.5 * (alo + ahi);
+        let cones: Vec<AggCone> = (0..64)
+            .map(|i| {
+                let x = c.x + 20.0 + (i % 8) as f32 * 5.0 - 20.0;
+                AggCone {
+                    origin: [x, c.y + (i / 8) as f32 - 4.0, c.z + 200.0],
+                    dir: [0.0, 0.0, -1.0],
+                    aperture: 0.002,
+                }
+            })
+            .collect();
+        let mut out = vec![0f32; 4 * cones.len()];
+        assert_eq!(
+            agg_trace_cones(s, l, cones.as_ptr(), cones.len(), 9, out.as_mut_ptr()),
+            AGG_OK,
+            "{}",
+            last_error()
+        );
+        let lib = aggtool::assembly::Opened::open(&manifest).unwrap();
+        let rc: Vec<aggtool::runtime::Cone> = cones
+            .iter()
+            .map(|k| {
+                aggtool::runtime::Cone::new(
+                    glam::Vec3::from(k.origin),
+                    glam::Vec3::from(k.dir),
+                    k.aperture,
+                )
+            })
+            .collect();
+        let mut want = vec![0f32; out.len()];
+        lib.trace_batch(
+            &rc,
+            &aggtool::runtime::Lights::constant(glam::Vec3::ONE),
+            &aggtool::runtime::TraceSettings::default(),
+            9,
+            &mut want,
+        );
+        assert_eq!(out, want);
+        assert!(out.chunks(4).any(|p| p[3] < 1.0), "some cone meets a tree");
+        let (mut n, mut t) = (0usize, 0f32);
+        assert_eq!(
+            agg_hits(s, &cones[0], std::ptr::null_mut(), 0, &mut n, &mut t),
+            AGG_ERR_VALUE
+        );
+        assert!(last_error().contains("assembly"), "{}", last_error());
+        agg_lights_free(l);
+        agg_close(s);
+        // A manifest naming a missing aggregate.
+        std::fs::write(
+            &manifest,
+            r#"{ "version": 1, "assets": { "tree": { "source": "t.glb", "aggregate": "gone.agg" } },
+                 "instances": [ { "asset": "tree" } ] }"#,
+        )
+        .unwrap();
+        assert!(agg_open(m.as_ptr()).is_null());
+        assert!(last_error().contains("tree"), "{}", last_error());
+    }
+}

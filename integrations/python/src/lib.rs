@@ -20,6 +20,7 @@
 
 use std::path::PathBuf;
 
+use aggtool::assembly::Opened;
 use aggtool::bsdf::Bsdf;
 use aggtool::runtime::{
     Cone, EnvMap, Environment, Lights as RtLights, LodScene, Sun, TraceSettings,
@@ -51,10 +52,11 @@ fn agg_err(msg: impl std::fmt::Display) -> PyErr {
     AggError::new_err(msg.to_string())
 }
 
-/// An opened `.agg` aggregate: levels are read and verified when cones first need them.
+/// An opened `.agg` aggregate or assembly manifest: levels are read and verified when cones
+/// first need them.
 #[pyclass(frozen, module = "aggtool")]
 struct Scene {
-    scene: LodScene,
+    scene: Opened,
     path: PathBuf,
 }
 
@@ -177,6 +179,17 @@ fn rows3<'a>(a: &'a PyReadonlyArray2<'_, f32>, what: &str) -> PyResult<(usize, &
 }
 
 impl Scene {
+    /// The single aggregate the traversal layer works on.
+    fn lod(&self) -> PyResult<&LodScene> {
+        self.scene.aggregate().ok_or_else(|| {
+            agg_err(format!(
+                "{}: an assembly: hits and voxel_* take one aggregate (open an asset's .agg); \
+                 trace and transmittance take either",
+                self.path.display()
+            ))
+        })
+    }
+
     /// A level that failed verification while tracing, as an `AggError` naming the file.
     fn check(&self) -> PyResult<()> {
         match self.scene.first_error() {
@@ -305,25 +318,50 @@ impl Scene {
     /// when it is empty.
     #[getter]
     fn bounds(&self) -> Option<([f32; 3], [f32; 3])> {
-        (self.scene.level_count() > 0).then(|| {
-            let (a, b) = self.scene.aggregate().bounds();
-            (a.to_array(), b.to_array())
-        })
+        self.scene
+            .bounds()
+            .map(|(a, b)| (a.to_array(), b.to_array()))
     }
 
     /// The levels' resolutions, finest first.
     #[getter]
     fn levels(&self) -> Vec<u32> {
-        (0..self.scene.level_count())
-            .map(|l| self.scene.grid(l).res)
-            .collect()
+        self.scene.level_resolutions()
     }
 
-    /// What `aggtool inspect --json` prints, as a dict.
+    /// What `aggtool inspect --json` prints, as a dict; for an assembly, per asset its id,
+    /// aggregate, instance count and that summary of its aggregate.
     fn inspect<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let agg = aggtool::format::Aggregate::open(&self.path)
-            .map_err(|e| agg_err(format!("{}: {e}", self.path.display())))?;
-        let json = aggtool::format::summary(&agg, &self.path);
+        let summary = |p: &std::path::Path| -> PyResult<serde_json::Value> {
+            let agg = aggtool::format::Aggregate::open(p)
+                .map_err(|e| agg_err(format!("{}: {e}", p.display())))?;
+            Ok(aggtool::format::summary(&agg, p))
+        };
+        let json = match &self.scene {
+            Opened::Aggregate(_) => summary(&self.path)?,
+            Opened::Assembly(a) => {
+                let m = a.manifest();
+                let counts = m.instances_per_asset();
+                let assets = m
+                    .assets
+                    .iter()
+                    .zip(&counts)
+                    .map(|(x, n)| {
+                        Ok(serde_json::json!({
+                            "id": x.id,
+                            "aggregate": x.aggregate.display().to_string(),
+                            "instances": n,
+                            "summary": summary(&x.aggregate)?,
+                        }))
+                    })
+                    .collect::<PyResult<Vec<_>>>()?;
+                serde_json::json!({
+                    "manifest": self.path.display().to_string(),
+                    "instances": m.instance_count(),
+                    "assets": assets,
+                })
+            }
+        };
         let text = serde_json::to_string(&json).map_err(agg_err)?;
         py.import("json")?.call_method1("loads", (text,))
     }
@@ -392,7 +430,7 @@ impl Scene {
         tmax: Option<PyReadonlyArray1<'py, f32>>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let cones = cones(&origins, &directions, aperture, tmax.as_ref())?;
-        let scene = &self.scene;
+        let scene = self.lod()?;
         type ConeHits = (Vec<(u32, u64, f32, f32)>, f32);
         let per: Vec<ConeHits> = py.detach(|| {
             let settings = TraceSettings::default();
@@ -479,7 +517,7 @@ impl Scene {
         let (lv, ky) = voxel_ids(&level, &key)?;
         let wi = unit_rows(&wi, "wi", lv.len())?;
         let wo = unit_rows(&wo, "wo", lv.len())?;
-        let scene = &self.scene;
+        let scene = self.lod()?;
         let r: Vec<Option<(Vec3, f32)>> = py.detach(|| {
             (0..lv.len())
                 .into_par_iter()
@@ -526,7 +564,7 @@ impl Scene {
         if let Some(i) = us.iter().position(|x| !x.is_finite()) {
             return Err(PyValueError::new_err(format!("u {}: not finite", i / 3)));
         }
-        let scene = &self.scene;
+        let scene = self.lod()?;
         let r: Vec<Option<(Vec3, Vec3, f32)>> = py.detach(|| {
             (0..lv.len())
                 .into_par_iter()
@@ -573,7 +611,7 @@ impl Scene {
     ) -> PyResult<(F32s<'py>, F32s<'py>)> {
         let (lv, ky) = voxel_ids(&level, &key)?;
         let d = unit_rows(&d, "d", lv.len())?;
-        let scene = &self.scene;
+        let scene = self.lod()?;
         let r: Vec<Option<(f32, f32)>> = py.detach(|| {
             (0..lv.len())
                 .into_par_iter()
@@ -597,16 +635,11 @@ impl Scene {
     }
 }
 
-/// Opens an `.agg` file (lazily: the header and index are verified now, levels on first use).
+/// Opens an `.agg` file, or an assembly manifest (`.json`, each aggregate mapped once), lazily:
+/// the header and index are verified now, levels on first use.
 #[pyfunction]
 fn open(path: PathBuf) -> PyResult<Scene> {
-    if path.extension().is_some_and(|e| e == "json") {
-        return Err(agg_err(format!(
-            "{}: assembly manifests are not supported by this version",
-            path.display()
-        )));
-    }
-    let scene = LodScene::open(&path).map_err(|e| agg_err(format!("{}: {e}", path.display())))?;
+    let scene = Opened::open(&path).map_err(|e| agg_err(format!("{}: {e}", path.display())))?;
     Ok(Scene { scene, path })
 }
 

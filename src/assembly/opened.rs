@@ -1,0 +1,121 @@
+//! What a host opens by path: one aggregate (`.agg`) or an assembly manifest (`.json`), behind
+//! one interface, so that the C ABI, the Python module and the Mitsuba host render either
+//! with the same calls (issue 19: `agg_open` takes "an .agg file or assembly manifest").
+
+use std::path::Path;
+
+use glam::Vec3;
+
+use super::{is_manifest, Assembly, AssemblyError};
+use crate::math::rng::Pcg32;
+use crate::runtime::{Cone, Lights, LodScene, RuntimeError, TraceSettings};
+
+/// Why a path could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum OpenError {
+    /// The aggregate could not be opened.
+    #[error(transparent)]
+    Aggregate(#[from] RuntimeError),
+    /// The manifest or one of its aggregates could not be opened.
+    #[error(transparent)]
+    Assembly(#[from] AssemblyError),
+}
+
+/// An opened aggregate or assembly.
+pub enum Opened {
+    /// One `.agg` file.
+    Aggregate(LodScene),
+    /// An assembly manifest with its aggregates, each mapped once.
+    Assembly(Assembly),
+}
+
+impl Opened {
+    /// Opens `path`: a manifest when it ends in `.json` ([`is_manifest`]), else an aggregate.
+    pub fn open(path: &Path) -> Result<Opened, OpenError> {
+        Ok(if is_manifest(path) {
+            Opened::Assembly(Assembly::open(path)?)
+        } else {
+            Opened::Aggregate(LodScene::open(path)?)
+        })
+    }
+
+    /// The single aggregate, for the calls that take one (the traversal layer).
+    pub fn aggregate(&self) -> Option<&LodScene> {
+        match self {
+            Opened::Aggregate(s) => Some(s),
+            Opened::Assembly(_) => None,
+        }
+    }
+
+    /// World bounds: the baked asset's (as the file records them; `None` for an empty one),
+    /// or the union of the instances'.
+    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
+        match self {
+            Opened::Aggregate(s) => (s.level_count() > 0).then(|| s.aggregate().bounds()),
+            Opened::Assembly(a) => a.bounds(),
+        }
+    }
+
+    /// The levels' resolutions, finest first: the aggregate's, or for an assembly the
+    /// distinct resolutions of its aggregates' levels, finest first.
+    pub fn level_resolutions(&self) -> Vec<u32> {
+        let of =
+            |s: &LodScene| -> Vec<u32> { (0..s.level_count()).map(|l| s.grid(l).res).collect() };
+        match self {
+            Opened::Aggregate(s) => of(s),
+            Opened::Assembly(a) => {
+                let mut r: Vec<u32> = (0..a.manifest().assets.len())
+                    .flat_map(|i| of(a.scene(i)))
+                    .collect();
+                r.sort_unstable_by(|x, y| y.cmp(x));
+                r.dedup();
+                r
+            }
+        }
+    }
+
+    /// Traces `cones` in parallel into `rgba` (4 floats a cone: radiance, background
+    /// transmittance), cone i drawing stream i of `seed`: [`LodScene::trace_batch`], or
+    /// [`Assembly::trace`] per cone with the same streams.
+    pub fn trace_batch(
+        &self,
+        cones: &[Cone],
+        lights: &Lights,
+        settings: &TraceSettings,
+        seed: u64,
+        rgba: &mut [f32],
+    ) {
+        use rayon::prelude::*;
+        match self {
+            Opened::Aggregate(s) => s.trace_batch(cones, lights, settings, seed, rgba),
+            Opened::Assembly(a) => rgba
+                .par_chunks_mut(4)
+                .zip(cones.par_iter())
+                .enumerate()
+                .for_each(|(i, (o, c))| {
+                    let mut rng = Pcg32::new(seed, i as u64);
+                    let r = a.trace(c, lights, settings, &mut rng);
+                    o.copy_from_slice(&[r.radiance.x, r.radiance.y, r.radiance.z, r.transmittance]);
+                }),
+        }
+    }
+
+    /// What the aggregate, or every instance of the assembly, lets through along `cone`.
+    pub fn transmittance(&self, cone: &Cone, settings: &TraceSettings) -> f32 {
+        match self {
+            Opened::Aggregate(s) => s.transmittance(cone, settings),
+            Opened::Assembly(a) => a.transmittance(cone, settings, None),
+        }
+    }
+
+    /// The first error met while reading blocks lazily (a damaged block is refused when a
+    /// cone first needs it), of the aggregate or of any of the assembly's aggregates.
+    pub fn first_error(&self) -> Option<RuntimeError> {
+        match self {
+            Opened::Aggregate(s) => s.first_error(),
+            Opened::Assembly(a) => {
+                (0..a.manifest().assets.len()).find_map(|i| a.scene(i).first_error())
+            }
+        }
+    }
+}
