@@ -7,7 +7,7 @@
 //! cargo +nightly fuzz run read_agg fuzz/corpus/read_agg tests/data -- -max_total_time=300
 //! RUSTC_BOOTSTRAP=1 cargo fuzz run read_agg fuzz/corpus/read_agg tests/data   # a stable toolchain
 //! ```
-//! (`tests/data` seeds it with a file of each format version: 1.0–1.3 floats, 1.4 quantized; more
+//! (`tests/data` seeds it with a file of each format version: 1.0–1.3 floats, 1.4 quantized, 1.5 compressed; more
 //! small bakes can go in the corpus, e.g. `aggtool convert x.glb --max-res 8 -o fuzz/corpus/read_agg/x.agg`).
 #![no_main]
 
