@@ -7,7 +7,6 @@ use std::path::Path;
 use glam::Vec3;
 
 use super::{is_manifest, Assembly, AssemblyError};
-use crate::math::rng::Pcg32;
 use crate::runtime::{Cone, Lights, LodScene, RuntimeError, TraceSettings};
 
 /// Why a path could not be opened.
@@ -85,18 +84,11 @@ impl Opened {
         seed: u64,
         rgba: &mut [f32],
     ) {
-        use rayon::prelude::*;
         match self {
             Opened::Aggregate(s) => s.trace_batch(cones, lights, settings, seed, rgba),
-            Opened::Assembly(a) => rgba
-                .par_chunks_mut(4)
-                .zip(cones.par_iter())
-                .enumerate()
-                .for_each(|(i, (o, c))| {
-                    let mut rng = Pcg32::new(seed, i as u64);
-                    let r = a.trace(c, lights, settings, &mut rng);
-                    o.copy_from_slice(&[r.radiance.x, r.radiance.y, r.radiance.z, r.transmittance]);
-                }),
+            Opened::Assembly(a) => crate::runtime::trace_batch_with(cones, seed, rgba, |c, rng| {
+                a.trace(c, lights, settings, rng)
+            }),
         }
     }
 

@@ -392,15 +392,9 @@ impl LodScene {
         seed: u64,
         rgba: &mut [f32],
     ) {
-        use rayon::prelude::*;
-        rgba.par_chunks_mut(4)
-            .zip(cones.par_iter())
-            .enumerate()
-            .for_each(|(i, (o, c))| {
-                let mut rng = Pcg32::new(seed, i as u64);
-                let r = self.trace(c, lights, settings, &mut rng);
-                o.copy_from_slice(&[r.radiance.x, r.radiance.y, r.radiance.z, r.transmittance]);
-            });
+        trace_batch_with(cones, seed, rgba, |c, rng| {
+            self.trace(c, lights, settings, rng)
+        });
     }
 
     /// The background's weight along a cone, the ABV of the face it enters the aggregate by
@@ -497,4 +491,25 @@ pub fn render(
         };
         scene.trace(&cone, lights, settings, s.rng).radiance
     })
+}
+
+/// The one batched cone loop: traces `cones` in parallel with `trace`, cone i drawing stream
+/// i of `seed` (so the result does not depend on the thread count), into `rgba`, 4 floats a
+/// cone (radiance, background transmittance). [`LodScene::trace_batch`] and the assemblies'
+/// batch (the C ABI, the Python module) are this loop with their own `trace`.
+pub fn trace_batch_with(
+    cones: &[Cone],
+    seed: u64,
+    rgba: &mut [f32],
+    trace: impl Fn(&Cone, &mut Pcg32) -> ConeResult + Sync,
+) {
+    use rayon::prelude::*;
+    rgba.par_chunks_mut(4)
+        .zip(cones.par_iter())
+        .enumerate()
+        .for_each(|(i, (o, c))| {
+            let mut rng = Pcg32::new(seed, i as u64);
+            let r = trace(c, &mut rng);
+            o.copy_from_slice(&[r.radiance.x, r.radiance.y, r.radiance.z, r.transmittance]);
+        });
 }
