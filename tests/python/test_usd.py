@@ -353,6 +353,25 @@ def test_assembly_round_trip(assets):
     for (_, g), (_, w) in zip(got, want):
         assert np.allclose(g, w, atol=TRANSFORM_TOLERANCE * max(1, np.abs(w).max())), (g, w)
 
+    # The USD city renders with `aggtool render` through the manifest read back from it, as
+    # the original manifest does (same view and seed: the same image up to float rounding), and the city is in the
+    # picture (without its city block the image changes). Its first three instances stand
+    # together, the fourth 100 units away: the view frames the three.
+    near = {**CITY, "instances": CITY["instances"][:3]}
+    near_back = {**back, "instances": back["instances"][:3]}
+    fewer = {**back, "instances": [i for i in near_back["instances"] if i["asset"] != "city-block"]}
+    for name, doc in (("near", near), ("near-back", near_back), ("fewer", fewer)):
+        (assets / "city" / f"{name}.json").write_text(json.dumps(doc))
+    run("reference", assets / "city" / "near.json", "--auto-view", "--width", 32, "--height", 24,
+        "--spp", 1, "--save-view", "city/view.json", "-o", "city/ref.exr", cwd=assets)
+    for name in ("near", "near-back", "fewer"):
+        run("render", assets / "city" / f"{name}.json", "--view", "city/view.json", "--spp", 4,
+            "-o", f"city/{name}.exr", cwd=assets)
+    same = json.loads(run("compare", "city/near-back.exr", "city/near.exr", "--json", cwd=assets))
+    assert same["rmse"] < 1e-6, same  # float rounding of the transforms only
+    diff = json.loads(run("compare", "city/fewer.exr", "city/near.exr", "--json", cwd=assets))
+    assert diff["rmse"] > 1e-2, diff
+
 
 def test_manifest_composes_nested_transforms(assets, foliage_layer):
     """A hand-made stage: a PointInstancer under a moved Xform whose prototype holds the asset
