@@ -695,3 +695,65 @@ fn command_line_on_a_manifest() {
     assert!(ok && out.contains("TLAS entries"), "{out}{err}");
     assert!(d.join("lod.exr").is_file() && d.join("ref.png").is_file());
 }
+
+/// `gen city` lays out a kit as a town: the same bytes twice, a manifest that loads with every
+/// source resolving (relative paths from the manifest's folder, nothing copied), roads on every
+/// fourth row and column (here the kit's road tile), each piece fitted into its cell (a
+/// footprint of at most one cell, standing on y = 0), and an error for a kit with nothing to
+/// place. With ../shared/assets present, its default kits lay out too.
+#[test]
+fn gen_city_lays_out_a_kit() {
+    let d = tempfile::tempdir().unwrap();
+    let kit = d.path().join("kit");
+    std::fs::create_dir_all(&kit).unwrap();
+    // A tall box as a building, a flat one as a road tile.
+    let write = |name: &str, half: Vec3| {
+        let data = SceneData::single(
+            shapes::cuboid(Vec3::new(3.0, half.y, -2.0), half, 1),
+            MaterialData::new("m", [0.5, 0.5, 0.5], 0.0, 1.0),
+        );
+        std::fs::write(kit.join(format!("{name}.glb")), to_glb(&data, false)).unwrap();
+    };
+    write("house", Vec3::new(2.0, 3.0, 1.0));
+    write("road-straight", Vec3::new(0.5, 0.05, 0.5));
+    let out = d.path().join("town");
+    let r = assembly::city::write(&out, std::slice::from_ref(&kit), 30, 7).unwrap();
+    assert_eq!((r.assets, r.instances), (2, 30));
+    let first = std::fs::read(&r.manifest).unwrap();
+    assembly::city::write(&out, std::slice::from_ref(&kit), 30, 7).unwrap();
+    assert_eq!(std::fs::read(&r.manifest).unwrap(), first, "deterministic");
+    let m = Manifest::load(&r.manifest).unwrap();
+    m.require_sources().unwrap();
+    assert_eq!(m.instance_count(), 30);
+    let doc: serde_json::Value = serde_json::from_slice(&first).unwrap();
+    assert!(doc["assets"]["house"]["source"].as_str().unwrap().starts_with("../kit/"));
+    let side = 6; // ceil(sqrt(30))
+    let ids: Vec<&str> = m.assets.iter().map(|a| a.id.as_str()).collect();
+    for i in 0..30 {
+        let asset = ids[m.asset_of(i)];
+        let road = (i % side) % 4 == 0 || (i / side) % 4 == 0;
+        assert_eq!(asset == "road-straight", road, "instance {i}: {asset}");
+        // The house's footprint (4 × 2) is scaled to 0.9 of a cell and stands on y = 0.
+        if asset == "house" {
+            let xf = m.transform(i);
+            let s = xf.matrix3.x_axis.length();
+            assert!((s * 4.0 - 0.9).abs() < 1e-4, "scale {s}");
+            let base = xf.transform_point3(Vec3::new(3.0, 0.0, -2.0));
+            assert!(base.y.abs() < 1e-4, "base at {base}");
+        }
+    }
+    let empty = d.path().join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let e = assembly::city::write(&d.path().join("t2"), &[empty], 4, 1).unwrap_err();
+    assert!(e.contains("no building"), "{e}");
+    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/assets");
+    if !shared.exists() {
+        eprintln!("skipped the shared kits: {} is absent", shared.display());
+        return;
+    }
+    let kits = [shared.join("kenney_city_kit"), shared.join("quaternius_medieval_village")];
+    let r = assembly::city::write(&d.path().join("shared-town"), &kits, 64, 3).unwrap();
+    let m = Manifest::load(&r.manifest).unwrap();
+    m.require_sources().unwrap();
+    assert!(r.assets >= 20 && m.instance_count() == 64);
+}

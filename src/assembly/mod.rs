@@ -2,6 +2,7 @@
 //! ([`manifest`]), rendered with the LoD runtime and with the reference renderer.
 
 pub mod bake;
+pub mod city;
 pub mod forest;
 pub mod lod;
 pub mod manifest;

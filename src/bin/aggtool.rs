@@ -123,9 +123,13 @@ enum Command {
         json: bool,
     },
     /// Write a generated hard-case scene as GLB; or, with `forest`, an assembly: --species
-    /// trees of --triangles each and a manifest (forest.json) placing --instances of them.
+    /// trees of --triangles each and a manifest (forest.json) placing --instances of them; or,
+    /// with `city`, a manifest (city.json) laying out --instances pieces of existing kits
+    /// (--kit, repeatable; default: the Kenney city kit and the Quaternius village of
+    /// ../shared/assets) as a town, referenced by relative path, not copied.
     Gen {
-        /// One of: plane45, lattice, foliage, displaced-sphere, rings, buildings, all, or forest.
+        /// One of: plane45, lattice, foliage, displaced-sphere, rings, buildings, all, forest
+        /// or city.
         name: String,
         /// Output folder.
         #[arg(short, long, default_value = ".")]
@@ -144,9 +148,12 @@ enum Command {
         /// forest: distinct trees.
         #[arg(long, default_value_t = 4)]
         species: usize,
-        /// forest: trees placed.
+        /// forest: trees placed; city: pieces placed.
         #[arg(long, default_value_t = 100)]
         instances: usize,
+        /// city: a folder of assets to lay out (repeatable).
+        #[arg(long = "kit")]
+        kits: Vec<PathBuf>,
     },
     /// Print what an asset imports as: counts, bounds, materials, warnings.
     Info {
@@ -1283,7 +1290,33 @@ fn run(cli: Cli) -> Result<()> {
             seed,
             species,
             instances,
+            kits,
         } => {
+            if name == "city" {
+                let kits = if kits.is_empty() {
+                    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/assets");
+                    let shared = if shared.exists() {
+                        shared
+                    } else {
+                        PathBuf::from("../shared/assets")
+                    };
+                    vec![
+                        shared.join("kenney_city_kit"),
+                        shared.join("quaternius_medieval_village"),
+                    ]
+                } else {
+                    kits
+                };
+                let r = aggtool::assembly::city::write(&output, &kits, instances, seed)
+                    .map_err(anyhow::Error::msg)?;
+                println!(
+                    "output: {} ({} pieces of {} assets)",
+                    r.manifest.display(),
+                    r.instances,
+                    r.assets
+                );
+                return Ok(());
+            }
             if name == "forest" {
                 let r =
                     aggtool::assembly::forest::write(&output, species, instances, triangles, seed)
