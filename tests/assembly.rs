@@ -726,7 +726,10 @@ fn gen_city_lays_out_a_kit() {
     m.require_sources().unwrap();
     assert_eq!(m.instance_count(), 30);
     let doc: serde_json::Value = serde_json::from_slice(&first).unwrap();
-    assert!(doc["assets"]["house"]["source"].as_str().unwrap().starts_with("../kit/"));
+    assert!(doc["assets"]["house"]["source"]
+        .as_str()
+        .unwrap()
+        .starts_with("../kit/"));
     let side = 6; // ceil(sqrt(30))
     let ids: Vec<&str> = m.assets.iter().map(|a| a.id.as_str()).collect();
     for i in 0..30 {
@@ -751,7 +754,10 @@ fn gen_city_lays_out_a_kit() {
         eprintln!("skipped the shared kits: {} is absent", shared.display());
         return;
     }
-    let kits = [shared.join("kenney_city_kit"), shared.join("quaternius_medieval_village")];
+    let kits = [
+        shared.join("kenney_city_kit"),
+        shared.join("quaternius_medieval_village"),
+    ];
     let r = assembly::city::write(&d.path().join("shared-town"), &kits, 64, 3).unwrap();
     let m = Manifest::load(&r.manifest).unwrap();
     m.require_sources().unwrap();
