@@ -246,20 +246,30 @@ pub struct Writer {
     compression: i32,
 }
 
+/// A temporary file beside `dest` (its folder created if needed), named after it (`fallback`
+/// when `dest` has no file name), for writes that are renamed into place when complete.
+pub(crate) fn temp_beside(
+    dest: &Path,
+    fallback: &str,
+) -> std::io::Result<(PathBuf, BufWriter<File>)> {
+    let dir = dest
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir)?;
+    let name = dest
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or(fallback);
+    let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
+    let file = BufWriter::with_capacity(1 << 20, File::create(&tmp)?);
+    Ok((tmp, file))
+}
+
 impl Writer {
     /// Starts writing `dest` (through a temporary file beside it).
     pub fn create(dest: &Path) -> std::io::Result<Writer> {
-        let dir = dest
-            .parent()
-            .filter(|p| !p.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        std::fs::create_dir_all(dir)?;
-        let name = dest
-            .file_name()
-            .and_then(|n| n.to_str())
-            .unwrap_or("out.agg");
-        let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
-        let mut file = BufWriter::with_capacity(1 << 20, File::create(&tmp)?);
+        let (tmp, mut file) = temp_beside(dest, "out.agg")?;
         file.write_all(&[0u8; HEADER_SIZE])?;
         Ok(Writer {
             file: Some(file),

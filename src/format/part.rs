@@ -192,17 +192,7 @@ impl PartWriter {
     /// Starts writing `dest`; blocks are compressed at this Zstandard level as
     /// [`Writer::write_block`] does.
     pub fn create(dest: &Path, compression: i32) -> std::io::Result<PartWriter> {
-        let dir = dest
-            .parent()
-            .filter(|p| !p.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        std::fs::create_dir_all(dir)?;
-        let name = dest
-            .file_name()
-            .and_then(|n| n.to_str())
-            .unwrap_or("out.aggpart");
-        let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
-        let mut file = BufWriter::with_capacity(1 << 20, File::create(&tmp)?);
+        let (tmp, mut file) = super::temp_beside(dest, "out.aggpart")?;
         file.write_all(&[0u8; PART_HEADER as usize])?;
         Ok(PartWriter {
             file: Some(file),
