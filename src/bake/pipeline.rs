@@ -103,6 +103,36 @@ enum Sink<'a> {
     Part(&'a mut PartWriter),
 }
 
+impl Sink<'_> {
+    /// Writes block `chunk` of level `level` (keys `first..=last`, `count` records): into the
+    /// file, its reference added to `refs`, or into the part, which records where it goes.
+    #[allow(clippy::too_many_arguments)]
+    fn put(
+        &mut self,
+        level: usize,
+        kind: BlockKind,
+        chunk: usize,
+        blob: &[u8],
+        (first, last): (u64, u64),
+        count: usize,
+        refs: &mut Vec<crate::format::fb::BlobRef>,
+    ) -> std::io::Result<()> {
+        match self {
+            Sink::Agg(w) => refs.push(w.write_block(blob, first, last, count as u32)?),
+            Sink::Part(w) => w.write_block(
+                level as u32,
+                kind,
+                chunk as u64,
+                blob,
+                first,
+                last,
+                count as u32,
+            )?,
+        }
+        Ok(())
+    }
+}
+
 /// The levels as baked: index entries, reports, and for a shard what its part records.
 struct Baked {
     bounds: (glam::Vec3, glam::Vec3),
@@ -204,20 +234,15 @@ fn bake_levels(
             );
             bytes += blob.len() as u64;
             let (first, last) = (voxels[0].key, voxels[voxels.len() - 1].key);
-            match sink {
-                Sink::Agg(w) => {
-                    voxel_blocks.push(w.write_block(&blob, first, last, voxels.len() as u32)?)
-                }
-                Sink::Part(w) => w.write_block(
-                    li as u32,
-                    BlockKind::Voxel,
-                    ci as u64,
-                    &blob,
-                    first,
-                    last,
-                    voxels.len() as u32,
-                )?,
-            }
+            sink.put(
+                li,
+                BlockKind::Voxel,
+                ci,
+                &blob,
+                (first, last),
+                voxels.len(),
+                &mut voxel_blocks,
+            )?;
             sec.write += t.elapsed().as_secs_f64();
         }
         drop(pieces);
@@ -269,20 +294,15 @@ fn bake_levels(
                 encode::face_key(&data[0]),
                 encode::face_key(&data[data.len() - 1]),
             );
-            match sink {
-                Sink::Agg(w) => {
-                    face_blocks.push(w.write_block(&blob, first, last, data.len() as u32)?)
-                }
-                Sink::Part(w) => w.write_block(
-                    li as u32,
-                    BlockKind::Face,
-                    ci as u64,
-                    &blob,
-                    first,
-                    last,
-                    data.len() as u32,
-                )?,
-            }
+            sink.put(
+                li,
+                BlockKind::Face,
+                ci,
+                &blob,
+                (first, last),
+                data.len(),
+                &mut face_blocks,
+            )?;
             sec.write += t.elapsed().as_secs_f64();
         }
         let _ = t;
