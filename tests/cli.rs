@@ -20,6 +20,36 @@ fn ok(o: &Output) -> String {
     String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
+/// `aggtool convert foliage.glb` in `dir` with a tiny 8³/4³ bake (`--samples 8`, 8² maps) and
+/// `extra` flags into `out`; returns the child (stderr kept) after checking it succeeded.
+fn tiny_convert(dir: &Path, extra: &[&str], out: &str) -> Output {
+    let mut args = vec![
+        "convert",
+        "foliage.glb",
+        "--max-res",
+        "8",
+        "--min-res",
+        "4",
+        "--samples",
+        "8",
+        "--aiv-res",
+        "8",
+        "--abv-res",
+        "8",
+        "-o",
+        out,
+    ];
+    args.extend_from_slice(extra);
+    let o = aggtool(&args, dir);
+    ok(&o);
+    o
+}
+
+/// `aggtool inspect FILE --json` in `dir`, parsed.
+fn inspect_json(dir: &Path, file: &str) -> serde_json::Value {
+    serde_json::from_str(&ok(&aggtool(&["inspect", file, "--json"], dir))).unwrap()
+}
+
 fn fails_with(o: &Output, needle: &str) {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success(), "expected failure");
@@ -254,7 +284,7 @@ fn export_writes_views_instances_and_textures() {
 
 /// `convert` writes format 1.4's quantized layout by default, its blocks compressed (1.5), and
 /// the float layout with `--lossless`;
-/// `--no-cpca` is accepted and changes nothing (CPCA is not implemented); `inspect --json`
+/// `--no-cpca` is accepted and changes nothing (no file stores CPCA); `inspect --json`
 /// gives each level's bytes per component and layout, and the quantized file is smaller in
 /// every node, lobe and moment component.
 #[test]
@@ -266,26 +296,8 @@ fn lossless_and_quantized_layouts() {
         p,
     ));
     let bake = |extra: &[&str], out: &str| {
-        let mut args = vec![
-            "convert",
-            "foliage.glb",
-            "--max-res",
-            "8",
-            "--min-res",
-            "4",
-            "--samples",
-            "8",
-            "--aiv-res",
-            "8",
-            "--abv-res",
-            "8",
-            "-o",
-            out,
-        ];
-        args.extend_from_slice(extra);
-        ok(&aggtool(&args, p));
-        let j = ok(&aggtool(&["inspect", out, "--json"], p));
-        serde_json::from_str::<serde_json::Value>(&j).unwrap()
+        tiny_convert(p, extra, out);
+        inspect_json(p, out)
     };
     let q = bake(&[], "q.agg");
     bake(&["--no-cpca"], "n.agg");
@@ -352,26 +364,7 @@ fn convert_progress_json() {
         p,
     ));
     let bake = |extra: &[&str], out: &str| {
-        let mut args = vec![
-            "convert",
-            "foliage.glb",
-            "--max-res",
-            "8",
-            "--min-res",
-            "4",
-            "--samples",
-            "4",
-            "--aiv-res",
-            "8",
-            "--abv-res",
-            "8",
-            "-o",
-            out,
-        ];
-        args.extend_from_slice(extra);
-        let o = aggtool(&args, p);
-        ok(&o);
-        String::from_utf8_lossy(&o.stderr).into_owned()
+        String::from_utf8_lossy(&tiny_convert(p, extra, out).stderr).into_owned()
     };
     let err = bake(&["--progress-json"], "j.agg");
     let lines: Vec<serde_json::Value> = err
@@ -419,8 +412,7 @@ fn presets_and_overrides() {
         ];
         args.extend_from_slice(extra);
         ok(&aggtool(&args, p));
-        let j = ok(&aggtool(&["inspect", out, "--json"], p));
-        serde_json::from_str::<serde_json::Value>(&j).unwrap()["settings"].clone()
+        inspect_json(p, out)["settings"].clone()
     };
     let draft = settings(&["--preset", "draft", "--aiv-res", "8"], "d.agg");
     assert_eq!(
