@@ -246,6 +246,17 @@ impl<'a> Truth<'a> {
     }
 }
 
+impl Truth<'_> {
+    /// The traced V̂(ω) of voxel `key` (the bake's projected-area weighting), `None` for a voxel
+    /// without samples.
+    pub fn traced(&self, key: u64, w: Vec3) -> Option<f32> {
+        let s = self.samples.get(&key).filter(|s| !s.is_empty())?;
+        let mut v = [0.0f32; MAX_SAMPLES];
+        self.visibility(s, w, &mut v);
+        Some(weighted_visibility(s, w, &v))
+    }
+}
+
 /// Σ w |n·ω| v / Σ w |n·ω| over the samples (the bake's projected-area weighting); 1 without
 /// projected area.
 fn weighted_visibility(s: &[TruthSample], w: Vec3, v: &[f32; MAX_SAMPLES]) -> f32 {
@@ -730,4 +741,29 @@ pub fn budget_table(results: &[BudgetResult]) -> String {
         s += "\n";
     }
     s
+}
+
+/// The baked AIV against its oracle, voxel by voxel: for `n` (voxel, direction) pairs drawn
+/// from `seed` over the voxels of the truth's level, the baked V̂(ω) and the traced one (the
+/// bake's projected-area weighting). A probe of where the AIV term of the budget comes from.
+pub fn aiv_pairs(lod: &LodScene, truth: &Truth, n: usize, seed: u64) -> Vec<(u64, Vec3, f32, f32)> {
+    let mut keys: Vec<u64> = truth.samples.keys().copied().collect();
+    keys.sort_unstable();
+    let mut rng = Pcg32::new(seed, 0);
+    let mut out = Vec::with_capacity(n);
+    let mut vis = [0.0f32; MAX_SAMPLES];
+    while out.len() < n && !keys.is_empty() {
+        let key = keys[(rng.next_u32() as usize) % keys.len()];
+        let Some(v) = lod.voxel(truth.level, key) else {
+            continue;
+        };
+        let s = &truth.samples[&key];
+        if s.is_empty() {
+            continue;
+        }
+        let d = crate::math::sampling::square_to_uniform_sphere(rng.next_2d());
+        truth.visibility(s, d, &mut vis);
+        out.push((key, d, v.aiv(d), weighted_visibility(s, d, &vis)));
+    }
+    out
 }
