@@ -364,7 +364,7 @@ impl Assembly {
         // tan(θ/2) · t · lateral (the local width of a unit world width).
         let radius = (0.5 * cone.aperture).tan() * xf.lateral;
         let finest = self.finest[a];
-        if hybrid && (settings.level.is_some() || !(radius * entry < finest)) {
+        if hybrid && (settings.level.is_some() || !finer(radius * entry, finest)) {
             return Pick::Aggregate;
         }
         let Some(mesh) = self.meshes[a].get(&self.manifest.assets[a].source) else {
@@ -378,7 +378,7 @@ impl Assembly {
         };
         match mesh.intersect(&ray) {
             None => Pick::Miss,
-            Some(hit) if hybrid && !(radius * hit.t < finest) => Pick::Aggregate,
+            Some(hit) if hybrid && !finer(radius * hit.t, finest) => Pick::Aggregate,
             Some(hit) => Pick::Mesh { mesh, ray, hit },
         }
     }
@@ -613,6 +613,13 @@ impl Composite {
             self.transmittance *= r.transmittance;
         }
     }
+}
+
+/// Whether a footprint of radius `r` is finer than a finest voxel of size `finest` (false
+/// for NaN: the aggregate then).
+#[inline]
+fn finer(r: f32, finest: f32) -> bool {
+    r < finest
 }
 
 /// A world cone in an instance's own space: the origin and the direction mapped, the ray
