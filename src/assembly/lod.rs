@@ -456,6 +456,9 @@ impl Assembly {
         let TraceScratch { list, pending } = scratch;
         self.along(cone, None, true, list);
         pending.clear();
+        // The nearest mesh hit so far: opaque, so aggregates traced after it stop there (what
+        // lies behind it is hidden).
+        let mut opaque = f32::INFINITY;
         let mut acc = Composite {
             radiance: Vec3::ZERO,
             transmittance: 1.0,
@@ -492,10 +495,16 @@ impl Assembly {
                         primitives: 1,
                         coverage: 1.0,
                     },
-                    hit.t,
+                    {
+                        opaque = opaque.min(hit.t);
+                        hit.t
+                    },
                 ),
                 Pick::Aggregate => {
-                    let (local, k) = local_cone(&xf, cone);
+                    let (mut local, k) = local_cone(&xf, cone);
+                    if opaque < f32::INFINITY {
+                        local.tmax = local.tmax.min(opaque * k);
+                    }
                     let place = InstancePlace {
                         asm: self,
                         instance: i,
