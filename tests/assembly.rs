@@ -1161,4 +1161,17 @@ fn command_line_hybrid_and_no_mesh() {
         .output()
         .unwrap();
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--no-mesh"));
+    // A mesh needed but its source gone: an error naming the asset, no image written.
+    std::fs::remove_file(d.join("tree.glb")).unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_aggtool"))
+        .args(["render", m, "--view", "near.json", "-o", "gone.exr"])
+        .current_dir(d)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("asset 'tree'") && err.contains("tree.glb"),
+        "{err}"
+    );
+    assert!(!d.join("gone.exr").exists() && !err.contains("panicked"));
 }

@@ -17,6 +17,12 @@
 //!   [`LodScene::transmittance`], their ABV. The shadow cone has the camera cone's aperture and
 //!   the camera cone's width where it leaves the voxel (its apex set back by the camera
 //!   distance), so that a distant instance is also shadowed at a coarse level.
+//! - **Hybrid representation** ([`Representation`], off unless asked for: `aggtool render`
+//!   asks). An instance whose footprint where the cone meets it (its bounds, then its mesh
+//!   hit) is finer than its aggregate's finest voxel is drawn from its mesh, loaded the first
+//!   time it is needed ([`super::hybrid`]): an opaque hit, shaded by the reference renderer's
+//!   code with real shadow rays through its own triangles and [`Assembly::transmittance`]
+//!   through the others, which in turn stops at the triangles of instances drawn as meshes.
 //! - **Transforms.** Rotations and uniform scales are exact. A uniform scale s divides
 //!   distances and cone widths alike, so the aperture is unchanged. A non-uniform scale is
 //!   approximated: directions are mapped by the linear part and renormalised, and the cone's
