@@ -17,26 +17,36 @@
 //!   [`LodScene::transmittance`], their ABV. The shadow cone has the camera cone's aperture and
 //!   the camera cone's width where it leaves the voxel (its apex set back by the camera
 //!   distance), so that a distant instance is also shadowed at a coarse level.
+//! - **Hybrid representation** ([`Representation`], off unless asked for: `aggtool render`
+//!   asks). An instance whose footprint where the cone meets it (its bounds, then its mesh
+//!   hit) is finer than its aggregate's finest voxel is drawn from its mesh, loaded the first
+//!   time it is needed ([`super::hybrid`]): an opaque hit, shaded by the reference renderer's
+//!   code with real shadow rays through its own triangles and [`Assembly::transmittance`]
+//!   through the others, which in turn stops at the triangles of instances drawn as meshes.
 //! - **Transforms.** Rotations and uniform scales are exact. A uniform scale s divides
 //!   distances and cone widths alike, so the aperture is unchanged. A non-uniform scale is
 //!   approximated: directions are mapped by the linear part and renormalised, and the cone's
 //!   width by the cube root of the determinant (the mean scale).
 
+use std::cell::RefCell;
 use std::path::Path;
+use std::thread::LocalKey;
 use std::time::Duration;
 
-use glam::{Affine3A, Vec3, Vec3A};
+use glam::{Affine3A, Mat3, Vec3, Vec3A};
 use obvhs::aabb::Aabb;
 use obvhs::cwbvh::builder::build_cwbvh;
 use obvhs::cwbvh::CwBvh;
 use obvhs::ray::{Ray as BvhRay, RayHit};
 use obvhs::BvhBuildParams;
 
+use super::hybrid::{LazyMesh, MeshAsset, Representation};
 use super::manifest::Manifest;
 use crate::film::{Camera, Image, ImageStats};
 use crate::lights::Lights;
 use crate::runtime::{Cone, ConeResult, LodScene, Placement, RuntimeError, Sampler, TraceSettings};
 use crate::spatial::box_interval;
+use crate::trace::{offset_origin, Hit as MeshHit, Ray, SurfacePoint};
 
 /// Why an assembly could not be opened.
 #[derive(Debug, thiserror::Error)]
@@ -78,6 +88,79 @@ pub struct Assembly {
     bvh: Option<CwBvh>,
     /// The BVH's primitives: instance indices.
     bvh_instances: Vec<u32>,
+    /// Per asset: the finest level's voxel size (the footprint below which the hybrid render
+    /// draws the mesh), infinite for an asset without levels.
+    finest: Vec<f32>,
+    /// Per asset: how its instances are drawn.
+    representation: Vec<Representation>,
+    /// Per asset: its mesh, loaded when an instance first goes to mesh.
+    meshes: Vec<LazyMesh>,
+}
+
+/// What a camera or shadow cone meets of an instance.
+enum Pick<'a> {
+    /// The aggregate.
+    Aggregate,
+    /// The mesh, hit at `hit` by `ray` (the world ray in the instance's space: t is the
+    /// world's ray parameter).
+    Mesh {
+        mesh: &'a MeshAsset,
+        ray: Ray,
+        hit: MeshHit,
+    },
+    /// The mesh, not hit: the cone passes.
+    Miss,
+}
+
+/// What an instance was drawn with where a cone first met it (the level picture).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Drawn {
+    /// Its mesh.
+    Mesh,
+    /// Its aggregate, this level (0 = finest) at the first primitive met.
+    Level(usize),
+}
+
+/// The first instance a cone meets: which, and how it was drawn there.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FirstHit {
+    /// The instance (index in the manifest).
+    pub instance: usize,
+    /// Mesh or level.
+    pub drawn: Drawn,
+}
+
+/// Per-thread scratch of [`Assembly::trace`]: the instances along the cone and those traced
+/// but not composed yet. Kept between cones so that the hot path allocates nothing once the
+/// vectors have grown to the deepest cone's needs.
+#[derive(Default)]
+struct TraceScratch {
+    list: Vec<(f32, u32)>,
+    pending: Vec<(f32, ConeResult)>,
+}
+
+thread_local! {
+    static TRACE_SCRATCH: RefCell<TraceScratch> = RefCell::default();
+    /// [`Assembly::transmittance`]'s list (called from inside a trace, so its own).
+    static SHADOW_SCRATCH: RefCell<Vec<(f32, u32)>> = RefCell::default();
+}
+
+/// Runs `f` on this thread's scratch `key`, or on a fresh one if it is in use (a re-entrant
+/// call, which the renderer does not make; then it allocates, but stays correct).
+#[inline]
+fn with_scratch<T: Default + 'static, R>(
+    key: &'static LocalKey<RefCell<T>>,
+    f: impl FnOnce(&mut T) -> R,
+) -> R {
+    let mut f = Some(f);
+    let r = key.with(|c| match c.try_borrow_mut() {
+        Ok(mut s) => Some((f.take().unwrap())(&mut s)),
+        Err(_) => None,
+    });
+    match r {
+        Some(r) => r,
+        None => (f.take().unwrap())(&mut T::default()),
+    }
 }
 
 /// An instance's transform, inverse, and the factor its cone widths are scaled by.
@@ -143,6 +226,17 @@ impl Assembly {
                 &mut Duration::default(),
             )
         });
+        let finest = scenes
+            .iter()
+            .map(|s| {
+                if s.level_count() > 0 {
+                    s.grid(0).voxel_size()
+                } else {
+                    f32::INFINITY
+                }
+            })
+            .collect();
+        let assets = manifest.assets.len();
         Ok(Assembly {
             manifest,
             scenes,
@@ -150,7 +244,47 @@ impl Assembly {
             bounds,
             bvh,
             bvh_instances,
+            finest,
+            representation: vec![Representation::Aggregate; assets],
+            meshes: (0..assets).map(|_| LazyMesh::default()).collect(),
         })
+    }
+
+    /// Draws every asset's instances this way (the default is [`Representation::Aggregate`]).
+    pub fn set_representation(&mut self, r: Representation) {
+        self.representation.fill(r);
+    }
+
+    /// Draws asset `a`'s instances this way (index as [`Manifest::assets`]).
+    pub fn set_asset_representation(&mut self, a: usize, r: Representation) {
+        self.representation[a] = r;
+    }
+
+    /// How asset `a`'s instances are drawn.
+    pub fn representation(&self, a: usize) -> Representation {
+        self.representation[a]
+    }
+
+    /// Whether asset `a`'s mesh has been loaded (it is, the first time one of its instances
+    /// goes to mesh).
+    pub fn mesh_loaded(&self, a: usize) -> bool {
+        self.meshes[a].loaded()
+    }
+
+    /// Triangles of asset `a`'s mesh, when it is loaded.
+    pub fn mesh_triangles(&self, a: usize) -> Option<usize> {
+        self.meshes[a]
+            .peek()
+            .map(|m| m.scene().unique_triangle_count())
+    }
+
+    /// The first mesh that failed to load (asset index and why): its instances were drawn from
+    /// their aggregate instead.
+    pub fn mesh_error(&self) -> Option<(usize, String)> {
+        self.meshes
+            .iter()
+            .enumerate()
+            .find_map(|(a, m)| m.error().map(|e| (a, e.to_string())))
     }
 
     /// The manifest.
@@ -213,6 +347,96 @@ impl Assembly {
         }
     }
 
+    /// How instance `i` meets the world `cone`, which enters its bounds at `entry`: by its
+    /// aggregate, unless its asset is drawn as a mesh, or hybrid and the cone's footprint there
+    /// (its radius at the entry, and at the mesh hit, in the instance's space) is finer than
+    /// the aggregate's finest voxel. A forced level (`settings.level`) means aggregates.
+    #[inline]
+    fn pick(
+        &self,
+        i: usize,
+        xf: &Xf,
+        cone: &Cone,
+        entry: f32,
+        settings: &TraceSettings,
+    ) -> Pick<'_> {
+        let a = self.manifest.asset_of(i);
+        let hybrid = match self.representation[a] {
+            Representation::Aggregate => return Pick::Aggregate,
+            Representation::Hybrid => true,
+            Representation::Mesh => false,
+        };
+        // The footprint's radius in the instance's space at world distance t:
+        // tan(θ/2) · t · lateral (the local width of a unit world width).
+        let radius = (0.5 * cone.aperture).tan() * xf.lateral;
+        let finest = self.finest[a];
+        if hybrid && (settings.level.is_some() || !finer(radius * entry, finest)) {
+            return Pick::Aggregate;
+        }
+        let Some(mesh) = self.meshes[a].get(&self.manifest.assets[a].source) else {
+            return Pick::Aggregate;
+        };
+        let ray = Ray {
+            origin: xf.to_local.transform_point3(cone.origin),
+            dir: xf.to_local.transform_vector3(cone.dir),
+            tmin: cone.tmin,
+            tmax: cone.tmax,
+        };
+        match mesh.intersect(&ray) {
+            None => Pick::Miss,
+            Some(hit) if hybrid && !finer(radius * hit.t, finest) => Pick::Aggregate,
+            Some(hit) => Pick::Mesh { mesh, ray, hit },
+        }
+    }
+
+    /// Direct light at a mesh hit of instance `i`, shaded as the reference renderer shades
+    /// (its material BSDF, sun and environment by MIS): shadow rays through the instance's own
+    /// triangles, and through every other instance as [`Assembly::transmittance`] sees it (an
+    /// aggregate's ABV, a mesh's triangles).
+    #[allow(clippy::too_many_arguments)]
+    fn shade_mesh<S: Sampler + ?Sized>(
+        &self,
+        i: usize,
+        xf: &Xf,
+        mesh: &MeshAsset,
+        ray: &Ray,
+        hit: &MeshHit,
+        cone: &Cone,
+        lights: &Lights,
+        settings: &TraceSettings,
+        sampler: &mut S,
+    ) -> Vec3 {
+        let local = mesh.accel().surface(ray, hit);
+        let normals = Mat3::from(xf.to_local.matrix3).transpose();
+        let ng = (normals * local.ng).normalize_or(Vec3::Y);
+        let sp = SurfacePoint {
+            p: xf.to_world.transform_point3(local.p),
+            ng,
+            ns: (normals * local.ns).try_normalize().unwrap_or(ng),
+            uv: local.uv,
+            material: local.material,
+        };
+        // The shadow cone towards other instances: as for a voxel (InstancePlace::occlusion).
+        let t0 = (sp.p - cone.origin).length().max(1e-6);
+        crate::render::reference::shade(mesh.scene(), &sp, -cone.dir, lights, sampler, |wi| {
+            let o = offset_origin(sp.p, sp.ng, wi);
+            if mesh.occluded(
+                xf.to_local.transform_point3(o),
+                xf.to_local.transform_vector3(wi),
+            ) {
+                return 0.0;
+            }
+            let shadow = Cone {
+                origin: o - wi * t0,
+                dir: wi,
+                aperture: cone.aperture,
+                tmin: t0,
+                tmax: f32::INFINITY,
+            };
+            self.transmittance(&shadow, settings, Some(i))
+        })
+    }
+
     /// Traces one camera cone through the assembly with the runtime's lights and shading.
     pub fn trace<S: Sampler + ?Sized>(
         &self,
@@ -221,20 +445,36 @@ impl Assembly {
         settings: &TraceSettings,
         sampler: &mut S,
     ) -> ConeResult {
+        with_scratch(&TRACE_SCRATCH, |scratch| {
+            self.trace_with(cone, lights, settings, sampler, scratch)
+        })
+    }
+
+    fn trace_with<S: Sampler + ?Sized>(
+        &self,
+        cone: &Cone,
+        lights: &Lights,
+        settings: &TraceSettings,
+        sampler: &mut S,
+        scratch: &mut TraceScratch,
+    ) -> ConeResult {
         let background = lights.environment.eval(cone.dir);
-        let mut list = Vec::new();
-        self.along(cone, None, true, &mut list);
+        let TraceScratch { list, pending } = scratch;
+        self.along(cone, None, true, list);
+        pending.clear();
+        // The nearest mesh hit so far: opaque, so aggregates traced after it stop there (what
+        // lies behind it is hidden).
+        let mut opaque = f32::INFINITY;
         let mut acc = Composite {
             radiance: Vec3::ZERO,
             transmittance: 1.0,
             primitives: 0,
             coverage: 0.0,
         };
-        // Instances traced but not composed yet: (first hit, result), kept sorted by first
-        // hit, nearest last.
-        let mut pending: Vec<(f32, ConeResult)> = Vec::new();
-        for &(entry, i) in &list {
-            acc.flush(&mut pending, entry);
+        // Instances traced but not composed yet (`pending`): (first hit, result), kept sorted
+        // by first hit, nearest last.
+        for &(entry, i) in list.iter() {
+            acc.flush(pending, entry);
             if acc.transmittance <= MIN_TRANSMITTANCE {
                 break;
             }
@@ -250,25 +490,47 @@ impl Assembly {
             }
             let i = i as usize;
             let xf = self.xf(i);
-            let (local, k) = local_cone(&xf, cone);
-            let place = InstancePlace {
-                asm: self,
-                instance: i,
-                xf,
-                camera: cone.origin,
-                aperture: cone.aperture,
-                settings,
+            let (r, t) = match self.pick(i, &xf, cone, entry, settings) {
+                Pick::Miss => continue,
+                // A mesh is opaque: it ends the cone where it is hit.
+                Pick::Mesh { mesh, ray, hit } => (
+                    ConeResult {
+                        radiance: self
+                            .shade_mesh(i, &xf, mesh, &ray, &hit, cone, lights, settings, sampler),
+                        transmittance: 0.0,
+                        primitives: 1,
+                        coverage: 1.0,
+                    },
+                    {
+                        opaque = opaque.min(hit.t);
+                        hit.t
+                    },
+                ),
+                Pick::Aggregate => {
+                    let (mut local, k) = local_cone(&xf, cone);
+                    if opaque < f32::INFINITY {
+                        local.tmax = local.tmax.min(opaque * k);
+                    }
+                    let place = InstancePlace {
+                        asm: self,
+                        instance: i,
+                        xf,
+                        camera: cone.origin,
+                        aperture: cone.aperture,
+                        settings,
+                    };
+                    let (r, first) = self.scenes[self.manifest.asset_of(i)]
+                        .trace_placed(&local, lights, settings, sampler, &place);
+                    if r.primitives == 0 && r.transmittance >= 1.0 {
+                        continue;
+                    }
+                    (r, first / k)
+                }
             };
-            let (r, first) = self.scenes[self.manifest.asset_of(i)]
-                .trace_placed(&local, lights, settings, sampler, &place);
-            if r.primitives == 0 && r.transmittance >= 1.0 {
-                continue;
-            }
-            let t = first / k;
             let at = pending.partition_point(|p| p.0 > t);
             pending.insert(at, (t, r));
         }
-        acc.flush(&mut pending, f32::INFINITY);
+        acc.flush(pending, f32::INFINITY);
         let transmittance = if acc.transmittance <= MIN_TRANSMITTANCE {
             0.0
         } else {
@@ -283,20 +545,64 @@ impl Assembly {
     }
 
     /// What every instance but `skip` lets through along `cone` (world space): the product of
-    /// their ABV transmittances.
+    /// their ABV transmittances, and 0 where an instance drawn as a mesh blocks the centre ray
+    /// (see [`Representation`]).
     pub fn transmittance(&self, cone: &Cone, settings: &TraceSettings, skip: Option<usize>) -> f32 {
-        let mut list = Vec::new();
-        self.along(cone, skip, false, &mut list);
-        let mut t = 1.0f32;
-        for &(_, i) in &list {
-            let i = i as usize;
-            let (local, _) = local_cone(&self.xf(i), cone);
-            t *= self.scenes[self.manifest.asset_of(i)].transmittance(&local, settings);
-            if t <= MIN_TRANSMITTANCE {
-                return 0.0;
+        with_scratch(&SHADOW_SCRATCH, |list| {
+            self.along(cone, skip, false, list);
+            let mut t = 1.0f32;
+            for &(entry, i) in list.iter() {
+                let i = i as usize;
+                let xf = self.xf(i);
+                match self.pick(i, &xf, cone, entry, settings) {
+                    Pick::Miss => continue,
+                    Pick::Mesh { .. } => return 0.0,
+                    Pick::Aggregate => {
+                        let (local, _) = local_cone(&xf, cone);
+                        t *= self.scenes[self.manifest.asset_of(i)].transmittance(&local, settings);
+                    }
+                }
+                if t <= MIN_TRANSMITTANCE {
+                    return 0.0;
+                }
             }
-        }
-        t
+            t
+        })
+    }
+
+    /// The first instance `cone` meets and how it is drawn there (mesh, or the level of its
+    /// aggregate's first primitive), as [`Assembly::trace`] would draw it; `None` when the cone
+    /// meets nothing. Shades nothing: what the level picture (`render --level-map`) shows.
+    pub fn first_hit(&self, cone: &Cone, settings: &TraceSettings) -> Option<FirstHit> {
+        with_scratch(&TRACE_SCRATCH, |scratch| {
+            let list = &mut scratch.list;
+            self.along(cone, None, true, list);
+            let mut best: Option<(f32, FirstHit)> = None;
+            for &(entry, i) in list.iter() {
+                if best.is_some_and(|b| b.0 < entry) {
+                    break;
+                }
+                let i = i as usize;
+                let xf = self.xf(i);
+                let (t, drawn) = match self.pick(i, &xf, cone, entry, settings) {
+                    Pick::Miss => continue,
+                    Pick::Mesh { hit, .. } => (hit.t, Drawn::Mesh),
+                    Pick::Aggregate => {
+                        let (local, k) = local_cone(&xf, cone);
+                        let mut hits =
+                            self.scenes[self.manifest.asset_of(i)].hits(&local, settings);
+                        match hits.next() {
+                            Some(h) => (h.t / k, Drawn::Level(h.voxel.level())),
+                            None => continue,
+                        }
+                    }
+                };
+                if best.is_none_or(|b| t < b.0) {
+                    best = Some((t, FirstHit { instance: i, drawn }));
+                }
+            }
+            best.map(|b| b.1)
+        })
     }
 }
 
@@ -322,6 +628,13 @@ impl Composite {
             self.transmittance *= r.transmittance;
         }
     }
+}
+
+/// Whether a footprint of radius `r` is finer than a finest voxel of size `finest` (false
+/// for NaN: the aggregate then).
+#[inline]
+fn finer(r: f32, finest: f32) -> bool {
+    r < finest
 }
 
 /// A world cone in an instance's own space: the origin and the direction mapped, the ray
@@ -417,3 +730,97 @@ const _: () = {
     const fn is_sync<T: Sync + Send>() {}
     is_sync::<Assembly>()
 };
+
+/// The level picture: per pixel (row-major), what the cone through the pixel's centre meets
+/// first ([`Assembly::first_hit`]), `None` for the sky.
+pub fn level_map(
+    asm: &Assembly,
+    camera: &Camera,
+    settings: &TraceSettings,
+) -> Vec<Option<FirstHit>> {
+    use rayon::prelude::*;
+    let (w, h) = (camera.width, camera.height);
+    let aperture = camera.pixel_angle();
+    (0..w * h)
+        .into_par_iter()
+        .map(|k| {
+            let p = glam::Vec2::new((k % w) as f32 + 0.5, (k / w) as f32 + 0.5);
+            let (origin, dir) = camera.ray(p);
+            asm.first_hit(&Cone::new(origin, dir, aperture), settings)
+        })
+        .collect()
+}
+
+/// Colour of the sky in the level picture.
+pub const SKY_COLOUR: [u8; 3] = [24, 24, 24];
+/// Colour of mesh hits in the level picture.
+pub const MESH_COLOUR: [u8; 3] = [235, 60, 200];
+
+/// Colour of level `l` (0 = finest) of `levels` in the level picture: a ramp from blue
+/// (finest) through green and yellow to red (coarsest).
+pub fn level_colour(l: usize, levels: usize) -> [u8; 3] {
+    const RAMP: [[f32; 3]; 5] = [
+        [40.0, 90.0, 240.0],
+        [30.0, 200.0, 220.0],
+        [60.0, 200.0, 60.0],
+        [240.0, 220.0, 40.0],
+        [230.0, 50.0, 30.0],
+    ];
+    let x = if levels > 1 {
+        (l.min(levels - 1) as f32 / (levels - 1) as f32) * (RAMP.len() - 1) as f32
+    } else {
+        0.0
+    };
+    let i = (x.floor() as usize).min(RAMP.len() - 2);
+    let f = x - i as f32;
+    std::array::from_fn(|c| (RAMP[i][c] * (1.0 - f) + RAMP[i + 1][c] * f).round() as u8)
+}
+
+/// The level picture as sRGB8 with a legend strip under it (each line in its colour, with the
+/// share of pixels), and the legend as text lines: (rgb, height, legend).
+pub fn level_map_picture(
+    map: &[Option<FirstHit>],
+    width: u32,
+    height: u32,
+    levels: usize,
+) -> (Vec<u8>, u32, Vec<String>) {
+    let levels = levels.max(1);
+    let mut counts = vec![0usize; levels + 2]; // levels, mesh, sky
+    let mut rgb = Vec::with_capacity(map.len() * 3);
+    for m in map {
+        let (c, k) = match m.map(|f| f.drawn) {
+            None => (SKY_COLOUR, levels + 1),
+            Some(Drawn::Mesh) => (MESH_COLOUR, levels),
+            Some(Drawn::Level(l)) => (level_colour(l, levels), l.min(levels - 1)),
+        };
+        counts[k] += 1;
+        rgb.extend_from_slice(&c);
+    }
+    let n = map.len().max(1) as f32;
+    let pct = |k: usize| 100.0 * counts[k] as f32 / n;
+    let mut entries: Vec<(String, [u8; 3])> =
+        vec![(format!("MESH {:.1}%", pct(levels)), MESH_COLOUR)];
+    for l in 0..levels {
+        entries.push((format!("L{l} {:.1}%", pct(l)), level_colour(l, levels)));
+    }
+    entries.push((format!("SKY {:.1}%", pct(levels + 1)), [150, 150, 150]));
+    let scale = if width >= 256 { 2 } else { 1 };
+    let lines: Vec<&str> = entries.iter().map(|e| e.0.as_str()).collect();
+    // A caption strip of the right height, then each line redrawn in its colour.
+    let blank: Vec<&str> = lines.iter().map(|_| "").collect();
+    let (mut out, h) = crate::render::label::with_caption(&rgb, width, height, &blank, scale);
+    let pad = 2 * scale;
+    for (k, (text, colour)) in entries.iter().enumerate() {
+        crate::render::label::draw_text(
+            &mut out,
+            width,
+            h,
+            pad,
+            height + pad + k as u32 * crate::render::label::line_height(scale),
+            text,
+            scale,
+            *colour,
+        );
+    }
+    (out, h, entries.into_iter().map(|e| e.0).collect())
+}

@@ -4,12 +4,14 @@
 pub mod bake;
 pub mod city;
 pub mod forest;
+pub mod hybrid;
 pub mod lod;
 pub mod manifest;
 pub mod mesh;
 pub mod opened;
 
-pub use lod::{render, Assembly, AssemblyError};
+pub use hybrid::Representation;
+pub use lod::{level_map, render, Assembly, AssemblyError, Drawn, FirstHit};
 pub use manifest::{Asset, Manifest, ManifestError};
 pub use opened::{OpenError, Opened};
 

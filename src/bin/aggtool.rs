@@ -281,6 +281,15 @@ enum Command {
         /// Exposure of the PNG in stops.
         #[arg(long, default_value_t = 0.0)]
         exposure: f32,
+        /// Assemblies: draw every instance from its aggregate. By default an instance seen
+        /// finer than its aggregate's finest level is drawn from its mesh (imported when first
+        /// needed), as a renderer does.
+        #[arg(long)]
+        no_mesh: bool,
+        /// Assemblies: also write a PNG colouring each pixel by what its first hit was drawn
+        /// with (mesh, or the aggregate's level), with a legend.
+        #[arg(long, value_name = "PNG")]
+        level_map: Option<PathBuf>,
     },
     /// Bake every asset of an assembly manifest whose aggregate is missing or stale (a stamp
     /// NAME.agg.stamp.json beside each records its source's and settings' checksums), assets
@@ -774,17 +783,24 @@ fn run_lod(
     Ok((prepare, seconds))
 }
 
-/// Renders an assembly (a manifest) with the LoD runtime; returns the render seconds.
+/// Renders an assembly (a manifest) with the LoD runtime, hybrid (meshes where they are seen
+/// finer than the finest level) unless `meshes` is false; returns the render seconds.
 fn run_assembly_lod(
     manifest: &Path,
     view: &View,
     output: &Path,
     exposure: f32,
     settings: &aggtool::runtime::TraceSettings,
+    meshes: bool,
+    level_map: Option<&Path>,
 ) -> Result<f64> {
+    use aggtool::assembly::Representation;
     let lights = view.lights()?;
     let t0 = std::time::Instant::now();
-    let asm = aggtool::assembly::Assembly::open(manifest)?;
+    let mut asm = aggtool::assembly::Assembly::open(manifest)?;
+    if meshes {
+        asm.set_representation(Representation::Hybrid);
+    }
     let m = asm.manifest();
     println!(
         "input: {}: {} assets, {} instances (opened with the instance BVH in {:.1} ms)",
@@ -809,13 +825,24 @@ fn run_assembly_lod(
             bail!("asset '{}': {}: {e}", asset.id, asset.aggregate.display());
         }
     }
+    if let Some((a, e)) = asm.mesh_error() {
+        bail!(
+            "asset '{}': its mesh is needed (an instance is seen finer than its aggregate's \
+             finest level) but {e}; --no-mesh draws every instance from its aggregate",
+            m.assets[a].id
+        );
+    }
     img.write_exr(output)?;
     img.write_png(&png_beside(output), exposure)?;
     println!("{}", stats.line("LoD"));
     for (a, asset) in m.assets.iter().enumerate() {
         let s = asm.scene(a);
+        let mesh = match asm.mesh_triangles(a) {
+            Some(t) => format!(", mesh loaded ({t} triangles)"),
+            None => String::new(),
+        };
         println!(
-            "stats: asset '{}': levels used {:?}",
+            "stats: asset '{}': levels used {:?}{mesh}",
             asset.id,
             s.prepared()
                 .iter()
@@ -823,6 +850,23 @@ fn run_assembly_lod(
                 .filter(|(_, p)| **p)
                 .map(|(l, _)| s.grid(l).res)
                 .collect::<Vec<_>>()
+        );
+    }
+    if let Some(path) = level_map {
+        let camera = view.camera();
+        let map = aggtool::assembly::level_map(&asm, &camera, settings);
+        let levels = (0..m.assets.len())
+            .map(|a| asm.scene(a).level_count())
+            .max()
+            .unwrap_or(1);
+        let (rgb, h, legend) =
+            aggtool::assembly::lod::level_map_picture(&map, camera.width, camera.height, levels);
+        aggtool::film::image::write_rgb8_png(path, camera.width, h, &rgb)?;
+        println!(
+            "level map: {} (what the cone through each pixel's centre meets first: mesh, or the \
+             aggregate's level L0 = finest; share of pixels): {}",
+            path.display(),
+            legend.join(", ").to_lowercase()
         );
     }
     println!(
@@ -1605,6 +1649,8 @@ fn run(cli: Cli) -> Result<()> {
             cube,
             volume,
             exposure,
+            no_mesh,
+            level_map,
         } => {
             let mut view = View::load(&view)?;
             if let Some(s) = spp {
@@ -1630,8 +1676,19 @@ fn run(cli: Cli) -> Result<()> {
                 if volume {
                     bail!("--volume is not supported for assemblies");
                 }
-                run_assembly_lod(&agg, &view, &output, exposure, &settings)?;
+                run_assembly_lod(
+                    &agg,
+                    &view,
+                    &output,
+                    exposure,
+                    &settings,
+                    !no_mesh,
+                    level_map.as_deref(),
+                )?;
             } else {
+                if no_mesh || level_map.is_some() {
+                    bail!("--no-mesh and --level-map are for assembly manifests (.json)");
+                }
                 run_lod(&agg, &view, &output, exposure, &settings)?;
             }
             Ok(())

@@ -13,7 +13,9 @@ use crate::lights::Lights;
 use crate::math::frame::Frame;
 use crate::math::rng::Pcg32;
 use crate::math::sampling::power_heuristic;
-use crate::trace::{offset_origin, Accel, Ray};
+use crate::runtime::Sampler;
+use crate::scene::Scene;
+use crate::trace::{offset_origin, Accel, Ray, SurfacePoint};
 use crate::util::Progress;
 
 /// Settings of a reference render.
@@ -37,9 +39,32 @@ pub fn radiance(
     let Some(hit) = accel.intersect(ray) else {
         return lights.environment.eval(ray.dir);
     };
-    let scene = accel.scene();
     let sp = accel.surface(ray, &hit);
-    let wo = -ray.dir;
+    shade(accel.scene(), &sp, -ray.dir, lights, rng, |wi| {
+        *rays += 1;
+        let r = Ray::new(offset_origin(sp.p, sp.ng, wi), wi);
+        if accel.occluded(&r) {
+            0.0
+        } else {
+            1.0
+        }
+    })
+}
+
+/// Direct illumination reflected towards `wo` at the surface point `sp` of `scene` (its
+/// material and textures): the sun, then one environment sample by light sampling and one by
+/// BSDF sampling, combined by MIS (power heuristic). `visibility(wi)` says what reaches `sp`
+/// from unit direction `wi`, in [0, 1]: the reference's shadow ray (0 or 1), or, in an
+/// assembly's hybrid render ([`crate::assembly`]), a shadow ray through the instance's own
+/// triangles times what the other instances let through. All in one space (the world's).
+pub fn shade<S: Sampler + ?Sized>(
+    scene: &Scene,
+    sp: &SurfacePoint,
+    wo: Vec3,
+    lights: &Lights,
+    rng: &mut S,
+    mut visibility: impl FnMut(Vec3) -> f32,
+) -> Vec3 {
     // Double-sided: face the shading normal towards the viewer (as Mitsuba's `twosided`).
     let ns = if sp.ns.dot(wo) < 0.0 { -sp.ns } else { sp.ns };
     let frame = Frame::from_z(ns);
@@ -49,19 +74,17 @@ pub fn radiance(
     };
     let bsdf = BaseBsdf::new(material.eval(&scene.textures, sp.uv));
     let mut l = Vec3::ZERO;
-    let shadow = |wi: Vec3, rays: &mut u64| {
-        *rays += 1;
-        let r = Ray::new(offset_origin(sp.p, sp.ng, wi), wi);
-        accel.occluded(&r)
-    };
 
     // Sun (a delta light: no MIS).
     if let Some(sun) = &lights.sun {
         let wi_l = frame.to_local(sun.direction);
         if wi_l.z > 0.0 {
             let f = bsdf.eval(wi_l, wo_l);
-            if f.max_element() > 0.0 && !shadow(sun.direction, rays) {
-                l += f * sun.irradiance * wi_l.z;
+            if f.max_element() > 0.0 {
+                let v = visibility(sun.direction);
+                if v > 0.0 {
+                    l += f * sun.irradiance * (wi_l.z * v);
+                }
             }
         }
     }
@@ -71,20 +94,26 @@ pub fn radiance(
         let wi_l = frame.to_local(ls.wi);
         if wi_l.z > 0.0 && ls.pdf > 0.0 && ls.radiance.max_element() > 0.0 {
             let (f, pdf_b) = bsdf.eval_pdf(wi_l, wo_l);
-            if f.max_element() > 0.0 && !shadow(ls.wi, rays) {
-                l += f * ls.radiance * (wi_l.z * power_heuristic(ls.pdf, pdf_b) / ls.pdf);
+            if f.max_element() > 0.0 {
+                let v = visibility(ls.wi);
+                if v > 0.0 {
+                    l += f * ls.radiance * (wi_l.z * power_heuristic(ls.pdf, pdf_b) * v / ls.pdf);
+                }
             }
         }
     }
     // Environment: BSDF sampling.
-    let u_lobe = rng.next_f32();
+    let u_lobe = rng.next_1d();
     let u_bsdf = rng.next_2d();
     if let Some(bs) = bsdf.sample(wo_l, u_lobe, u_bsdf) {
         let wi = frame.to_world(bs.wi);
         let le = lights.environment.eval(wi);
-        if le.max_element() > 0.0 && !shadow(wi, rays) {
-            let pdf_l = lights.environment.pdf(wi);
-            l += bs.value * le * (bs.wi.z * power_heuristic(bs.pdf, pdf_l) / bs.pdf);
+        if le.max_element() > 0.0 {
+            let v = visibility(wi);
+            if v > 0.0 {
+                let pdf_l = lights.environment.pdf(wi);
+                l += bs.value * le * (bs.wi.z * power_heuristic(bs.pdf, pdf_l) * v / bs.pdf);
+            }
         }
     }
     l
