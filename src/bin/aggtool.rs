@@ -444,7 +444,7 @@ fn absdf_plot(case: &str, output: &Path, samples: u32, slice: u32, exposure: f32
         let (diff, scale) = difference_image(&ours, &gt, None);
         // Side by side: ground truth | factored | difference.
         let path = output.join(format!("absdf-{name}.png"));
-        side_by_side(
+        aggtool::film::image::side_by_side(
             &path,
             &[
                 &gt.to_srgb8(exposure),
@@ -640,65 +640,6 @@ fn run_reference(
     Ok(stats)
 }
 
-fn flatten(scene: &Scene, dir: &Path) -> Result<()> {
-    use std::fmt::Write as _;
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let mut per_mat: Vec<String> = vec![String::new(); scene.materials.len()];
-    let mut counts = vec![0u32; scene.materials.len()];
-    for inst in &scene.instances {
-        let m = &scene.meshes[inst.mesh as usize];
-        let nm = glam::Mat3::from(inst.transform.matrix3)
-            .inverse()
-            .transpose();
-        let out = &mut per_mat[m.material as usize];
-        let base = counts[m.material as usize];
-        for p in &m.positions {
-            let w = inst.transform.transform_point3(*p);
-            let _ = writeln!(out, "v {} {} {}", w.x, w.y, w.z);
-        }
-        let has_n = !m.normals.is_empty();
-        for n in &m.normals {
-            let w = (nm * *n).normalize_or_zero();
-            let _ = writeln!(out, "vn {} {} {}", w.x, w.y, w.z);
-        }
-        for t in &m.triangles {
-            let [a, b, c] = t.map(|i| i + base + 1);
-            if has_n {
-                let _ = writeln!(out, "f {a}//{a} {b}//{b} {c}//{c}");
-            } else {
-                let _ = writeln!(out, "f {a} {b} {c}");
-            }
-        }
-        counts[m.material as usize] += m.positions.len() as u32;
-    }
-    let mut list = Vec::new();
-    for (i, text) in per_mat.iter().enumerate() {
-        if text.is_empty() {
-            continue;
-        }
-        let file = format!("material_{i:03}.obj");
-        std::fs::write(dir.join(&file), text)?;
-        let mat = &scene.materials[i];
-        if mat.base_color_texture.is_some() || mat.has_cutout() {
-            eprintln!("warning: material '{}' has textures or cut-outs; materials.json gives only its factors", mat.name);
-        }
-        list.push(serde_json::json!({
-            "file": file,
-            "name": mat.name,
-            "base_color": [mat.base_color.x, mat.base_color.y, mat.base_color.z],
-            "metallic": mat.metallic,
-            "specular_factor": mat.specular_factor,
-            "roughness": mat.perceptual_roughness,
-        }));
-    }
-    std::fs::write(
-        dir.join("materials.json"),
-        serde_json::to_string_pretty(&list)?,
-    )?;
-    println!("output: {} ({} files)", dir.display(), list.len());
-    Ok(())
-}
-
 /// Renders an aggregate with the LoD runtime; returns (open seconds, render seconds).
 fn run_lod(
     agg_path: &Path,
@@ -859,21 +800,6 @@ fn inspect_assembly(path: &Path, json: bool) -> Result<()> {
         opt(s.unique_triangles),
         opt(s.instanced_triangles)
     );
-    Ok(())
-}
-
-/// Writes images side by side (same size) into one sRGB PNG.
-fn side_by_side(path: &Path, images: &[&[u8]], w: u32, h: u32) -> Result<()> {
-    let n = images.len() as u32;
-    let mut rgb = vec![0u8; (n * w * h * 3) as usize];
-    for (k, img) in images.iter().enumerate() {
-        for y in 0..h {
-            let src = &img[(y * w * 3) as usize..((y + 1) * w * 3) as usize];
-            let dst = ((y * n * w + k as u32 * w) * 3) as usize;
-            rgb[dst..dst + src.len()].copy_from_slice(src);
-        }
-    }
-    aggtool::film::image::write_rgb8_png(path, n * w, h, &rgb)?;
     Ok(())
 }
 
@@ -1175,7 +1101,7 @@ fn demo(output: &Path) -> Result<()> {
     .map(|(img, c)| aggtool::render::label::with_caption(img, w, h, &[&c[0], &c[1]], 1))
     .collect();
     let ph = panels[0].1;
-    side_by_side(
+    aggtool::film::image::side_by_side(
         &sbs,
         &panels.iter().map(|p| p.0.as_slice()).collect::<Vec<_>>(),
         w,
@@ -1583,7 +1509,12 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Flatten { asset, output } => {
             let scene = load_scene(&asset, false)?;
-            flatten(&scene, &output)
+            let stats = aggtool::scene::flatten::flatten(&scene, &output)?;
+            for w in &stats.warnings {
+                eprintln!("warning: {w}");
+            }
+            println!("output: {} ({} files)", output.display(), stats.files);
+            Ok(())
         }
         Command::Export { asset, output } => {
             let scene = load_scene(&asset, false)?;
