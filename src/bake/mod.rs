@@ -20,7 +20,7 @@ use crate::absdf::estimate::EstimateSettings;
 use level::LevelSettings;
 
 /// Settings of a whole bake (the `aggtool convert` options). Recorded in the file.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct BakeSettings {
     /// Finest and coarsest level resolution (powers of two).
     pub max_res: u32,
@@ -256,6 +256,30 @@ impl BakeSettings {
         }
     }
 
+    /// The settings a file recorded, as a bake names them (the inverse of [`Self::recorded`];
+    /// the AIV weighting, which the format version fixes, is the record's alone).
+    pub fn from_recorded(r: &crate::format::RecordedSettings) -> BakeSettings {
+        BakeSettings {
+            max_res: r.max_res,
+            min_res: r.min_res,
+            samples: r.samples,
+            max_samples: r.max_samples,
+            aiv_res: r.aiv_res,
+            aiv_rays: r.aiv_rays,
+            abv_res: r.abv_res,
+            abv_rays: r.abv_rays,
+            abv_full_res: r.abv_full_res,
+            ndf_lobes: r.ndf_lobes,
+            moment_res: r.moment_res,
+            keep: r.keep,
+            energy: r.energy,
+            denoise: r.denoise,
+            keep_all_effects: r.keep_all_effects,
+            lossless: r.lossless,
+            compression: r.compression,
+        }
+    }
+
     /// The settings of one level.
     pub fn level(&self, res: u32) -> LevelSettings {
         LevelSettings {
@@ -305,6 +329,20 @@ mod tests {
             assert!(lo.samples < hi.samples && lo.aiv_rays < hi.aiv_rays);
             assert!(lo.aiv_res <= hi.aiv_res && lo.abv_res <= hi.abv_res);
             assert!(lo.abv_rays <= hi.abv_rays && lo.keep <= hi.keep);
+        }
+    }
+
+    /// Every preset survives the trip through the file's record unchanged.
+    #[test]
+    fn recorded_round_trip() {
+        for p in Preset::ALL {
+            let s = BakeSettings::preset(p);
+            assert_eq!(
+                BakeSettings::from_recorded(&s.recorded()),
+                s,
+                "{}",
+                p.name()
+            );
         }
     }
 

@@ -1666,40 +1666,34 @@ fn convert(
     Ok(())
 }
 
+/// `inspect FILE.agg`: the library's summary, as JSON or as text.
 fn inspect(file: &Path, json: bool) -> Result<()> {
-    use aggtool::format::effects::{effect_lines, format_effects};
-    let agg = aggtool::format::Aggregate::open(file)
-        .with_context(|| format!("cannot read {}", file.display()))?;
-    let h = agg.header();
-    let s = agg.settings();
-    let levels: Vec<(u32, aggtool::format::encode::Counts)> = (0..agg.level_count())
-        .map(|l| (agg.grid(l).res, agg.counts(l)))
-        .collect();
-    let effects = effect_lines(&levels, s.keep_all_effects);
-    let summary = aggtool::format::summary(&agg, file);
+    let summary = aggtool::inspect::inspect(file)?;
     if json {
-        println!("{}", serde_json::to_string_pretty(&summary)?);
+        // Through a JSON value, whose maps keep their keys sorted: the same output as always.
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::to_value(&summary)?)?
+        );
         return Ok(());
     }
-    let level_info = summary["levels"].as_array().cloned().unwrap_or_default();
-    let (lo, hi) = agg.bounds();
-    let (tables_version, tables_crc32) = agg.tables();
+    let sm = &summary;
+    let s = &sm.settings.bake;
     println!(
-        "{}: aggtool format {}.{}, {} bytes, written by {}",
+        "{}: aggtool format {}, {} bytes, written by {}",
         file.display(),
-        h.major,
-        h.minor,
-        h.file_size,
-        agg.generator()
+        sm.format,
+        sm.bytes,
+        sm.generator
     );
     println!(
         "source: {}; bounds {:?} to {:?}; tables v{} (crc32 {:08x}{})",
-        agg.source(),
-        lo.to_array(),
-        hi.to_array(),
-        tables_version,
-        tables_crc32,
-        if tables_crc32 == crc32fast::hash(aggtool::tables::EMBEDDED) {
+        sm.source,
+        sm.bounds[0],
+        sm.bounds[1],
+        sm.tables_version,
+        sm.tables_crc32,
+        if sm.same_tables() {
             ", same as this build"
         } else {
             ", NOT the tables of this build"
@@ -1708,7 +1702,7 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
     println!(
         "settings: max-res {} min-res {} samples {} (max {}) aiv {}² × {} rays/sample ({}-weighted), abv {}² × {} rays/cell{}, ndf-lobes {}, moment-res {}, keep {} energy {}{}",
         s.max_res, s.min_res, s.samples, s.max_samples, s.aiv_res, s.aiv_rays,
-        if s.aiv_weighting == aggtool::format::AivWeighting::ProjectedArea { "projected-area" } else { "area" },
+        if sm.settings.aiv_weighting == aggtool::format::AivWeighting::ProjectedArea { "projected-area" } else { "area" },
         s.abv_res, s.abv_rays,
         match s.abv_full_res {
             0 => String::new(),
@@ -1717,7 +1711,7 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
         s.ndf_lobes, s.moment_res, s.keep, s.energy,
         if s.keep_all_effects { ", keep-all-effects" } else { "" }
     );
-    if h.minor >= 4 {
+    if sm.minor >= 4 {
         println!(
             "layout: {}{}",
             if s.lossless {
@@ -1735,18 +1729,17 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
         "{:>6} {:>10} {:>10} {:>7} {:>7} {:>12} {:>12} {:>6}",
         "level", "voxels", "faces", "vblocks", "fblocks", "bytes", "inflated", "ratio"
     );
-    for l in &level_info {
+    for l in &sm.levels {
         println!(
             "{:>5}³ {:>10} {:>10} {:>7} {:>7} {:>12} {:>12} {:>5.2}×",
-            // As numbers: serde_json's Display ignores the widths.
-            l["res"].as_u64().unwrap_or(0),
-            l["voxels"].as_u64().unwrap_or(0),
-            l["faces"].as_u64().unwrap_or(0),
-            l["voxel_blocks"].as_u64().unwrap_or(0),
-            l["face_blocks"].as_u64().unwrap_or(0),
-            l["bytes"].as_u64().unwrap_or(0),
-            l["inflated_bytes"].as_u64().unwrap_or(0),
-            l["compression_ratio"].as_f64().unwrap_or(1.0)
+            l.res,
+            l.voxels,
+            l.faces,
+            l.voxel_blocks,
+            l.face_blocks,
+            l.bytes,
+            l.inflated_bytes,
+            l.compression_ratio
         );
     }
     println!("bytes per component (payloads, without FlatBuffers headers and padding):");
@@ -1754,28 +1747,23 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
         "{:>6} {:>10} {:>10} {:>10} {:>11} {:>10} {:>11} {:>9}  layout",
         "level", "records", "lobes", "moments", "AIV nodes", "faces", "ABV nodes", "other"
     );
-    for l in &level_info {
-        let c = &l["components"];
-        let u = |k: &str| c[k].as_u64().unwrap_or(0);
+    for l in &sm.levels {
+        let c = &l.components;
         println!(
             "{:>5}³ {:>10} {:>10} {:>10} {:>11} {:>10} {:>11} {:>9}  {}",
-            l["res"].as_u64().unwrap_or(0),
-            u("voxels"),
-            u("lobes"),
-            u("moments") + u("dielectric_moments"),
-            u("aiv_nodes"),
-            u("faces"),
-            u("abv_nodes"),
-            u("keys") + u("exposure"),
-            if l["quantized"] == true {
-                "quantized"
-            } else {
-                "float"
-            }
+            l.res,
+            c.voxels,
+            c.lobes,
+            c.moments + c.dielectric_moments,
+            c.aiv_nodes,
+            c.faces,
+            c.abv_nodes,
+            c.keys + c.exposure,
+            if l.quantized { "quantized" } else { "float" }
         );
     }
     println!("effects:");
-    print!("{}", format_effects(&effects));
+    print!("{}", aggtool::format::effects::format_effects(&sm.effects));
     Ok(())
 }
 
