@@ -978,143 +978,38 @@ fn eval(
     Ok(())
 }
 
-/// The main job on a built-in scene: generate, bake, render the LoD and the reference at equal
-/// time, compare both with a converged reference.
+/// The main job on a built-in scene (`aggtool::eval::demo`), reported.
 fn demo(output: &Path) -> Result<()> {
-    use aggtool::render::reference::{self, ReferenceSettings};
-    let t_all = std::time::Instant::now();
-    std::fs::create_dir_all(output)?;
-    let settings = GenSettings {
-        triangles: 40_000,
-        ..GenSettings::default()
-    };
-    let (asset, tris) =
-        gen::write("foliage", &settings, output, false).map_err(anyhow::Error::msg)?;
-    println!("input: generated {} ({} triangles)", asset.display(), tris);
-    let scene = load_scene(&asset, false)?;
-    // Bake: 64³ finest, and 32² boundary maps to stay within the demo's time.
-    let bake = aggtool::bake::BakeSettings {
-        max_res: 64,
-        min_res: 8,
-        abv_res: 32,
-        ..Default::default()
-    };
-    let agg_path = output.join("foliage.agg");
-    let t = std::time::Instant::now();
+    use aggtool::eval::demo::{demo, DemoSettings};
+    let settings = DemoSettings::default();
     let bars = TerminalProgress::new();
-    let report =
-        aggtool::bake::bake_to_file(&scene, "foliage.glb", &bake, &agg_path, &|s, d, n| {
-            bars.report(s, d, n)
-        })?;
+    let r = demo(output, &settings, &|s, d, n| bars.report(s, d, n))?;
     bars.finish();
-    let bake_s = t.elapsed().as_secs_f64();
     println!(
-        "stats: bake {bake_s:.1} s, {} levels, {:.1} MiB",
-        report.levels.len(),
-        report.bytes as f64 / 1048576.0
+        "input: generated {} ({} triangles)",
+        r.asset.display(),
+        r.triangles
     );
-    // One view (128², so one finest voxel is about one pixel), a sun and a blue sky.
-    let (c, r) = scene.bounding_sphere();
-    let mut view = View::framing(c, r, 128, 128, 64);
-    view.sun = Some(aggtool::render::view::SunDesc {
-        direction: [0.4, 1.0, 0.3],
-        irradiance: aggtool::render::view::Rgb::Scalar(3.0),
-    });
-    view.environment = Some(aggtool::render::view::EnvironmentDesc::Constant {
-        constant: aggtool::render::view::Rgb::Rgb([0.3, 0.4, 0.6]),
-    });
-    std::fs::write(
-        output.join("view.json"),
-        serde_json::to_string_pretty(&view)?,
-    )?;
-    let lights = view.lights()?;
-    let camera = view.camera();
-    let accel = Accel::build(&scene);
-    let render_ref = |spp: u32, seed: u64| {
-        reference::render(
-            &accel,
-            &camera,
-            &lights,
-            ReferenceSettings { spp, seed },
-            &|s, d, n| bars.report(s, d, n),
-        )
-    };
-    // The converged reference the two are judged against.
-    let (truth, truth_stats) = render_ref(1024, 7);
-    bars.finish();
-    truth.write_exr(&output.join("reference-1024spp.exr"))?;
-    // The LoD at 64 spp, then the reference in the same time.
-    let lod_spp = 64;
-    let t = std::time::Instant::now();
-    let lod = aggtool::runtime::LodScene::open(&agg_path)?;
-    let (lod_img, lod_stats) = aggtool::runtime::render(
-        &lod,
-        &camera,
-        &lights,
-        lod_spp,
-        1,
-        &aggtool::runtime::TraceSettings::default(),
-        &|s, d, n| bars.report(s, d, n),
-    );
-    bars.finish();
-    let lod_s = t.elapsed().as_secs_f64();
-    println!("{}", lod_stats.line("LoD"));
-    let per_spp = truth_stats.seconds / 1024.0;
-    let mut ref_spp = ((lod_s / per_spp).floor() as u32).max(1);
-    let (mut ref_img, mut ref_stats) = render_ref(ref_spp, 1);
-    if ref_stats.seconds > 1.2 * lod_s && ref_spp > 1 {
-        ref_spp = ((ref_spp as f64 * lod_s / ref_stats.seconds).floor() as u32).max(1);
-        (ref_img, ref_stats) = render_ref(ref_spp, 1);
+    for w in &r.warnings {
+        eprintln!("warning: {w}");
     }
-    bars.finish();
-    println!("{}", ref_stats.line("reference"));
-    lod_img.write_exr(&output.join("lod.exr"))?;
-    ref_img.write_exr(&output.join("reference-equal-time.exr"))?;
-    let lod_cmp = compare(&lod_img, &truth).map_err(anyhow::Error::msg)?;
-    let ref_cmp = compare(&ref_img, &truth).map_err(anyhow::Error::msg)?;
-    let (lod_diff, scale) = difference_image(&lod_img, &truth, None);
-    let (ref_diff, _) = difference_image(&ref_img, &truth, Some(scale));
-    let sbs = output.join("side-by-side.png");
-    let captions = [
-        ["reference".to_string(), "1024 spp".to_string()],
-        [
-            format!("lod {lod_spp} spp {lod_s:.2} s"),
-            format!("rmse {:.4}", lod_cmp.rmse),
-        ],
-        [
-            format!("ref {ref_spp} spp {:.2} s", ref_stats.seconds),
-            format!("rmse {:.4}", ref_cmp.rmse),
-        ],
-        ["lod difference".to_string(), format!("white = {scale:.3}")],
-        ["ref difference".to_string(), "same scale".to_string()],
-    ];
-    let (w, h) = (truth.width, truth.height);
-    let panels: Vec<(Vec<u8>, u32)> = [
-        &truth.to_srgb8(0.0),
-        &lod_img.to_srgb8(0.0),
-        &ref_img.to_srgb8(0.0),
-        &lod_diff.to_srgb8(0.0),
-        &ref_diff.to_srgb8(0.0),
-    ]
-    .iter()
-    .zip(&captions)
-    .map(|(img, c)| aggtool::render::label::with_caption(img, w, h, &[&c[0], &c[1]], 1))
-    .collect();
-    let ph = panels[0].1;
-    aggtool::film::image::side_by_side(
-        &sbs,
-        &panels.iter().map(|p| p.0.as_slice()).collect::<Vec<_>>(),
-        w,
-        ph,
-    )?;
     println!(
-        "stats: equal time: LoD {:.2} s at {lod_spp} spp, RMSE {:.4}; reference {:.2} s at {ref_spp} spp, RMSE {:.4} (against the reference at 1024 spp)",
-        lod_s, lod_cmp.rmse, ref_stats.seconds, ref_cmp.rmse
+        "stats: bake {:.1} s, {} levels, {:.1} MiB",
+        r.bake_seconds,
+        r.levels,
+        r.bytes as f64 / 1048576.0
+    );
+    println!("{}", r.lod.line("LoD"));
+    println!("{}", r.reference.line("reference"));
+    println!(
+        "stats: equal time: LoD {:.2} s at {} spp, RMSE {:.4}; reference {:.2} s at {} spp, RMSE {:.4} (against the reference at {} spp)",
+        r.lod_seconds, settings.lod_spp, r.lod_rmse, r.reference.seconds, r.reference_spp, r.reference_rmse, settings.truth_spp
     );
     println!(
-        "output: {} (reference 1024 spp | LoD | reference at equal time | differences), in {:.0} s",
-        sbs.display(),
-        t_all.elapsed().as_secs_f64()
+        "output: {} (reference {} spp | LoD | reference at equal time | differences), in {:.0} s",
+        r.picture.display(),
+        settings.truth_spp,
+        r.seconds
     );
     Ok(())
 }
