@@ -73,6 +73,40 @@ enum Command {
         #[arg(short, long, default_value = "aggtool-eval")]
         output: PathBuf,
     },
+    /// What accuracy costs: bake ASSET under every preset and under the base (--preset and
+    /// the bake flags) with one setting changed at a time (--vary), render each with the LoD
+    /// runtime against one converged reference, and write table.md, table.json and Pareto
+    /// plots of RMSE against bake seconds, MiB and render seconds. An interrupted sweep
+    /// resumes: rows finished with the same settings are reused. The paper's Table 4:
+    /// `--vary ndf_lobes=1,2,4 --vary keep=10%,1%`.
+    Sweep {
+        /// The asset (.gltf, .glb or .obj).
+        asset: PathBuf,
+        /// A bake setting and its values, NAME=V1,V2,... (repeatable); each value is applied
+        /// alone over the base. NAME is a bake setting as `inspect --json` and `convert
+        /// --report` name it (ndf_lobes, keep, energy, samples, aiv_rays, ...; dashes work
+        /// too); values are numbers, true/false or percentages (keep=1%).
+        #[arg(long)]
+        vary: Vec<String>,
+        /// Image side in pixels (level chosen by footprint); also the bakes' finest level
+        /// unless --max-res is given.
+        #[arg(long, default_value_t = 64)]
+        res: u32,
+        /// Cones per pixel of the LoD renders.
+        #[arg(long, default_value_t = 64)]
+        spp: u32,
+        /// Samples per pixel of the reference (rendered once, kept in the output folder).
+        #[arg(long, default_value_t = 1024)]
+        reference_spp: u32,
+        /// Output folder (default: sweep-STEM beside the current folder, STEM the asset's).
+        #[arg(short, long)]
+        output: Option<PathBuf>,
+        #[command(flatten)]
+        bake: BakeArgs,
+        /// Treat import warnings as errors.
+        #[arg(long)]
+        strict: bool,
+    },
     /// Render an asset, or an assembly manifest, with the reference path tracer (direct
     /// illumination) to EXR and PNG.
     Reference {
@@ -570,6 +604,105 @@ impl BakeArgs {
         s.lossless |= self.lossless;
         s
     }
+}
+
+/// `aggtool sweep`: the settings from the flags (each preset with the same flags, the base
+/// among them), one library call (`aggtool::eval::sweep`), the report.
+#[allow(clippy::too_many_arguments)]
+fn sweep(
+    asset: &Path,
+    vary: &[String],
+    res: u32,
+    spp: u32,
+    reference_spp: u32,
+    output: Option<PathBuf>,
+    bake: &BakeArgs,
+    strict: bool,
+) -> Result<()> {
+    use aggtool::bake::Preset;
+    use aggtool::eval::sweep::{sweep, RowEvent, SweepSettings, Vary};
+    if bake.max_res.is_none() && (!res.is_power_of_two() || res < 4) {
+        bail!("--res {res}: the bakes' finest level is --res, so it must be a power of two of at least 4 (or give --max-res)");
+    }
+    let settings_of = |preset: &str| {
+        let mut s = BakeArgs {
+            preset: preset.to_string(),
+            ..bake.clone()
+        }
+        .settings();
+        if bake.max_res.is_none() {
+            s.max_res = res;
+        }
+        s
+    };
+    let vary = vary
+        .iter()
+        .map(|v| Vary::parse(v))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(anyhow::Error::msg)?;
+    let settings = SweepSettings {
+        base_name: bake.preset.clone(),
+        base: settings_of(&bake.preset),
+        presets: Preset::ALL
+            .iter()
+            .map(|p| (p.name().to_string(), settings_of(p.name())))
+            .collect(),
+        vary,
+        res,
+        spp,
+        reference_spp,
+    };
+    // Refuse bad --vary names and values before importing anything.
+    let planned = aggtool::eval::sweep::plan(&settings)?;
+    let dir = output.unwrap_or_else(|| {
+        let stem = asset.file_stem().unwrap_or_default().to_string_lossy();
+        PathBuf::from(format!("sweep-{stem}"))
+    });
+    let scene = load_scene(asset, strict)?;
+    println!(
+        "input: {}: {}; {} settings, {res}² pixels, {spp} spp, reference {reference_spp} spp",
+        asset.display(),
+        scene.summary(),
+        planned.len()
+    );
+    let bars = TerminalProgress::new();
+    let on_row = |e: RowEvent| {
+        bars.finish();
+        match e {
+            RowEvent::Reference(Some(secs)) => {
+                println!("reference: rendered at {reference_spp} spp in {secs:.1} s")
+            }
+            RowEvent::Reference(None) => println!("reused: reference ({reference_spp} spp)"),
+            RowEvent::Done(r) => println!(
+                "baked: {}: bake {:.2} s, {}, render {:.2} s, RMSE {:.5}",
+                r.label,
+                r.bake_seconds,
+                mib(r.bytes),
+                r.render_seconds,
+                r.rmse
+            ),
+            RowEvent::Reused { row, same_as } => match same_as {
+                Some(o) => println!("reused: {} (same settings as {o})", row.label),
+                None => println!("reused: {} (finished earlier)", row.label),
+            },
+        }
+    };
+    let r = sweep(
+        asset,
+        &scene,
+        &settings,
+        &dir,
+        &|s, d, n| bars.report(s, d, n),
+        &on_row,
+    )?;
+    bars.finish();
+    print!("{}", std::fs::read_to_string(dir.join(&r.table_md))?);
+    println!(
+        "output: {} (table.md, table.json, {})",
+        dir.display(),
+        r.plots.join(", ")
+    );
+    Ok(())
 }
 
 fn load_scene(path: &Path, strict: bool) -> Result<Scene> {
@@ -1402,6 +1535,25 @@ fn run(cli: Cli) -> Result<()> {
             }
             Ok(())
         }
+        Command::Sweep {
+            asset,
+            vary,
+            res,
+            spp,
+            reference_spp,
+            output,
+            bake,
+            strict,
+        } => sweep(
+            &asset,
+            &vary,
+            res,
+            spp,
+            reference_spp,
+            output,
+            &bake,
+            strict,
+        ),
         Command::Flatten { asset, output } => {
             let scene = load_scene(&asset, false)?;
             let stats = aggtool::scene::flatten::flatten(&scene, &output)?;
