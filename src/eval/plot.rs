@@ -235,7 +235,13 @@ pub fn pareto_plot(
         root.present().map_err(|e| err(&e))?;
     }
     // Title and axis names.
-    texts.push((left as i32, 16, title.to_string(), 2, [0, 0, 0]));
+    // The title at twice the size where it fits.
+    let ts = if text_width(title, 2) + left < w {
+        2
+    } else {
+        1
+    };
+    texts.push((left as i32, 16, title.to_string(), ts, [0, 0, 0]));
     let xl = format!("{x_label}{}", if log_x { " (log scale)" } else { "" });
     let plot_mid = (left + (w - left - right) / 2) as i32;
     texts.push((
