@@ -69,6 +69,15 @@ enum Command {
         /// folder).
         #[arg(long)]
         agg_dir: Option<PathBuf>,
+        /// Error budget instead (issue 17): at each --res, the LoD rendered with one
+        /// approximation at a time replaced by its ground truth from the mesh (coverage, AIV
+        /// towards viewer and lights, ABV, ABSDF, visibility split, all); bakes are kept in
+        /// --agg-dir as NAME-RES.agg and reused.
+        #[arg(long, conflicts_with = "speed")]
+        budget: bool,
+        /// With --budget: oracle surface samples per voxel (at most 64).
+        #[arg(long, default_value_t = 32)]
+        budget_samples: u32,
         /// Output folder (table.md, table.json, pictures).
         #[arg(short, long, default_value = "aggtool-eval")]
         output: PathBuf,
@@ -948,6 +957,7 @@ fn eval(
     speed: Option<u32>,
     bake_res: Vec<u32>,
     agg_dir: Option<PathBuf>,
+    budget_samples: Option<u32>,
     output: &Path,
 ) -> Result<()> {
     use aggtool::eval;
@@ -994,6 +1004,48 @@ fn eval(
         for &n in gen::NAMES {
             scenes.push((n.to_string(), generated(n.to_string(), triangles)));
         }
+    }
+    if let Some(samples) = budget_samples {
+        let agg_dir = agg_dir.unwrap_or_else(|| output.to_path_buf());
+        std::fs::create_dir_all(&agg_dir)?;
+        let bars = TerminalProgress::new();
+        let mut all = Vec::new();
+        for (name, load) in &scenes {
+            let scene = load()?;
+            for &r in &res {
+                let settings = eval::budget::BudgetSettings {
+                    res: r,
+                    spp,
+                    reference_spp,
+                    samples,
+                    ..Default::default()
+                };
+                let agg = agg_dir.join(format!("{name}-{r}.agg"));
+                let b = eval::budget::budget_scene(
+                    name,
+                    &scene,
+                    &agg,
+                    &settings,
+                    output,
+                    &|s, d, n| bars.report(s, d, n),
+                )?;
+                bars.finish();
+                println!("{}", eval::budget::budget_table(std::slice::from_ref(&b)));
+                all.push(b);
+            }
+        }
+        let md = output.join("budget.md");
+        std::fs::write(&md, eval::budget::budget_table(&all))?;
+        std::fs::write(
+            output.join("budget.json"),
+            serde_json::to_string_pretty(&all)?,
+        )?;
+        println!(
+            "output: {}, budget.json and {}/NAME-budget-RES.png (top: reference and each row; bottom: differences on one scale)",
+            md.display(),
+            output.display()
+        );
+        return Ok(());
     }
     if let Some(px) = speed {
         // Each scene as a file (generated hard cases written as GLB), each bake looked up in
@@ -1160,6 +1212,8 @@ fn run(cli: Cli) -> Result<()> {
             speed,
             bake_res,
             agg_dir,
+            budget,
+            budget_samples,
             output,
         } => eval(
             &assets,
@@ -1171,6 +1225,7 @@ fn run(cli: Cli) -> Result<()> {
             speed,
             bake_res,
             agg_dir,
+            budget.then_some(budget_samples),
             &output,
         ),
         Command::Reference {

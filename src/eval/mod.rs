@@ -17,6 +17,7 @@
 //! Speed: equal-spp render time of the LoD against the reference renderer, and the RMSE each
 //! reaches in the same time (Fig. 17).
 
+pub mod budget;
 pub mod demo;
 pub mod plot;
 pub mod simplify;

@@ -367,6 +367,30 @@ impl<'s> Hits<'s> {
     /// The coverage weight of voxel `idx` of `level` for this cone.
     #[inline]
     fn weight(&self, level: &Level, idx: u32) -> f32 {
+        let vo = level.weight[idx as usize].vref.aiv(-self.cone.dir);
+        vo * self.geometric_weight(level, idx)
+    }
+
+    /// The next primitive met, with its geometric weight |A|·E|n·ω|/|B|_ω (Eq. 24's primitive
+    /// coverage, without the V̂(ω_o) of the full weight), zero or not: the error budget
+    /// ([`crate::eval::budget`]) replaces the factors of the weight one at a time.
+    pub(crate) fn next_geometric(&mut self) -> Option<(VoxelHandle<'s>, f32, f32)> {
+        let (level, li, idx, t) = self.next_primitive()?;
+        let g = crate::math::finite_or_zero(self.geometric_weight(level, idx));
+        Some((
+            VoxelHandle {
+                data: level,
+                idx,
+                level: li,
+            },
+            t,
+            g,
+        ))
+    }
+
+    /// [`Hits::weight`] without V̂(ω_o).
+    #[inline]
+    fn geometric_weight(&self, level: &Level, idx: u32) -> f32 {
         let rec = &level.hit[idx as usize];
         let w = &level.weight[idx as usize];
         let d = self.cone.dir;
@@ -389,8 +413,7 @@ impl<'s> Hits<'s> {
         if !(area_b > 0.0) {
             return 0.0;
         }
-        let vo = w.vref.aiv(-d);
-        vo * rec.area * w.mean_cosine(d) / area_b
+        rec.area * w.mean_cosine(d) / area_b
     }
 }
 

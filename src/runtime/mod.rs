@@ -443,6 +443,12 @@ impl<'s> VoxelHandle<'s> {
         self.data.weight[self.idx as usize].vref.aiv(d)
     }
 
+    /// The voxel's exposure η in [1/16, 1] (see [`VoxelHandle::incident_visibility`]).
+    #[inline]
+    pub fn exposure(&self) -> f32 {
+        1.0 / self.data.weight[self.idx as usize].inv_exposure
+    }
+
     /// The visibility to use for light arriving from `wi`: min(1, V̂(ω_i)/η), the AIV corrected
     /// for the correlation of incident and outgoing visibility by the voxel's exposure η (see
     /// the bake's interior visibility).
