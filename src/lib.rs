@@ -13,6 +13,7 @@
 //! - [`trace`]: two-level BVH ray tracing (obvhs) with alpha cut-outs;
 //! - [`bake`]: the sparse voxel hierarchy, per-voxel statistics and visibility, streamed to a file;
 //! - [`format`]: the `.agg` container and its FlatBuffers schema: writer, verifying zero-copy reader;
+//! - [`inspect`]: what a file holds (`aggtool inspect`), its settings as the bake's own;
 //! - [`runtime`]: the LoD renderer of `.agg` aggregates (cone tracing, Algorithm 1, Eq. 30);
 //! - [`film`]: the camera, images and the one image loop both renderers use;
 //! - [`lights`]: the environment and the sun, shared by the reference and the runtime;
@@ -35,6 +36,7 @@ pub mod film;
 pub mod format;
 pub mod gen;
 pub mod import;
+pub mod inspect;
 pub mod lights;
 pub mod math;
 pub mod render;

@@ -20,7 +20,7 @@ use crate::absdf::estimate::EstimateSettings;
 use level::LevelSettings;
 
 /// Settings of a whole bake (the `aggtool convert` options). Recorded in the file.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct BakeSettings {
     /// Finest and coarsest level resolution (powers of two).
     pub max_res: u32,
@@ -256,6 +256,67 @@ impl BakeSettings {
         }
     }
 
+    /// The names [`Self::with_field`] accepts, sorted: the fields as serialised (`ndf_lobes`,
+    /// `keep`, ...), which are also `convert --report`'s and `inspect --json`'s keys.
+    pub fn field_names() -> Vec<String> {
+        let mut names: Vec<String> = match serde_json::to_value(BakeSettings::default()) {
+            Ok(serde_json::Value::Object(m)) => m.keys().cloned().collect(),
+            _ => Vec::new(),
+        };
+        names.sort();
+        names
+    }
+
+    /// These settings with the field `name` (as serialised; dashes are read as underscores,
+    /// so `ndf-lobes` is `ndf_lobes`) set to `value`: a number, `true` or `false`, or a
+    /// percentage (`1%` is 0.01). The result is [validated](Self::validate). Errors name the
+    /// valid fields for an unknown name, and the expected type for a wrong value.
+    pub fn with_field(&self, name: &str, value: &str) -> Result<BakeSettings, String> {
+        use serde_json::Value;
+        let key = name.trim().replace('-', "_");
+        let mut v = serde_json::to_value(self).map_err(|e| e.to_string())?;
+        let Some(field) = v.as_object_mut().and_then(|m| m.get_mut(&key)) else {
+            return Err(format!(
+                "unknown bake setting '{name}'; the settings are: {}",
+                Self::field_names().join(", ")
+            ));
+        };
+        let value = value.trim();
+        *field = match value.strip_suffix('%').map(|p| p.trim().parse::<f64>()) {
+            Some(Ok(p)) => serde_json::json!(p / 100.0),
+            Some(Err(_)) => Value::String(value.to_string()),
+            None => serde_json::from_str(value).unwrap_or_else(|_| Value::String(value.into())),
+        };
+        let s: BakeSettings =
+            serde_json::from_value(v).map_err(|e| format!("{key}={value}: {e}"))?;
+        s.validate().map_err(|e| format!("{key}={value}: {e}"))?;
+        Ok(s)
+    }
+
+    /// The settings a file recorded, as a bake names them (the inverse of [`Self::recorded`];
+    /// the AIV weighting, which the format version fixes, is the record's alone).
+    pub fn from_recorded(r: &crate::format::RecordedSettings) -> BakeSettings {
+        BakeSettings {
+            max_res: r.max_res,
+            min_res: r.min_res,
+            samples: r.samples,
+            max_samples: r.max_samples,
+            aiv_res: r.aiv_res,
+            aiv_rays: r.aiv_rays,
+            abv_res: r.abv_res,
+            abv_rays: r.abv_rays,
+            abv_full_res: r.abv_full_res,
+            ndf_lobes: r.ndf_lobes,
+            moment_res: r.moment_res,
+            keep: r.keep,
+            energy: r.energy,
+            denoise: r.denoise,
+            keep_all_effects: r.keep_all_effects,
+            lossless: r.lossless,
+            compression: r.compression,
+        }
+    }
+
     /// The settings of one level.
     pub fn level(&self, res: u32) -> LevelSettings {
         LevelSettings {
@@ -305,6 +366,53 @@ mod tests {
             assert!(lo.samples < hi.samples && lo.aiv_rays < hi.aiv_rays);
             assert!(lo.aiv_res <= hi.aiv_res && lo.abv_res <= hi.abv_res);
             assert!(lo.abv_rays <= hi.abv_rays && lo.keep <= hi.keep);
+        }
+    }
+
+    /// `with_field` sets one field by its serialised name (dashes or underscores, numbers,
+    /// booleans, percentages), validates, and refuses unknown names with the list of valid
+    /// ones and wrong types with the field's name.
+    #[test]
+    fn with_field_sets_one_field() {
+        let d = BakeSettings::default();
+        let s = d.with_field("ndf-lobes", "1").unwrap();
+        assert_eq!(
+            s,
+            BakeSettings {
+                ndf_lobes: 1,
+                ..d.clone()
+            }
+        );
+        assert_eq!(d.with_field("keep", "1%").unwrap().keep, 0.01);
+        assert!(d.with_field("lossless", "true").unwrap().lossless);
+        let e = d.with_field("lobes", "2").unwrap_err();
+        assert!(
+            e.contains("lobes") && e.contains("ndf_lobes") && e.contains("keep"),
+            "{e}"
+        );
+        assert!(d
+            .with_field("ndf_lobes", "1.5")
+            .unwrap_err()
+            .contains("ndf_lobes"));
+        assert!(d
+            .with_field("ndf_lobes", "9")
+            .unwrap_err()
+            .contains("--ndf-lobes"));
+        assert!(d.with_field("keep", "many").is_err());
+        assert_eq!(BakeSettings::field_names().len(), 17);
+    }
+
+    /// Every preset survives the trip through the file's record unchanged.
+    #[test]
+    fn recorded_round_trip() {
+        for p in Preset::ALL {
+            let s = BakeSettings::preset(p);
+            assert_eq!(
+                BakeSettings::from_recorded(&s.recorded()),
+                s,
+                "{}",
+                p.name()
+            );
         }
     }
 

@@ -82,6 +82,40 @@ enum Command {
         #[arg(short, long, default_value = "aggtool-eval")]
         output: PathBuf,
     },
+    /// What accuracy costs: bake ASSET under every preset and under the base (--preset and
+    /// the bake flags) with one setting changed at a time (--vary), render each with the LoD
+    /// runtime against one converged reference, and write table.md, table.json and Pareto
+    /// plots of RMSE against bake seconds, MiB and render seconds. An interrupted sweep
+    /// resumes: rows finished with the same settings are reused. The paper's Table 4:
+    /// `--vary ndf_lobes=1,2,4 --vary keep=10%,1%`.
+    Sweep {
+        /// The asset (.gltf, .glb or .obj).
+        asset: PathBuf,
+        /// A bake setting and its values, NAME=V1,V2,... (repeatable); each value is applied
+        /// alone over the base. NAME is a bake setting as `inspect --json` and `convert
+        /// --report` name it (ndf_lobes, keep, energy, samples, aiv_rays, ...; dashes work
+        /// too); values are numbers, true/false or percentages (keep=1%).
+        #[arg(long)]
+        vary: Vec<String>,
+        /// Image side in pixels (level chosen by footprint); also the bakes' finest level
+        /// unless --max-res is given.
+        #[arg(long, default_value_t = 64)]
+        res: u32,
+        /// Cones per pixel of the LoD renders.
+        #[arg(long, default_value_t = 64)]
+        spp: u32,
+        /// Samples per pixel of the reference (rendered once, kept in the output folder).
+        #[arg(long, default_value_t = 1024)]
+        reference_spp: u32,
+        /// Output folder (default: sweep-STEM beside the current folder, STEM the asset's).
+        #[arg(short, long)]
+        output: Option<PathBuf>,
+        #[command(flatten)]
+        bake: BakeArgs,
+        /// Treat import warnings as errors.
+        #[arg(long)]
+        strict: bool,
+    },
     /// Render an asset, or an assembly manifest, with the reference path tracer (direct
     /// illumination) to EXR and PNG.
     Reference {
@@ -462,7 +496,7 @@ fn absdf_plot(case: &str, output: &Path, samples: u32, slice: u32, exposure: f32
         let (diff, scale) = difference_image(&ours, &gt, None);
         // Side by side: ground truth | factored | difference.
         let path = output.join(format!("absdf-{name}.png"));
-        side_by_side(
+        aggtool::film::image::side_by_side(
             &path,
             &[
                 &gt.to_srgb8(exposure),
@@ -590,6 +624,105 @@ impl BakeArgs {
     }
 }
 
+/// `aggtool sweep`: the settings from the flags (each preset with the same flags, the base
+/// among them), one library call (`aggtool::eval::sweep`), the report.
+#[allow(clippy::too_many_arguments)]
+fn sweep(
+    asset: &Path,
+    vary: &[String],
+    res: u32,
+    spp: u32,
+    reference_spp: u32,
+    output: Option<PathBuf>,
+    bake: &BakeArgs,
+    strict: bool,
+) -> Result<()> {
+    use aggtool::bake::Preset;
+    use aggtool::eval::sweep::{sweep, RowEvent, SweepSettings, Vary};
+    if bake.max_res.is_none() && (!res.is_power_of_two() || res < 4) {
+        bail!("--res {res}: the bakes' finest level is --res, so it must be a power of two of at least 4 (or give --max-res)");
+    }
+    let settings_of = |preset: &str| {
+        let mut s = BakeArgs {
+            preset: preset.to_string(),
+            ..bake.clone()
+        }
+        .settings();
+        if bake.max_res.is_none() {
+            s.max_res = res;
+        }
+        s
+    };
+    let vary = vary
+        .iter()
+        .map(|v| Vary::parse(v))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(anyhow::Error::msg)?;
+    let settings = SweepSettings {
+        base_name: bake.preset.clone(),
+        base: settings_of(&bake.preset),
+        presets: Preset::ALL
+            .iter()
+            .map(|p| (p.name().to_string(), settings_of(p.name())))
+            .collect(),
+        vary,
+        res,
+        spp,
+        reference_spp,
+    };
+    // Refuse bad --vary names and values before importing anything.
+    let planned = aggtool::eval::sweep::plan(&settings)?;
+    let dir = output.unwrap_or_else(|| {
+        let stem = asset.file_stem().unwrap_or_default().to_string_lossy();
+        PathBuf::from(format!("sweep-{stem}"))
+    });
+    let scene = load_scene(asset, strict)?;
+    println!(
+        "input: {}: {}; {} settings, {res}² pixels, {spp} spp, reference {reference_spp} spp",
+        asset.display(),
+        scene.summary(),
+        planned.len()
+    );
+    let bars = TerminalProgress::new();
+    let on_row = |e: RowEvent| {
+        bars.finish();
+        match e {
+            RowEvent::Reference(Some(secs)) => {
+                println!("reference: rendered at {reference_spp} spp in {secs:.1} s")
+            }
+            RowEvent::Reference(None) => println!("reused: reference ({reference_spp} spp)"),
+            RowEvent::Done(r) => println!(
+                "baked: {}: bake {:.2} s, {}, render {:.2} s, RMSE {:.5}",
+                r.label,
+                r.bake_seconds,
+                mib(r.bytes),
+                r.render_seconds,
+                r.rmse
+            ),
+            RowEvent::Reused { row, same_as } => match same_as {
+                Some(o) => println!("reused: {} (same settings as {o})", row.label),
+                None => println!("reused: {} (finished earlier)", row.label),
+            },
+        }
+    };
+    let r = sweep(
+        asset,
+        &scene,
+        &settings,
+        &dir,
+        &|s, d, n| bars.report(s, d, n),
+        &on_row,
+    )?;
+    bars.finish();
+    print!("{}", std::fs::read_to_string(dir.join(&r.table_md))?);
+    println!(
+        "output: {} (table.md, table.json, {})",
+        dir.display(),
+        r.plots.join(", ")
+    );
+    Ok(())
+}
+
 fn load_scene(path: &Path, strict: bool) -> Result<Scene> {
     let scene = import::load(path, ImportOptions { strict })?;
     for w in &scene.warnings {
@@ -656,65 +789,6 @@ fn run_reference(
         png_beside(output).display()
     );
     Ok(stats)
-}
-
-fn flatten(scene: &Scene, dir: &Path) -> Result<()> {
-    use std::fmt::Write as _;
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let mut per_mat: Vec<String> = vec![String::new(); scene.materials.len()];
-    let mut counts = vec![0u32; scene.materials.len()];
-    for inst in &scene.instances {
-        let m = &scene.meshes[inst.mesh as usize];
-        let nm = glam::Mat3::from(inst.transform.matrix3)
-            .inverse()
-            .transpose();
-        let out = &mut per_mat[m.material as usize];
-        let base = counts[m.material as usize];
-        for p in &m.positions {
-            let w = inst.transform.transform_point3(*p);
-            let _ = writeln!(out, "v {} {} {}", w.x, w.y, w.z);
-        }
-        let has_n = !m.normals.is_empty();
-        for n in &m.normals {
-            let w = (nm * *n).normalize_or_zero();
-            let _ = writeln!(out, "vn {} {} {}", w.x, w.y, w.z);
-        }
-        for t in &m.triangles {
-            let [a, b, c] = t.map(|i| i + base + 1);
-            if has_n {
-                let _ = writeln!(out, "f {a}//{a} {b}//{b} {c}//{c}");
-            } else {
-                let _ = writeln!(out, "f {a} {b} {c}");
-            }
-        }
-        counts[m.material as usize] += m.positions.len() as u32;
-    }
-    let mut list = Vec::new();
-    for (i, text) in per_mat.iter().enumerate() {
-        if text.is_empty() {
-            continue;
-        }
-        let file = format!("material_{i:03}.obj");
-        std::fs::write(dir.join(&file), text)?;
-        let mat = &scene.materials[i];
-        if mat.base_color_texture.is_some() || mat.has_cutout() {
-            eprintln!("warning: material '{}' has textures or cut-outs; materials.json gives only its factors", mat.name);
-        }
-        list.push(serde_json::json!({
-            "file": file,
-            "name": mat.name,
-            "base_color": [mat.base_color.x, mat.base_color.y, mat.base_color.z],
-            "metallic": mat.metallic,
-            "specular_factor": mat.specular_factor,
-            "roughness": mat.perceptual_roughness,
-        }));
-    }
-    std::fs::write(
-        dir.join("materials.json"),
-        serde_json::to_string_pretty(&list)?,
-    )?;
-    println!("output: {} ({} files)", dir.display(), list.len());
-    Ok(())
 }
 
 /// Renders an aggregate with the LoD runtime; returns (open seconds, render seconds).
@@ -912,21 +986,6 @@ fn inspect_assembly(path: &Path, json: bool) -> Result<()> {
         opt(s.unique_triangles),
         opt(s.instanced_triangles)
     );
-    Ok(())
-}
-
-/// Writes images side by side (same size) into one sRGB PNG.
-fn side_by_side(path: &Path, images: &[&[u8]], w: u32, h: u32) -> Result<()> {
-    let n = images.len() as u32;
-    let mut rgb = vec![0u8; (n * w * h * 3) as usize];
-    for (k, img) in images.iter().enumerate() {
-        for y in 0..h {
-            let src = &img[(y * w * 3) as usize..((y + 1) * w * 3) as usize];
-            let dst = ((y * n * w + k as u32 * w) * 3) as usize;
-            rgb[dst..dst + src.len()].copy_from_slice(src);
-        }
-    }
-    aggtool::film::image::write_rgb8_png(path, n * w, h, &rgb)?;
     Ok(())
 }
 
@@ -1148,143 +1207,38 @@ fn eval(
     Ok(())
 }
 
-/// The main job on a built-in scene: generate, bake, render the LoD and the reference at equal
-/// time, compare both with a converged reference.
+/// The main job on a built-in scene (`aggtool::eval::demo`), reported.
 fn demo(output: &Path) -> Result<()> {
-    use aggtool::render::reference::{self, ReferenceSettings};
-    let t_all = std::time::Instant::now();
-    std::fs::create_dir_all(output)?;
-    let settings = GenSettings {
-        triangles: 40_000,
-        ..GenSettings::default()
-    };
-    let (asset, tris) =
-        gen::write("foliage", &settings, output, false).map_err(anyhow::Error::msg)?;
-    println!("input: generated {} ({} triangles)", asset.display(), tris);
-    let scene = load_scene(&asset, false)?;
-    // Bake: 64³ finest, and 32² boundary maps to stay within the demo's time.
-    let bake = aggtool::bake::BakeSettings {
-        max_res: 64,
-        min_res: 8,
-        abv_res: 32,
-        ..Default::default()
-    };
-    let agg_path = output.join("foliage.agg");
-    let t = std::time::Instant::now();
+    use aggtool::eval::demo::{demo, DemoSettings};
+    let settings = DemoSettings::default();
     let bars = TerminalProgress::new();
-    let report =
-        aggtool::bake::bake_to_file(&scene, "foliage.glb", &bake, &agg_path, &|s, d, n| {
-            bars.report(s, d, n)
-        })?;
+    let r = demo(output, &settings, &|s, d, n| bars.report(s, d, n))?;
     bars.finish();
-    let bake_s = t.elapsed().as_secs_f64();
     println!(
-        "stats: bake {bake_s:.1} s, {} levels, {:.1} MiB",
-        report.levels.len(),
-        report.bytes as f64 / 1048576.0
+        "input: generated {} ({} triangles)",
+        r.asset.display(),
+        r.triangles
     );
-    // One view (128², so one finest voxel is about one pixel), a sun and a blue sky.
-    let (c, r) = scene.bounding_sphere();
-    let mut view = View::framing(c, r, 128, 128, 64);
-    view.sun = Some(aggtool::render::view::SunDesc {
-        direction: [0.4, 1.0, 0.3],
-        irradiance: aggtool::render::view::Rgb::Scalar(3.0),
-    });
-    view.environment = Some(aggtool::render::view::EnvironmentDesc::Constant {
-        constant: aggtool::render::view::Rgb::Rgb([0.3, 0.4, 0.6]),
-    });
-    std::fs::write(
-        output.join("view.json"),
-        serde_json::to_string_pretty(&view)?,
-    )?;
-    let lights = view.lights()?;
-    let camera = view.camera();
-    let accel = Accel::build(&scene);
-    let render_ref = |spp: u32, seed: u64| {
-        reference::render(
-            &accel,
-            &camera,
-            &lights,
-            ReferenceSettings { spp, seed },
-            &|s, d, n| bars.report(s, d, n),
-        )
-    };
-    // The converged reference the two are judged against.
-    let (truth, truth_stats) = render_ref(1024, 7);
-    bars.finish();
-    truth.write_exr(&output.join("reference-1024spp.exr"))?;
-    // The LoD at 64 spp, then the reference in the same time.
-    let lod_spp = 64;
-    let t = std::time::Instant::now();
-    let lod = aggtool::runtime::LodScene::open(&agg_path)?;
-    let (lod_img, lod_stats) = aggtool::runtime::render(
-        &lod,
-        &camera,
-        &lights,
-        lod_spp,
-        1,
-        &aggtool::runtime::TraceSettings::default(),
-        &|s, d, n| bars.report(s, d, n),
-    );
-    bars.finish();
-    let lod_s = t.elapsed().as_secs_f64();
-    println!("{}", lod_stats.line("LoD"));
-    let per_spp = truth_stats.seconds / 1024.0;
-    let mut ref_spp = ((lod_s / per_spp).floor() as u32).max(1);
-    let (mut ref_img, mut ref_stats) = render_ref(ref_spp, 1);
-    if ref_stats.seconds > 1.2 * lod_s && ref_spp > 1 {
-        ref_spp = ((ref_spp as f64 * lod_s / ref_stats.seconds).floor() as u32).max(1);
-        (ref_img, ref_stats) = render_ref(ref_spp, 1);
+    for w in &r.warnings {
+        eprintln!("warning: {w}");
     }
-    bars.finish();
-    println!("{}", ref_stats.line("reference"));
-    lod_img.write_exr(&output.join("lod.exr"))?;
-    ref_img.write_exr(&output.join("reference-equal-time.exr"))?;
-    let lod_cmp = compare(&lod_img, &truth).map_err(anyhow::Error::msg)?;
-    let ref_cmp = compare(&ref_img, &truth).map_err(anyhow::Error::msg)?;
-    let (lod_diff, scale) = difference_image(&lod_img, &truth, None);
-    let (ref_diff, _) = difference_image(&ref_img, &truth, Some(scale));
-    let sbs = output.join("side-by-side.png");
-    let captions = [
-        ["reference".to_string(), "1024 spp".to_string()],
-        [
-            format!("lod {lod_spp} spp {lod_s:.2} s"),
-            format!("rmse {:.4}", lod_cmp.rmse),
-        ],
-        [
-            format!("ref {ref_spp} spp {:.2} s", ref_stats.seconds),
-            format!("rmse {:.4}", ref_cmp.rmse),
-        ],
-        ["lod difference".to_string(), format!("white = {scale:.3}")],
-        ["ref difference".to_string(), "same scale".to_string()],
-    ];
-    let (w, h) = (truth.width, truth.height);
-    let panels: Vec<(Vec<u8>, u32)> = [
-        &truth.to_srgb8(0.0),
-        &lod_img.to_srgb8(0.0),
-        &ref_img.to_srgb8(0.0),
-        &lod_diff.to_srgb8(0.0),
-        &ref_diff.to_srgb8(0.0),
-    ]
-    .iter()
-    .zip(&captions)
-    .map(|(img, c)| aggtool::render::label::with_caption(img, w, h, &[&c[0], &c[1]], 1))
-    .collect();
-    let ph = panels[0].1;
-    side_by_side(
-        &sbs,
-        &panels.iter().map(|p| p.0.as_slice()).collect::<Vec<_>>(),
-        w,
-        ph,
-    )?;
     println!(
-        "stats: equal time: LoD {:.2} s at {lod_spp} spp, RMSE {:.4}; reference {:.2} s at {ref_spp} spp, RMSE {:.4} (against the reference at 1024 spp)",
-        lod_s, lod_cmp.rmse, ref_stats.seconds, ref_cmp.rmse
+        "stats: bake {:.1} s, {} levels, {:.1} MiB",
+        r.bake_seconds,
+        r.levels,
+        r.bytes as f64 / 1048576.0
+    );
+    println!("{}", r.lod.line("LoD"));
+    println!("{}", r.reference.line("reference"));
+    println!(
+        "stats: equal time: LoD {:.2} s at {} spp, RMSE {:.4}; reference {:.2} s at {} spp, RMSE {:.4} (against the reference at {} spp)",
+        r.lod_seconds, settings.lod_spp, r.lod_rmse, r.reference.seconds, r.reference_spp, r.reference_rmse, settings.truth_spp
     );
     println!(
-        "output: {} (reference 1024 spp | LoD | reference at equal time | differences), in {:.0} s",
-        sbs.display(),
-        t_all.elapsed().as_secs_f64()
+        "output: {} (reference {} spp | LoD | reference at equal time | differences), in {:.0} s",
+        r.picture.display(),
+        settings.truth_spp,
+        r.seconds
     );
     Ok(())
 }
@@ -1693,9 +1647,33 @@ fn run(cli: Cli) -> Result<()> {
             }
             Ok(())
         }
+        Command::Sweep {
+            asset,
+            vary,
+            res,
+            spp,
+            reference_spp,
+            output,
+            bake,
+            strict,
+        } => sweep(
+            &asset,
+            &vary,
+            res,
+            spp,
+            reference_spp,
+            output,
+            &bake,
+            strict,
+        ),
         Command::Flatten { asset, output } => {
             let scene = load_scene(&asset, false)?;
-            flatten(&scene, &output)
+            let stats = aggtool::scene::flatten::flatten(&scene, &output)?;
+            for w in &stats.warnings {
+                eprintln!("warning: {w}");
+            }
+            println!("output: {} ({} files)", output.display(), stats.files);
+            Ok(())
         }
         Command::Export { asset, output } => {
             let scene = load_scene(&asset, false)?;
@@ -1847,40 +1825,34 @@ fn convert(
     Ok(())
 }
 
+/// `inspect FILE.agg`: the library's summary, as JSON or as text.
 fn inspect(file: &Path, json: bool) -> Result<()> {
-    use aggtool::format::effects::{effect_lines, format_effects};
-    let agg = aggtool::format::Aggregate::open(file)
-        .with_context(|| format!("cannot read {}", file.display()))?;
-    let h = agg.header();
-    let s = agg.settings();
-    let levels: Vec<(u32, aggtool::format::encode::Counts)> = (0..agg.level_count())
-        .map(|l| (agg.grid(l).res, agg.counts(l)))
-        .collect();
-    let effects = effect_lines(&levels, s.keep_all_effects);
-    let summary = aggtool::format::summary(&agg, file);
+    let summary = aggtool::inspect::inspect(file)?;
     if json {
-        println!("{}", serde_json::to_string_pretty(&summary)?);
+        // Through a JSON value, whose maps keep their keys sorted: the same output as always.
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::to_value(&summary)?)?
+        );
         return Ok(());
     }
-    let level_info = summary["levels"].as_array().cloned().unwrap_or_default();
-    let (lo, hi) = agg.bounds();
-    let (tables_version, tables_crc32) = agg.tables();
+    let sm = &summary;
+    let s = &sm.settings.bake;
     println!(
-        "{}: aggtool format {}.{}, {} bytes, written by {}",
+        "{}: aggtool format {}, {} bytes, written by {}",
         file.display(),
-        h.major,
-        h.minor,
-        h.file_size,
-        agg.generator()
+        sm.format,
+        sm.bytes,
+        sm.generator
     );
     println!(
         "source: {}; bounds {:?} to {:?}; tables v{} (crc32 {:08x}{})",
-        agg.source(),
-        lo.to_array(),
-        hi.to_array(),
-        tables_version,
-        tables_crc32,
-        if tables_crc32 == crc32fast::hash(aggtool::tables::EMBEDDED) {
+        sm.source,
+        sm.bounds[0],
+        sm.bounds[1],
+        sm.tables_version,
+        sm.tables_crc32,
+        if sm.same_tables() {
             ", same as this build"
         } else {
             ", NOT the tables of this build"
@@ -1889,7 +1861,7 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
     println!(
         "settings: max-res {} min-res {} samples {} (max {}) aiv {}² × {} rays/sample ({}-weighted), abv {}² × {} rays/cell{}, ndf-lobes {}, moment-res {}, keep {} energy {}{}",
         s.max_res, s.min_res, s.samples, s.max_samples, s.aiv_res, s.aiv_rays,
-        if s.aiv_weighting == aggtool::format::AivWeighting::ProjectedArea { "projected-area" } else { "area" },
+        if sm.settings.aiv_weighting == aggtool::format::AivWeighting::ProjectedArea { "projected-area" } else { "area" },
         s.abv_res, s.abv_rays,
         match s.abv_full_res {
             0 => String::new(),
@@ -1898,7 +1870,7 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
         s.ndf_lobes, s.moment_res, s.keep, s.energy,
         if s.keep_all_effects { ", keep-all-effects" } else { "" }
     );
-    if h.minor >= 4 {
+    if sm.minor >= 4 {
         println!(
             "layout: {}{}",
             if s.lossless {
@@ -1916,18 +1888,17 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
         "{:>6} {:>10} {:>10} {:>7} {:>7} {:>12} {:>12} {:>6}",
         "level", "voxels", "faces", "vblocks", "fblocks", "bytes", "inflated", "ratio"
     );
-    for l in &level_info {
+    for l in &sm.levels {
         println!(
             "{:>5}³ {:>10} {:>10} {:>7} {:>7} {:>12} {:>12} {:>5.2}×",
-            // As numbers: serde_json's Display ignores the widths.
-            l["res"].as_u64().unwrap_or(0),
-            l["voxels"].as_u64().unwrap_or(0),
-            l["faces"].as_u64().unwrap_or(0),
-            l["voxel_blocks"].as_u64().unwrap_or(0),
-            l["face_blocks"].as_u64().unwrap_or(0),
-            l["bytes"].as_u64().unwrap_or(0),
-            l["inflated_bytes"].as_u64().unwrap_or(0),
-            l["compression_ratio"].as_f64().unwrap_or(1.0)
+            l.res,
+            l.voxels,
+            l.faces,
+            l.voxel_blocks,
+            l.face_blocks,
+            l.bytes,
+            l.inflated_bytes,
+            l.compression_ratio
         );
     }
     println!("bytes per component (payloads, without FlatBuffers headers and padding):");
@@ -1935,28 +1906,23 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
         "{:>6} {:>10} {:>10} {:>10} {:>11} {:>10} {:>11} {:>9}  layout",
         "level", "records", "lobes", "moments", "AIV nodes", "faces", "ABV nodes", "other"
     );
-    for l in &level_info {
-        let c = &l["components"];
-        let u = |k: &str| c[k].as_u64().unwrap_or(0);
+    for l in &sm.levels {
+        let c = &l.components;
         println!(
             "{:>5}³ {:>10} {:>10} {:>10} {:>11} {:>10} {:>11} {:>9}  {}",
-            l["res"].as_u64().unwrap_or(0),
-            u("voxels"),
-            u("lobes"),
-            u("moments") + u("dielectric_moments"),
-            u("aiv_nodes"),
-            u("faces"),
-            u("abv_nodes"),
-            u("keys") + u("exposure"),
-            if l["quantized"] == true {
-                "quantized"
-            } else {
-                "float"
-            }
+            l.res,
+            c.voxels,
+            c.lobes,
+            c.moments + c.dielectric_moments,
+            c.aiv_nodes,
+            c.faces,
+            c.abv_nodes,
+            c.keys + c.exposure,
+            if l.quantized { "quantized" } else { "float" }
         );
     }
     println!("effects:");
-    print!("{}", format_effects(&effects));
+    print!("{}", aggtool::format::effects::format_effects(&sm.effects));
     Ok(())
 }
 

@@ -18,7 +18,10 @@
 //! reaches in the same time (Fig. 17).
 
 pub mod budget;
+pub mod demo;
+pub mod plot;
 pub mod simplify;
+pub mod sweep;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;

@@ -224,6 +224,21 @@ pub fn write_rgb8_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Resul
     })
 }
 
+/// Places equally sized sRGB8 images (`w × h` pixels each) side by side, left to right, and
+/// writes them as one PNG, atomically: the demo's and `absdf-plot`'s pictures.
+pub fn side_by_side(path: &Path, images: &[&[u8]], w: u32, h: u32) -> Result<(), ImageError> {
+    let n = images.len() as u32;
+    let mut rgb = vec![0u8; (n * w * h * 3) as usize];
+    for (k, img) in images.iter().enumerate() {
+        for y in 0..h {
+            let src = &img[(y * w * 3) as usize..((y + 1) * w * 3) as usize];
+            let dst = ((y * n * w + k as u32 * w) * 3) as usize;
+            rgb[dst..dst + src.len()].copy_from_slice(src);
+        }
+    }
+    write_rgb8_png(path, n * w, h, &rgb)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -242,5 +257,18 @@ mod tests {
         // Only the two outputs remain: no temporary files.
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
         assert!(Image::read_exr(&dir.path().join("missing.exr")).is_err());
+    }
+
+    /// Two 2×1 images side by side: the first fills columns 0–1 of each row, the second 2–3.
+    #[test]
+    fn side_by_side_places_images_left_to_right() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = ([10u8; 2 * 3], [200u8; 2 * 3]);
+        let path = dir.path().join("s.png");
+        side_by_side(&path, &[&a, &b], 2, 1).unwrap();
+        let img = ::image::open(&path).unwrap().to_rgb8();
+        assert_eq!(img.dimensions(), (4, 1));
+        let row: Vec<u8> = img.pixels().map(|p| p[0]).collect();
+        assert_eq!(row, [10, 10, 200, 200]);
     }
 }

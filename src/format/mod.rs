@@ -29,13 +29,11 @@ pub mod part;
 pub mod quantize;
 pub mod read;
 pub mod settings;
-pub mod summary;
 
 pub use aggregate_generated::aggtool::format as fb;
 pub use level::{FaceData, LevelData, VoxelData};
 pub use read::{Aggregate, VoxelRef};
 pub use settings::{AivWeighting, RecordedSettings};
-pub use summary::summary;
 
 use std::fs::File;
 use std::io::{BufWriter, Seek, SeekFrom, Write};

@@ -128,6 +128,9 @@ fn glyph(c: char) -> Option<[&'static str; 7]> {
         '-' => [
             ".....", ".....", ".....", "#####", ".....", ".....", ".....",
         ],
+        '_' => [
+            ".....", ".....", ".....", ".....", ".....", ".....", "#####",
+        ],
         '+' => [
             ".....", "..#..", "..#..", "#####", "..#..", "..#..", ".....",
         ],
@@ -241,7 +244,7 @@ mod tests {
 
     #[test]
     fn every_glyph_is_five_by_seven_and_text_is_clipped() {
-        for c in "ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789.,:=-+%/()@³² ".chars() {
+        for c in "ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789.,:=-_+%/()@³² ".chars() {
             let g = glyph(c).unwrap_or_else(|| panic!("no glyph for {c:?}"));
             assert!(g.iter().all(|r| r.len() == 5), "{c:?}");
         }

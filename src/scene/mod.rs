@@ -5,6 +5,7 @@
 //! several glTF nodes (or by `EXT_mesh_gpu_instancing`) is never copied.
 
 pub mod export;
+pub mod flatten;
 pub mod material;
 pub mod texture;
 

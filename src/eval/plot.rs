@@ -1,0 +1,331 @@
+//! Pareto plots for `aggtool sweep`: error against a cost, one point per setting, the presets
+//! marked, the Pareto front drawn. Shapes and lines are drawn by the `plotters` crate on its
+//! bitmap backend (plotters.rs docs: `BitMapBackend::with_buffer`, `ChartBuilder`,
+//! `ChartContext::backend_coord`); text by our own 5×7 font ([`crate::render::label`]), which
+//! keeps plotters' font stack (font-kit or ab_glyph and a font file) out of the build.
+
+use std::path::Path;
+
+use anyhow::{anyhow, Result};
+use plotters::prelude::*;
+
+use crate::film::image::write_rgb8_png;
+use crate::render::label::{draw_text, line_height, text_width};
+
+/// One point of a plot.
+#[derive(Clone, Debug)]
+pub struct Point {
+    /// The cost (x) and the error (y).
+    pub x: f64,
+    pub y: f64,
+    /// Written beside the point.
+    pub label: String,
+    /// Drawn as a square in the preset colour (a circle otherwise).
+    pub marked: bool,
+}
+
+/// Which points lie on the Pareto front of lower `y` at lower `x`: those that no other point
+/// dominates (at most its x and at most its y, one of them strictly). Non-finite points are
+/// never on it.
+pub fn pareto_front(points: &[(f64, f64)]) -> Vec<bool> {
+    points
+        .iter()
+        .map(|&(x, y)| {
+            x.is_finite()
+                && y.is_finite()
+                && !points
+                    .iter()
+                    .any(|&(u, v)| u <= x && v <= y && (u < x || v < y))
+        })
+        .collect()
+}
+
+/// Round tick values covering `lo..hi`: steps of 1, 2 or 5 times a power of ten, about
+/// `count` of them.
+fn linear_ticks(lo: f64, hi: f64, count: usize) -> Vec<f64> {
+    let span = (hi - lo).max(1e-12);
+    let raw = span / count.max(1) as f64;
+    let p = 10f64.powf(raw.log10().floor());
+    let step = [1.0, 2.0, 5.0, 10.0]
+        .into_iter()
+        .map(|m| m * p)
+        .find(|s| *s >= raw)
+        .unwrap_or(10.0 * p);
+    // Integer multiples of the step, so that errors do not accumulate.
+    let first = (lo / step).ceil() as i64;
+    (first..)
+        .map(|k| k as f64 * step)
+        .take_while(|t| *t <= hi + 1e-9 * span)
+        .collect()
+}
+
+/// A tick's text: few digits, no trailing zeros.
+fn tick_text(v: f64) -> String {
+    let s = if v != 0.0 && (v.abs() >= 1e4 || v.abs() < 1e-3) {
+        format!("{v:.1e}")
+    } else {
+        format!("{v:.4}")
+    };
+    if s.contains('.') && !s.contains('e') {
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        s
+    }
+}
+
+/// Writes a scatter plot of `points` (x: `x_label`, y: `y_label`) with the Pareto front as a
+/// line and each point labelled, as a PNG (atomically). The x axis is logarithmic when the
+/// costs span more than a factor of 20.
+pub fn pareto_plot(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    points: &[Point],
+) -> Result<()> {
+    let (w, h) = (960u32, 640u32);
+    let (left, right, top, bottom) = (90u32, 150u32, 50u32, 60u32);
+    let finite: Vec<&Point> = points
+        .iter()
+        .filter(|p| p.x.is_finite() && p.y.is_finite())
+        .collect();
+    let (xmin, xmax) = finite
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.x), b.max(p.x)));
+    let (ymin, ymax) = finite
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.y), b.max(p.y)));
+    let log_x = !finite.is_empty() && xmin > 0.0 && xmax / xmin > 20.0;
+    let tx = |x: f64| if log_x { x.log10() } else { x };
+    let pad = |lo: f64, hi: f64| {
+        let s = if hi > lo { hi - lo } else { hi.abs().max(1e-3) };
+        (lo - 0.08 * s, hi + 0.08 * s)
+    };
+    let (x0, x1) = if finite.is_empty() {
+        (0.0, 1.0)
+    } else {
+        pad(tx(xmin), tx(xmax))
+    };
+    let (y0, y1) = if finite.is_empty() {
+        (0.0, 1.0)
+    } else {
+        let (a, b) = pad(ymin, ymax);
+        (a.max(0.0), b)
+    };
+    let front = pareto_front(&points.iter().map(|p| (p.x, p.y)).collect::<Vec<_>>());
+    let preset = RGBColor(200, 60, 40);
+    let varied = RGBColor(40, 90, 200);
+    let grey = RGBColor(150, 150, 150);
+    let light = RGBColor(225, 225, 225);
+    let err = |e: &dyn std::fmt::Display| anyhow!("plotting {}: {e}", path.display());
+    let mut rgb = vec![255u8; (w * h * 3) as usize];
+    // Texts to draw once plotters has let go of the buffer: (x, y, text, scale, colour).
+    let mut texts: Vec<(i32, i32, String, u32, [u8; 3])> = Vec::new();
+    let x_ticks: Vec<(f64, String)> = if log_x {
+        let (a, b) = (x0.floor() as i32, x1.ceil() as i32);
+        (a..=b)
+            .flat_map(|k| [1.0, 2.0, 5.0].map(|m| m * 10f64.powi(k)))
+            .filter(|v| (x0..=x1).contains(&v.log10()))
+            .map(|v| (v.log10(), tick_text(v)))
+            .collect()
+    } else {
+        linear_ticks(x0, x1, 6)
+            .into_iter()
+            .map(|v| (v, tick_text(v)))
+            .collect()
+    };
+    let y_ticks: Vec<(f64, String)> = linear_ticks(y0, y1, 6)
+        .into_iter()
+        .map(|v| (v, tick_text(v)))
+        .collect();
+    {
+        let root = BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area();
+        let mut chart = ChartBuilder::on(&root)
+            .margin_left(left)
+            .margin_right(right)
+            .margin_top(top)
+            .margin_bottom(bottom)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(|e| err(&e))?;
+        // Grid and frame.
+        let grid = x_ticks
+            .iter()
+            .map(|(x, _)| vec![(*x, y0), (*x, y1)])
+            .chain(y_ticks.iter().map(|(y, _)| vec![(x0, *y), (x1, *y)]));
+        chart
+            .draw_series(grid.map(|p| PathElement::new(p, light)))
+            .map_err(|e| err(&e))?;
+        chart
+            .draw_series(std::iter::once(Rectangle::new(
+                [(x0, y0), (x1, y1)],
+                BLACK.stroke_width(1),
+            )))
+            .map_err(|e| err(&e))?;
+        // The Pareto front, left to right.
+        let mut fp: Vec<(f64, f64)> = points
+            .iter()
+            .zip(&front)
+            .filter(|(_, f)| **f)
+            .map(|(p, _)| (tx(p.x), p.y))
+            .collect();
+        fp.sort_by(|a, b| a.0.total_cmp(&b.0));
+        chart
+            .draw_series(LineSeries::new(fp, grey.stroke_width(2)))
+            .map_err(|e| err(&e))?;
+        // Points: squares for presets, circles otherwise.
+        let mut spots: Vec<(i32, i32)> = Vec::new();
+        for p in &finite {
+            let at = (tx(p.x), p.y);
+            if p.marked {
+                chart
+                    .draw_series(std::iter::once(
+                        EmptyElement::at(at) + Rectangle::new([(-5, -5), (5, 5)], preset.filled()),
+                    ))
+                    .map_err(|e| err(&e))?;
+            } else {
+                chart
+                    .draw_series(std::iter::once(Circle::new(at, 5, varied.filled())))
+                    .map_err(|e| err(&e))?;
+            }
+            // Labels of points that land on the same spot stack downwards.
+            let (px, py) = chart.backend_coord(&at);
+            let k = spots
+                .iter()
+                .filter(|(x, y)| (x - px).abs() <= 3 && (y - py).abs() <= 3)
+                .count() as i32;
+            spots.push((px, py));
+            let c = if p.marked {
+                [150, 40, 25]
+            } else {
+                [25, 60, 150]
+            };
+            let dy = k * line_height(1) as i32;
+            texts.push((px + 8, py - 4 + dy, p.label.clone(), 1, c));
+        }
+        // Tick labels.
+        for (x, t) in &x_ticks {
+            let (px, py) = chart.backend_coord(&(*x, y0));
+            let tw = text_width(t, 1) as i32;
+            texts.push((px - tw / 2, py + 6, t.clone(), 1, [0, 0, 0]));
+        }
+        for (y, t) in &y_ticks {
+            let (px, py) = chart.backend_coord(&(x0, *y));
+            let tw = text_width(t, 1) as i32;
+            texts.push((px - tw - 6, py - 3, t.clone(), 1, [0, 0, 0]));
+        }
+        // Legend, right of the plot.
+        let lx = (w - right + 14) as i32;
+        let ly = top as i32 + 10;
+        root.draw(&Rectangle::new(
+            [(lx, ly), (lx + 10, ly + 10)],
+            preset.filled(),
+        ))
+        .map_err(|e| err(&e))?;
+        root.draw(&Circle::new((lx + 5, ly + 30), 5, varied.filled()))
+            .map_err(|e| err(&e))?;
+        root.draw(&PathElement::new(
+            vec![(lx, ly + 55), (lx + 12, ly + 55)],
+            grey.stroke_width(2),
+        ))
+        .map_err(|e| err(&e))?;
+        texts.push((lx + 18, ly + 2, "preset".into(), 1, [0, 0, 0]));
+        texts.push((lx + 18, ly + 27, "one setting".into(), 1, [0, 0, 0]));
+        texts.push((lx + 18, ly + 36, "varied".into(), 1, [0, 0, 0]));
+        texts.push((lx + 18, ly + 52, "pareto front".into(), 1, [0, 0, 0]));
+        root.present().map_err(|e| err(&e))?;
+    }
+    // Title and axis names.
+    // The title at twice the size where it fits.
+    let ts = if text_width(title, 2) + left < w {
+        2
+    } else {
+        1
+    };
+    texts.push((left as i32, 16, title.to_string(), ts, [0, 0, 0]));
+    let xl = format!("{x_label}{}", if log_x { " (log scale)" } else { "" });
+    let plot_mid = (left + (w - left - right) / 2) as i32;
+    texts.push((
+        plot_mid - text_width(&xl, 2) as i32 / 2,
+        (h - bottom + 24) as i32,
+        xl,
+        2,
+        [0, 0, 0],
+    ));
+    texts.push((8, top as i32 - 18, y_label.to_string(), 2, [0, 0, 0]));
+    for (x, y, t, scale, c) in texts {
+        if x >= 0 && y >= 0 && y + (line_height(scale) as i32) <= h as i32 {
+            draw_text(&mut rgb, w, h, x as u32, y as u32, &t, scale, c);
+        }
+    }
+    write_rgb8_png(path, w, h, &rgb)?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pareto_front_keeps_undominated_points() {
+        // (1, 3) and (2, 1) trade off; (3, 2) is dominated by (2, 1); (2, 1) twice are both on
+        // it; NaN never is.
+        let f = pareto_front(&[
+            (1.0, 3.0),
+            (2.0, 1.0),
+            (3.0, 2.0),
+            (2.0, 1.0),
+            (f64::NAN, 0.0),
+        ]);
+        assert_eq!(f, [true, true, false, true, false]);
+    }
+
+    #[test]
+    fn ticks_are_round_and_cover_the_range() {
+        // Within rounding (0.6 is 3 × 0.2 in binary); the text rounds to 4 digits.
+        let t = linear_ticks(0.0, 1.0, 5);
+        let want = [0.0, 0.2, 0.4, 0.6, 0.8, 1.0];
+        assert!(
+            t.len() == 6 && t.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-12),
+            "{t:?}"
+        );
+        assert_eq!(tick_text(t[3]), "0.6");
+        let t = linear_ticks(0.0213, 0.0377, 6);
+        assert!(
+            t.len() >= 3 && t.iter().all(|v| (0.0213..=0.0377).contains(v)),
+            "{t:?}"
+        );
+        assert_eq!(tick_text(0.25), "0.25");
+        assert_eq!(tick_text(12.0), "12");
+    }
+
+    /// A plot is a PNG of the stated size with coloured points on it; one point, equal
+    /// points and a wide range of costs (log axis) all draw.
+    #[test]
+    fn plot_writes_a_png() {
+        let dir = tempfile::tempdir().unwrap();
+        let pts = |xs: &[f64]| -> Vec<Point> {
+            xs.iter()
+                .enumerate()
+                .map(|(i, &x)| Point {
+                    x,
+                    y: 0.01 * (i + 1) as f64,
+                    label: format!("p{i}"),
+                    marked: i == 0,
+                })
+                .collect()
+        };
+        for (k, xs) in [vec![1.0], vec![1.0, 1.0], vec![0.5, 3.0, 200.0]]
+            .iter()
+            .enumerate()
+        {
+            let path = dir.path().join(format!("p{k}.png"));
+            pareto_plot(&path, "title", "bake seconds", "rmse", &pts(xs)).unwrap();
+            let img = ::image::open(&path).unwrap().to_rgb8();
+            assert_eq!(img.dimensions(), (960, 640));
+            assert!(
+                img.pixels().any(|p| p.0 == [200, 60, 40]),
+                "preset square drawn"
+            );
+        }
+    }
+}
