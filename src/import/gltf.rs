@@ -56,11 +56,17 @@ pub fn load(path: &Path) -> Result<Scene, ImportError> {
         path: path.to_path_buf(),
         source,
     })?;
+    load_slice(&bytes, path)
+}
+
+/// [`load`] on the bytes of a `.gltf` or `.glb` already in memory; `path` names the file in
+/// errors and places relative URIs.
+pub fn load_slice(bytes: &[u8], path: &Path) -> Result<Scene, ImportError> {
     let parse_err = |message: String| ImportError::Parse {
         path: path.to_path_buf(),
         message,
     };
-    let gltf = gltf::Gltf::from_slice_without_validation(&bytes)
+    let gltf = gltf::Gltf::from_slice_without_validation(bytes)
         .map_err(|e| parse_err(format!("not a valid glTF file: {e}")))?;
     validate(&gltf.document).map_err(parse_err)?;
 
