@@ -34,6 +34,13 @@ const SUPPORTED_REQUIRED: &[&str] = &[
 /// Deepest node hierarchy we follow (a cycle is an error long before this).
 const MAX_DEPTH: usize = 256;
 
+/// Most elements an accessor without a buffer view may declare. Such an accessor is zeros
+/// (then its sparse values) and its `count` is bounded by no data in the file, so a few bytes
+/// of JSON could otherwise ask for any amount of memory (found by fuzz/fuzz_targets/
+/// gltf_accessors.rs). 2²² elements, 64 MiB as VEC4 floats, is far more than the attributes we
+/// read ever hold without data.
+const MAX_VIEWLESS_ELEMENTS: usize = 1 << 22;
+
 struct Ctx<'a> {
     path: &'a Path,
     base: PathBuf,
@@ -223,6 +230,12 @@ fn read_uri(ctx: &Ctx, uri: &str, element: &str) -> Result<Vec<u8>, ImportError>
         return Err(ctx.err(element, format!("external URI '{uri}' is not a local file")));
     }
     let file = ctx.base.join(percent_decode(uri));
+    // Only regular files: a URI naming /dev/zero, a FIFO or a terminal would never end.
+    let meta = std::fs::metadata(&file)
+        .map_err(|e| ctx.err(element, format!("cannot read {}: {e}", file.display())))?;
+    if !meta.is_file() {
+        return Err(ctx.err(element, format!("{} is not a regular file", file.display())));
+    }
     std::fs::read(&file)
         .map_err(|e| ctx.err(element, format!("cannot read {}: {e}", file.display())))
 }
@@ -385,6 +398,14 @@ fn read_accessor(
             view.stride(),
             &mut out,
         )?,
+        None if count > MAX_VIEWLESS_ELEMENTS => {
+            return Err(ctx.err(
+                element,
+                format!(
+                    "accessor has no buffer view and declares {count} elements (at most {MAX_VIEWLESS_ELEMENTS} are accepted without data)"
+                ),
+            ))
+        }
         None => out.resize(count * dims, 0.0),
     }
     if let Some(sparse) = acc.sparse() {
@@ -626,20 +647,30 @@ fn gpu_instances(
         .get("attributes")
         .and_then(|a| a.as_object())
         .ok_or_else(|| ctx.err(&element, "missing 'attributes'"))?;
-    let read = |name: &str| -> Result<Option<(Vec<f32>, usize)>, ImportError> {
+    // Each attribute with the width the extension specifies (VEC3, VEC4, VEC3); another width
+    // is an error, not a short read (a SCALAR TRANSLATION once panicked here: found by
+    // fuzz/fuzz_targets/gltf_accessors.rs).
+    let read = |name: &str, width: usize| -> Result<Option<(Vec<f32>, usize)>, ImportError> {
         match attrs.get(name).and_then(|v| v.as_u64()) {
             None => Ok(None),
             Some(i) => {
                 let acc = doc.accessors().nth(i as usize).ok_or_else(|| {
                     ctx.err(&element, format!("{name} accessor {i} does not exist"))
                 })?;
-                read_accessor(ctx, &acc, &format!("{element} {name}")).map(Some)
+                let (v, d) = read_accessor(ctx, &acc, &format!("{element} {name}"))?;
+                if d != width {
+                    return Err(ctx.err(
+                        &element,
+                        format!("{name} accessor {i} has {d} components per element, not {width}"),
+                    ));
+                }
+                Ok(Some((v, d)))
             }
         }
     };
-    let t = read("TRANSLATION")?;
-    let r = read("ROTATION")?;
-    let s = read("SCALE")?;
+    let t = read("TRANSLATION", 3)?;
+    let r = read("ROTATION", 4)?;
+    let s = read("SCALE", 3)?;
     let count = [&t, &r, &s]
         .iter()
         .filter_map(|x| x.as_ref().map(|(v, d)| v.len() / d))
@@ -654,7 +685,6 @@ fn gpu_instances(
             .map(|c| Vec3::new(c[0], c[1], c[2]))
             .unwrap_or(Vec3::ZERO);
         let ro = get(&r, i)
-            .filter(|c| c.len() >= 4)
             .map(|c| Quat::from_xyzw(c[0], c[1], c[2], c[3]).normalize())
             .unwrap_or(Quat::IDENTITY);
         let sc = get(&s, i)
