@@ -30,8 +30,10 @@ fn files(kind: &str) -> Vec<String> {
 ///   TRANSLATION accessor of type SCALAR was read as VEC3: index out of bounds.
 /// - `viewless-huge-count.gltf` (gltf_accessors): an accessor without a buffer view (zeros plus
 ///   one sparse value) declaring 2³² − 1 VEC3 elements: a 48 GiB allocation from 500 bytes.
+/// - `position-no-accessor.gltf` (gltf, minimised by hand from a mutated GLB): a POSITION
+///   naming an accessor that does not exist panicked inside gltf-json's own validation.
 /// - `uri-dev-zero.gltf` (seen while writing the `gltf` target, which lets URIs reach the file
-///   system): a buffer URI naming /dev/zero was read forever.
+///   system): a buffer URI naming /dev/zero was read until memory ran out.
 #[test]
 fn gltf_regressions_give_clean_errors() {
     let cases = [
@@ -42,6 +44,10 @@ fn gltf_regressions_give_clean_errors() {
         (
             "viewless-huge-count.gltf",
             "no buffer view and declares 4294967295 elements",
+        ),
+        (
+            "position-no-accessor.gltf",
+            "POSITION: accessor 0 does not exist (0 accessors)",
         ),
         ("uri-dev-zero.gltf", "/dev/zero"),
     ];

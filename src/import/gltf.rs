@@ -163,8 +163,25 @@ pub fn load_slice(bytes: &[u8], path: &Path) -> Result<Scene, ImportError> {
 /// The crate's validation, keeping the checks and dropping the complaint about required
 /// extensions that we implement ourselves.
 fn validate(doc: &gltf::Document) -> Result<(), String> {
-    use gltf::json::validation::Validate;
+    use gltf::json::validation::{Checked, Validate};
     let root = doc.as_json();
+    // gltf-json 1.4's primitive check indexes `accessors` with POSITION before the index is
+    // checked, so a POSITION naming no accessor panics inside `validate` (found by
+    // fuzz/fuzz_targets/gltf.rs): look first.
+    let position = Checked::Valid(gltf::json::mesh::Semantic::Positions);
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, prim) in mesh.primitives.iter().enumerate() {
+            if let Some(a) = prim.attributes.get(&position) {
+                if a.value() >= root.accessors.len() {
+                    return Err(format!(
+                        "invalid glTF: meshes[{m}].primitives[{p}].attributes.POSITION: accessor {} does not exist ({} accessors)",
+                        a.value(),
+                        root.accessors.len()
+                    ));
+                }
+            }
+        }
+    }
     let mut errors = Vec::new();
     root.validate(root, gltf::json::Path::new, &mut |path, error| {
         let p = path().to_string();
