@@ -26,6 +26,13 @@ fn files(kind: &str) -> Vec<String> {
 }
 
 /// glTF importer: (file, what its error must say).
+/// - `glb-length-below-header.glb` (gltf, minimised by hand): a GLB header declaring a total
+///   length under its own 12 bytes; the `gltf` crate's reader subtracted unchecked (a panic
+///   where overflow checks are on).
+/// - `image-view-no-mimetype.gltf` (gltf, minimised by hand): a texture's image in a
+///   bufferView without the mimeType the spec requires; the `gltf` crate unwraps it.
+/// - `image-no-source.gltf` (the same unwrap's other branch, seen in the crate's code): an
+///   image with neither a uri nor a bufferView.
 /// - `instancing-scalar-translation.gltf` (gltf_accessors): an EXT_mesh_gpu_instancing
 ///   TRANSLATION accessor of type SCALAR was read as VEC3: index out of bounds.
 /// - `viewless-huge-count.gltf` (gltf_accessors): an accessor without a buffer view (zeros plus
@@ -37,6 +44,18 @@ fn files(kind: &str) -> Vec<String> {
 #[test]
 fn gltf_regressions_give_clean_errors() {
     let cases = [
+        (
+            "glb-length-below-header.glb",
+            "the GLB header declares 0 bytes, fewer than its own 12",
+        ),
+        (
+            "image-view-no-mimetype.gltf",
+            "images[0]: an image in a bufferView needs a mimeType",
+        ),
+        (
+            "image-no-source.gltf",
+            "images[0]: neither a uri nor a bufferView",
+        ),
         (
             "instancing-scalar-translation.gltf",
             "TRANSLATION accessor 1 has 1 components per element, not 3",

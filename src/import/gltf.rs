@@ -73,6 +73,17 @@ pub fn load_slice(bytes: &[u8], path: &Path) -> Result<Scene, ImportError> {
         path: path.to_path_buf(),
         message,
     };
+    // gltf 1.4's GLB reader subtracts the 12-byte header from the length the header declares
+    // without a check (an overflow panic where overflow checks are on, as in debug and fuzz
+    // builds; found by fuzz/fuzz_targets/gltf.rs): refuse such a header first.
+    if let [b'g', b'l', b'T', b'F', _, _, _, _, l0, l1, l2, l3, ..] = *bytes {
+        let declared = u32::from_le_bytes([l0, l1, l2, l3]);
+        if declared < 12 {
+            return Err(parse_err(format!(
+                "not a valid glTF file: the GLB header declares {declared} bytes, fewer than its own 12"
+            )));
+        }
+    }
     let gltf = gltf::Gltf::from_slice_without_validation(bytes)
         .map_err(|e| parse_err(format!("not a valid glTF file: {e}")))?;
     validate(&gltf.document).map_err(parse_err)?;
@@ -180,6 +191,21 @@ fn validate(doc: &gltf::Document) -> Result<(), String> {
                     ));
                 }
             }
+        }
+    }
+    // The `gltf` crate's `Image::source` unwraps a bufferView image's mimeType (which the spec
+    // requires) and an image's uri when it has no bufferView; gltf-json checks neither (found
+    // by fuzz/fuzz_targets/gltf.rs).
+    for (i, image) in root.images.iter().enumerate() {
+        if image.buffer_view.is_some() && image.mime_type.is_none() {
+            return Err(format!(
+                "invalid glTF: images[{i}]: an image in a bufferView needs a mimeType"
+            ));
+        }
+        if image.buffer_view.is_none() && image.uri.is_none() {
+            return Err(format!(
+                "invalid glTF: images[{i}]: neither a uri nor a bufferView"
+            ));
         }
     }
     let mut errors = Vec::new();
