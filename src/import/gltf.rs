@@ -359,9 +359,10 @@ fn read_component(bytes: &[u8], t: DataType, normalized: bool) -> f32 {
     }
 }
 
-/// Reads `count` elements of `dims` components laid out from `offset` in `view` with `stride`.
+/// Reads `count` elements of `dims` components of type `t` laid out from `offset` in `view`
+/// with `stride`, each component converted by `read` (given its bytes).
 #[allow(clippy::too_many_arguments)]
-fn read_elements(
+fn read_elements<T>(
     ctx: &Ctx,
     element: &str,
     view: &gltf::buffer::View,
@@ -369,9 +370,9 @@ fn read_elements(
     count: usize,
     dims: usize,
     t: DataType,
-    normalized: bool,
     stride: Option<usize>,
-    out: &mut Vec<f32>,
+    read: impl Fn(&[u8]) -> T,
+    out: &mut Vec<T>,
 ) -> Result<(), ImportError> {
     let csize = component_size(t);
     let esize = dims * csize;
@@ -405,7 +406,7 @@ fn read_elements(
         let e = start + i * stride;
         for c in 0..dims {
             let p = e + c * csize;
-            out.push(read_component(&buf[p..p + csize], t, normalized));
+            out.push(read(&buf[p..p + csize]));
         }
     }
     Ok(())
@@ -418,6 +419,36 @@ fn read_accessor(
     acc: &gltf::Accessor,
     element: &str,
 ) -> Result<(Vec<f32>, usize), ImportError> {
+    let normalized = acc.normalized();
+    read_accessor_as(ctx, acc, element, 0.0, |b, t| {
+        read_component(b, t, normalized)
+    })
+}
+
+/// Reads an index accessor: unsigned integers exactly (through f32 an index above 2²⁴ would
+/// round to another vertex), other types as their values.
+fn read_indices(ctx: &Ctx, acc: &gltf::Accessor, element: &str) -> Result<Vec<u32>, ImportError> {
+    read_accessor_as(ctx, acc, element, 0, read_index).map(|(v, _)| v)
+}
+
+fn read_index(bytes: &[u8], t: DataType) -> u32 {
+    match t {
+        DataType::U8 => bytes[0] as u32,
+        DataType::U16 => u16::from_le_bytes([bytes[0], bytes[1]]) as u32,
+        DataType::U32 => u32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]]),
+        _ => read_component(bytes, t, false) as u32,
+    }
+}
+
+/// [`read_accessor`] with each component converted by `read` (given its bytes and type) and
+/// `zero` for the elements an accessor without a buffer view leaves unset.
+fn read_accessor_as<T: Copy>(
+    ctx: &Ctx,
+    acc: &gltf::Accessor,
+    element: &str,
+    zero: T,
+    read: impl Fn(&[u8], DataType) -> T,
+) -> Result<(Vec<T>, usize), ImportError> {
     let dims = match acc.dimensions() {
         Dimensions::Scalar => 1,
         Dimensions::Vec2 => 2,
@@ -437,8 +468,8 @@ fn read_accessor(
             count,
             dims,
             t,
-            acc.normalized(),
             view.stride(),
+            |b| read(b, t),
             &mut out,
         )?,
         None if count > MAX_VIEWLESS_ELEMENTS => {
@@ -449,7 +480,7 @@ fn read_accessor(
                 ),
             ))
         }
-        None => out.resize(count * dims, 0.0),
+        None => out.resize(count * dims, zero),
     }
     if let Some(sparse) = acc.sparse() {
         let n = sparse.count();
@@ -468,8 +499,8 @@ fn read_accessor(
             n,
             1,
             it,
-            false,
             None,
+            |b| read_index(b, it),
             &mut indices,
         )?;
         let vals = sparse.values();
@@ -482,8 +513,8 @@ fn read_accessor(
             n,
             dims,
             t,
-            acc.normalized(),
             None,
+            |b| read(b, t),
             &mut values,
         )?;
         for (k, &i) in indices.iter().enumerate() {
@@ -558,10 +589,7 @@ fn convert_primitive(
         uvs.clear();
     }
     let indices: Vec<u32> = match prim.indices() {
-        Some(a) => {
-            let (v, _) = read_accessor(ctx, &a, &format!("{element} indices"))?;
-            v.into_iter().map(|x| x as u32).collect()
-        }
+        Some(a) => read_indices(ctx, &a, &format!("{element} indices"))?,
         None => (0..n as u32).collect(),
     };
     let tris: Vec<[u32; 3]> = match mode {
