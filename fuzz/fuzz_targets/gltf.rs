@@ -6,7 +6,8 @@
 //! transforms, per-vertex arrays as long as the positions.
 //!
 //! ```text
-//! mkdir -p /tmp/corpus/gltf && cp fuzz/seeds/gltf/* SMALL_GLBS /tmp/corpus/gltf/
+//! aggtool gen plane45 -o /tmp/corpus/gltf --triangles 300 --quantize   # seeds: small GLBs
+//! cp ../shared/assets/kenney_city_kit/pavement.glb tests/data/fuzz/gltf/* /tmp/corpus/gltf/
 //! cd fuzz && RUSTC_BOOTSTRAP=1 cargo fuzz run gltf /tmp/corpus/gltf -- -max_total_time=900
 //! ```
 //! The importer is called without the `catch_unwind` of `aggtool::import::load`, so that every

@@ -3,10 +3,11 @@
 //! (asset index in range, a finite, invertible transform) without panicking.
 //!
 //! ```text
-//! mkdir -p /tmp/corpus/manifest && cp tests/data/fuzz/manifest/* /tmp/corpus/manifest/
-//! cd fuzz && RUSTC_BOOTSTRAP=1 cargo fuzz run manifest /tmp/corpus/manifest -- -max_total_time=900
+//! aggtool gen forest -o /tmp/f --species 2 --instances 8 --triangles 200   # seeds
+//! aggtool gen city -o /tmp/c --instances 10
+//! mkdir -p /tmp/corpus/manifest && cp /tmp/f/forest.json /tmp/c/city.json /tmp/corpus/manifest/
+//! cd fuzz && RUSTC_BOOTSTRAP=1 cargo fuzz run manifest /tmp/corpus/manifest -- -max_total_time=900 -dict=dict/manifest.dict
 //! ```
-//! (more seeds: the manifests `aggtool gen forest` and `aggtool gen city` write.)
 #![no_main]
 
 use std::path::Path;
