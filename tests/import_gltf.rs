@@ -291,3 +291,19 @@ fn every_truncated_glb_fails_cleanly() {
         let _ = load(&t, Default::default());
     }
 }
+
+/// 32-bit indices are read exactly: through f32 (as they once were) 16,777,217 rounds to
+/// 16,777,216, another vertex. Seen while fuzzing the accessor reader; the out-of-range error
+/// shows the index as read.
+#[test]
+fn u32_indices_are_exact() {
+    let r = load_edit(|d, b| {
+        d["accessors"][2]["componentType"] = json!(5125);
+        d["accessors"][2]["count"] = json!(3);
+        b.truncate(80);
+        for i in [0u32, 1, 16_777_217] {
+            b.extend(i.to_le_bytes());
+        }
+    });
+    expect_invalid(r, "vertex index 16777217 out of range (4 vertices)");
+}

@@ -34,6 +34,13 @@ const SUPPORTED_REQUIRED: &[&str] = &[
 /// Deepest node hierarchy we follow (a cycle is an error long before this).
 const MAX_DEPTH: usize = 256;
 
+/// Most elements an accessor without a buffer view may declare. Such an accessor is zeros
+/// (then its sparse values) and its `count` is bounded by no data in the file, so a few bytes
+/// of JSON could otherwise ask for any amount of memory (found by fuzz/fuzz_targets/
+/// gltf_accessors.rs). 2²² elements, 64 MiB as VEC4 floats, is far more than the attributes we
+/// read ever hold without data.
+const MAX_VIEWLESS_ELEMENTS: usize = 1 << 22;
+
 struct Ctx<'a> {
     path: &'a Path,
     base: PathBuf,
@@ -56,11 +63,28 @@ pub fn load(path: &Path) -> Result<Scene, ImportError> {
         path: path.to_path_buf(),
         source,
     })?;
+    load_slice(&bytes, path)
+}
+
+/// [`load`] on the bytes of a `.gltf` or `.glb` already in memory; `path` names the file in
+/// errors and places relative URIs.
+pub fn load_slice(bytes: &[u8], path: &Path) -> Result<Scene, ImportError> {
     let parse_err = |message: String| ImportError::Parse {
         path: path.to_path_buf(),
         message,
     };
-    let gltf = gltf::Gltf::from_slice_without_validation(&bytes)
+    // gltf 1.4's GLB reader subtracts the 12-byte header from the length the header declares
+    // without a check (an overflow panic where overflow checks are on, as in debug and fuzz
+    // builds; found by fuzz/fuzz_targets/gltf.rs): refuse such a header first.
+    if let [b'g', b'l', b'T', b'F', _, _, _, _, l0, l1, l2, l3, ..] = *bytes {
+        let declared = u32::from_le_bytes([l0, l1, l2, l3]);
+        if declared < 12 {
+            return Err(parse_err(format!(
+                "not a valid glTF file: the GLB header declares {declared} bytes, fewer than its own 12"
+            )));
+        }
+    }
+    let gltf = gltf::Gltf::from_slice_without_validation(bytes)
         .map_err(|e| parse_err(format!("not a valid glTF file: {e}")))?;
     validate(&gltf.document).map_err(parse_err)?;
 
@@ -150,8 +174,40 @@ pub fn load(path: &Path) -> Result<Scene, ImportError> {
 /// The crate's validation, keeping the checks and dropping the complaint about required
 /// extensions that we implement ourselves.
 fn validate(doc: &gltf::Document) -> Result<(), String> {
-    use gltf::json::validation::Validate;
+    use gltf::json::validation::{Checked, Validate};
     let root = doc.as_json();
+    // gltf-json 1.4's primitive check indexes `accessors` with POSITION before the index is
+    // checked, so a POSITION naming no accessor panics inside `validate` (found by
+    // fuzz/fuzz_targets/gltf.rs): look first.
+    let position = Checked::Valid(gltf::json::mesh::Semantic::Positions);
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, prim) in mesh.primitives.iter().enumerate() {
+            if let Some(a) = prim.attributes.get(&position) {
+                if a.value() >= root.accessors.len() {
+                    return Err(format!(
+                        "invalid glTF: meshes[{m}].primitives[{p}].attributes.POSITION: accessor {} does not exist ({} accessors)",
+                        a.value(),
+                        root.accessors.len()
+                    ));
+                }
+            }
+        }
+    }
+    // The `gltf` crate's `Image::source` unwraps a bufferView image's mimeType (which the spec
+    // requires) and an image's uri when it has no bufferView; gltf-json checks neither (found
+    // by fuzz/fuzz_targets/gltf.rs).
+    for (i, image) in root.images.iter().enumerate() {
+        if image.buffer_view.is_some() && image.mime_type.is_none() {
+            return Err(format!(
+                "invalid glTF: images[{i}]: an image in a bufferView needs a mimeType"
+            ));
+        }
+        if image.buffer_view.is_none() && image.uri.is_none() {
+            return Err(format!(
+                "invalid glTF: images[{i}]: neither a uri nor a bufferView"
+            ));
+        }
+    }
     let mut errors = Vec::new();
     root.validate(root, gltf::json::Path::new, &mut |path, error| {
         let p = path().to_string();
@@ -217,6 +273,12 @@ fn read_uri(ctx: &Ctx, uri: &str, element: &str) -> Result<Vec<u8>, ImportError>
         return Err(ctx.err(element, format!("external URI '{uri}' is not a local file")));
     }
     let file = ctx.base.join(percent_decode(uri));
+    // Only regular files: a URI naming /dev/zero, a FIFO or a terminal would never end.
+    let meta = std::fs::metadata(&file)
+        .map_err(|e| ctx.err(element, format!("cannot read {}: {e}", file.display())))?;
+    if !meta.is_file() {
+        return Err(ctx.err(element, format!("{} is not a regular file", file.display())));
+    }
     std::fs::read(&file)
         .map_err(|e| ctx.err(element, format!("cannot read {}: {e}", file.display())))
 }
@@ -297,9 +359,10 @@ fn read_component(bytes: &[u8], t: DataType, normalized: bool) -> f32 {
     }
 }
 
-/// Reads `count` elements of `dims` components laid out from `offset` in `view` with `stride`.
+/// Reads `count` elements of `dims` components of type `t` laid out from `offset` in `view`
+/// with `stride`, each component converted by `read` (given its bytes).
 #[allow(clippy::too_many_arguments)]
-fn read_elements(
+fn read_elements<T>(
     ctx: &Ctx,
     element: &str,
     view: &gltf::buffer::View,
@@ -307,9 +370,9 @@ fn read_elements(
     count: usize,
     dims: usize,
     t: DataType,
-    normalized: bool,
     stride: Option<usize>,
-    out: &mut Vec<f32>,
+    read: impl Fn(&[u8]) -> T,
+    out: &mut Vec<T>,
 ) -> Result<(), ImportError> {
     let csize = component_size(t);
     let esize = dims * csize;
@@ -343,7 +406,7 @@ fn read_elements(
         let e = start + i * stride;
         for c in 0..dims {
             let p = e + c * csize;
-            out.push(read_component(&buf[p..p + csize], t, normalized));
+            out.push(read(&buf[p..p + csize]));
         }
     }
     Ok(())
@@ -356,6 +419,36 @@ fn read_accessor(
     acc: &gltf::Accessor,
     element: &str,
 ) -> Result<(Vec<f32>, usize), ImportError> {
+    let normalized = acc.normalized();
+    read_accessor_as(ctx, acc, element, 0.0, |b, t| {
+        read_component(b, t, normalized)
+    })
+}
+
+/// Reads an index accessor: unsigned integers exactly (through f32 an index above 2²⁴ would
+/// round to another vertex), other types as their values.
+fn read_indices(ctx: &Ctx, acc: &gltf::Accessor, element: &str) -> Result<Vec<u32>, ImportError> {
+    read_accessor_as(ctx, acc, element, 0, read_index).map(|(v, _)| v)
+}
+
+fn read_index(bytes: &[u8], t: DataType) -> u32 {
+    match t {
+        DataType::U8 => bytes[0] as u32,
+        DataType::U16 => u16::from_le_bytes([bytes[0], bytes[1]]) as u32,
+        DataType::U32 => u32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]]),
+        _ => read_component(bytes, t, false) as u32,
+    }
+}
+
+/// [`read_accessor`] with each component converted by `read` (given its bytes and type) and
+/// `zero` for the elements an accessor without a buffer view leaves unset.
+fn read_accessor_as<T: Copy>(
+    ctx: &Ctx,
+    acc: &gltf::Accessor,
+    element: &str,
+    zero: T,
+    read: impl Fn(&[u8], DataType) -> T,
+) -> Result<(Vec<T>, usize), ImportError> {
     let dims = match acc.dimensions() {
         Dimensions::Scalar => 1,
         Dimensions::Vec2 => 2,
@@ -375,11 +468,19 @@ fn read_accessor(
             count,
             dims,
             t,
-            acc.normalized(),
             view.stride(),
+            |b| read(b, t),
             &mut out,
         )?,
-        None => out.resize(count * dims, 0.0),
+        None if count > MAX_VIEWLESS_ELEMENTS => {
+            return Err(ctx.err(
+                element,
+                format!(
+                    "accessor has no buffer view and declares {count} elements (at most {MAX_VIEWLESS_ELEMENTS} are accepted without data)"
+                ),
+            ))
+        }
+        None => out.resize(count * dims, zero),
     }
     if let Some(sparse) = acc.sparse() {
         let n = sparse.count();
@@ -398,8 +499,8 @@ fn read_accessor(
             n,
             1,
             it,
-            false,
             None,
+            |b| read_index(b, it),
             &mut indices,
         )?;
         let vals = sparse.values();
@@ -412,8 +513,8 @@ fn read_accessor(
             n,
             dims,
             t,
-            acc.normalized(),
             None,
+            |b| read(b, t),
             &mut values,
         )?;
         for (k, &i) in indices.iter().enumerate() {
@@ -488,10 +589,7 @@ fn convert_primitive(
         uvs.clear();
     }
     let indices: Vec<u32> = match prim.indices() {
-        Some(a) => {
-            let (v, _) = read_accessor(ctx, &a, &format!("{element} indices"))?;
-            v.into_iter().map(|x| x as u32).collect()
-        }
+        Some(a) => read_indices(ctx, &a, &format!("{element} indices"))?,
         None => (0..n as u32).collect(),
     };
     let tris: Vec<[u32; 3]> = match mode {
@@ -620,20 +718,30 @@ fn gpu_instances(
         .get("attributes")
         .and_then(|a| a.as_object())
         .ok_or_else(|| ctx.err(&element, "missing 'attributes'"))?;
-    let read = |name: &str| -> Result<Option<(Vec<f32>, usize)>, ImportError> {
+    // Each attribute with the width the extension specifies (VEC3, VEC4, VEC3); another width
+    // is an error, not a short read (a SCALAR TRANSLATION once panicked here: found by
+    // fuzz/fuzz_targets/gltf_accessors.rs).
+    let read = |name: &str, width: usize| -> Result<Option<(Vec<f32>, usize)>, ImportError> {
         match attrs.get(name).and_then(|v| v.as_u64()) {
             None => Ok(None),
             Some(i) => {
                 let acc = doc.accessors().nth(i as usize).ok_or_else(|| {
                     ctx.err(&element, format!("{name} accessor {i} does not exist"))
                 })?;
-                read_accessor(ctx, &acc, &format!("{element} {name}")).map(Some)
+                let (v, d) = read_accessor(ctx, &acc, &format!("{element} {name}"))?;
+                if d != width {
+                    return Err(ctx.err(
+                        &element,
+                        format!("{name} accessor {i} has {d} components per element, not {width}"),
+                    ));
+                }
+                Ok(Some((v, d)))
             }
         }
     };
-    let t = read("TRANSLATION")?;
-    let r = read("ROTATION")?;
-    let s = read("SCALE")?;
+    let t = read("TRANSLATION", 3)?;
+    let r = read("ROTATION", 4)?;
+    let s = read("SCALE", 3)?;
     let count = [&t, &r, &s]
         .iter()
         .filter_map(|x| x.as_ref().map(|(v, d)| v.len() / d))
@@ -648,7 +756,6 @@ fn gpu_instances(
             .map(|c| Vec3::new(c[0], c[1], c[2]))
             .unwrap_or(Vec3::ZERO);
         let ro = get(&r, i)
-            .filter(|c| c.len() >= 4)
             .map(|c| Quat::from_xyzw(c[0], c[1], c[2], c[3]).normalize())
             .unwrap_or(Quat::IDENTITY);
         let sc = get(&s, i)

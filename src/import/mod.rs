@@ -89,6 +89,14 @@ pub fn load(path: &Path, options: ImportOptions) -> Result<Scene, ImportError> {
     Ok(scene)
 }
 
+/// The glTF importer on bytes in memory (a `.gltf` or `.glb` as if read from `path`, which
+/// names it in errors and places relative URIs), without [`load`]'s `catch_unwind`, so that the
+/// fuzz target (fuzz/fuzz_targets/gltf.rs) sees every panic. Not an API: use [`load`].
+#[doc(hidden)]
+pub fn load_gltf_slice(bytes: &[u8], path: &Path) -> Result<Scene, ImportError> {
+    gltf::load_slice(bytes, path)
+}
+
 /// Appends the triangle if all three vertices are finite, in range, and it has non-zero area;
 /// counts what it skipped. Returns an error for out-of-range indices (a broken file).
 pub(crate) struct TriangleFilter {
