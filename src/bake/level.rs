@@ -190,7 +190,16 @@ pub fn bake_face(
     (
         FaceData {
             face,
-            abv: compress(&m.values, s.abv_res, m.rays_per_cell, s),
+            // Estimated below the full resolution, the map's noise is under control already.
+            abv: compress(
+                &m.values,
+                s.abv_res,
+                m.rays_per_cell,
+                &LevelSettings {
+                    denoise: s.denoise && m.estimated_res == s.abv_res,
+                    ..*s
+                },
+            ),
         },
         m.traced,
     )
