@@ -130,14 +130,19 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 let dir = (forward + sx * right + sy * up).normalize();
                 let cone = Cone::new(eye, dir, aperture);
                 // Eq. 30 with the host's shading: every voxel met adds its radiance times its
-                // coverage weight; the sky shows through the boundary visibility.
+                // coverage weight; the sky shows through the boundary visibility; the whole is
+                // divided by the sum of the weights, as the runtime's own shading does
+                // (TraceSettings::normalize).
                 let mut hits = scene.hits(&cone, &settings);
-                let mut l = Vec3::ZERO;
+                let (mut l, mut weights) = (Vec3::ZERO, 0.0f32);
                 for h in &mut hits {
                     l += lights.shade(&h, -dir, &mut rng) * h.weight;
-                    coverage += h.weight as f64;
+                    weights += h.weight;
                 }
-                sum += l + lights.sky * hits.transmittance();
+                let total = weights + hits.transmittance();
+                let norm = if total > 0.0 { 1.0 / total } else { 1.0 };
+                coverage += (weights * norm) as f64;
+                sum += (l + lights.sky * hits.transmittance()) * norm;
             }
             pixels[(y * size + x) as usize] = sum / spp as f32;
         }

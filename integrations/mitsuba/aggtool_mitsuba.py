@@ -474,6 +474,12 @@ class _AggtoolLod:
             # at least 1 − its coverage.
             clipped = (cnt > 0) & (tmax_l < a.exit_t(o_l, d_l))
             tr = np.where(clipped, np.maximum(tr, np.clip(1.0 - wsum, 0.0, 1.0)), tr)
+            # As the runtime's own shading (TraceSettings::normalize): an unclipped cone's
+            # surfaces and transmittance divided by the sum of its weights, 1 where the baked
+            # visibility is consistent.
+            total = wsum + tr
+            norm = np.where(~clipped & (total > 0), 1.0 / np.where(total > 0, total, 1.0), 1.0)
+            tr, weight = tr * norm, wsum * norm
             entry = np.full(n, np.inf)
             hit = cnt > 0
             entry[hit] = h["t"][off[:-1][hit]] * a.scale
@@ -484,7 +490,7 @@ class _AggtoolLod:
             k = np.clip(k, off[rays], off[rays + 1] - 1)
             p = o[rays] + (h["t"][k].astype(np.float64) * a.scale)[:, None] * d[rays]
             picks.append((j, rays, h["level"][k], h["key"][k], p))
-            layers.append([entry, np.zeros((n, 3)), tr, wsum])
+            layers.append([entry, np.zeros((n, 3)), tr, weight])
         if not picks:
             return []
         agg_of = np.concatenate([np.full(len(r), j) for j, r, *_ in picks])

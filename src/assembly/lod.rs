@@ -714,14 +714,8 @@ pub fn render(
 ) -> (Image, ImageStats) {
     crate::film::render_image(camera, spp, seed, "LoD", progress, |s| {
         *s.rays += 1;
-        let cone = Cone {
-            origin: s.origin,
-            dir: s.dir,
-            aperture: s.aperture,
-            tmin: 0.0,
-            tmax: f32::INFINITY,
-        };
-        asm.trace(&cone, lights, settings, s.rng).radiance
+        asm.trace(&Cone::of_sample(&s), lights, settings, s.rng)
+            .radiance
     })
 }
 

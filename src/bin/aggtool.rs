@@ -312,6 +312,10 @@ enum Command {
         /// volumetric model, a baseline).
         #[arg(long)]
         volume: bool,
+        /// Leave each cone's weights as baked instead of dividing its surfaces and background
+        /// by their sum (the runtime's default; see the README's error budget).
+        #[arg(long)]
+        no_normalize: bool,
         /// Exposure of the PNG in stops.
         #[arg(long, default_value_t = 0.0)]
         exposure: f32,
@@ -841,13 +845,7 @@ fn run_lod(
         "stats: {} cones/pixel, {} light samples per shaded voxel, levels used {:?}",
         view.spp,
         settings.nee,
-        scene
-            .prepared()
-            .iter()
-            .enumerate()
-            .filter(|(_, p)| **p)
-            .map(|(l, _)| scene.grid(l).res)
-            .collect::<Vec<_>>()
+        scene.resolutions_used()
     );
     println!(
         "output: {} and {}",
@@ -918,12 +916,7 @@ fn run_assembly_lod(
         println!(
             "stats: asset '{}': levels used {:?}{mesh}",
             asset.id,
-            s.prepared()
-                .iter()
-                .enumerate()
-                .filter(|(_, p)| **p)
-                .map(|(l, _)| s.grid(l).res)
-                .collect::<Vec<_>>()
+            s.resolutions_used()
         );
     }
     if let Some(path) = level_map {
@@ -1603,6 +1596,7 @@ fn run(cli: Cli) -> Result<()> {
             cube,
             volume,
             exposure,
+            no_normalize,
             no_mesh,
             level_map,
         } => {
@@ -1618,6 +1612,7 @@ fn run(cli: Cli) -> Result<()> {
                 nee,
                 level,
                 shading: Default::default(),
+                normalize: !no_normalize,
                 primitive: if cube {
                     aggtool::runtime::PrimitiveKind::Cube
                 } else if volume {

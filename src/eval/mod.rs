@@ -468,13 +468,7 @@ pub fn speed_scene(
     if let Some(e) = lod.first_error() {
         anyhow::bail!("{}: {e}", input.agg.display());
     }
-    let lod_levels: Vec<u32> = lod
-        .prepared()
-        .iter()
-        .enumerate()
-        .filter(|(_, p)| **p)
-        .map(|(l, _)| lod.grid(l).res)
-        .collect();
+    let lod_levels: Vec<u32> = lod.resolutions_used();
     let lod_rmse = compare(&lod_img, &truth).expect("same size").rmse;
     let reference_rmse = compare(&ref_img, &truth).expect("same size").rmse;
     // Equal time: the reference's spp whose whole command fits the LoD's whole CPU time,

@@ -375,13 +375,7 @@ pub fn sweep(
         if let Some(e) = lod.first_error() {
             bail!("{}: {e}", agg_path.display());
         }
-        let levels_used = lod
-            .prepared()
-            .iter()
-            .enumerate()
-            .filter(|(_, p)| **p)
-            .map(|(l, _)| lod.grid(l).res)
-            .collect();
+        let levels_used = lod.resolutions_used();
         let c = compare(&img, &truth).map_err(anyhow::Error::msg)?;
         let image_rel = format!("images/{stem}.png");
         img.write_png(&dir.join(&image_rel), 0.0)?;

@@ -59,6 +59,18 @@ pub struct Cone {
 }
 
 impl Cone {
+    /// The cone of one sample of the shared image loop ([`crate::film::render_image`]): the
+    /// pixel's aperture, over the whole ray.
+    pub fn of_sample(s: &crate::film::Sample) -> Cone {
+        Cone {
+            origin: s.origin,
+            dir: s.dir,
+            aperture: s.aperture,
+            tmin: 0.0,
+            tmax: f32::INFINITY,
+        }
+    }
+
     /// A cone over the whole ray (t from 0 to infinity); `dir` is normalised.
     pub fn new(origin: Vec3, dir: Vec3, aperture: f32) -> Cone {
         Cone {
@@ -144,6 +156,13 @@ pub struct TraceSettings {
     pub primitive: PrimitiveKind,
     /// Every primitive shaded, or a weighted few.
     pub shading: Shading,
+    /// Divide each cone's surfaces and background weight by the sum of its weights,
+    /// Σ V̂(ω_o)|A|_ω/|B|_ω + V̂_b (Eq. 30), which is 1 wherever the baked visibility is
+    /// consistent: where the AIV's and the ABV's Monte Carlo and truncation errors make it
+    /// more or less than 1, the pixel is too bright or too dark by that much. The error budget
+    /// (`aggtool eval --budget`, issue 17) measured it removing 48% of the chandelier's bias at
+    /// 64³ and 17% of the maple's (see the README's "Quality and speed studies").
+    pub normalize: bool,
 }
 
 impl Default for TraceSettings {
@@ -153,6 +172,7 @@ impl Default for TraceSettings {
             level: None,
             primitive: PrimitiveKind::TruncatedEllipsoid,
             shading: Shading::default(),
+            normalize: true,
         }
     }
 }
@@ -291,6 +311,16 @@ impl LodScene {
     /// Which levels have been prepared so far.
     pub fn prepared(&self) -> Vec<bool> {
         self.levels.iter().map(|l| l.get().is_some()).collect()
+    }
+
+    /// The resolutions of the levels prepared so far (the levels cones have touched).
+    pub fn resolutions_used(&self) -> Vec<u32> {
+        self.prepared()
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| **p)
+            .map(|(l, _)| self.grid(l).res)
+            .collect()
     }
 
     /// The first level that failed to prepare (a damaged block), if any: a render that met it
@@ -488,14 +518,9 @@ pub fn render(
 ) -> (crate::film::Image, crate::film::ImageStats) {
     crate::film::render_image(camera, spp, seed, "LoD", progress, |s| {
         *s.rays += 1;
-        let cone = Cone {
-            origin: s.origin,
-            dir: s.dir,
-            aperture: s.aperture,
-            tmin: 0.0,
-            tmax: f32::INFINITY,
-        };
-        scene.trace(&cone, lights, settings, s.rng).radiance
+        scene
+            .trace(&Cone::of_sample(&s), lights, settings, s.rng)
+            .radiance
     })
 }
 

@@ -185,7 +185,11 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
     let wo = place.to_world(-cone.dir);
     let mut hits = scene.hits(cone, settings);
     let mut first = f32::INFINITY;
-    let (surfaces, coverage) = match settings.shading {
+    // The sum of the hits' weights (for `settings.normalize`): exact when every hit is
+    // shaded; under reservoir shading the deterministic sum of bound weights times the mean
+    // exact/bound factor of the hits shaded, so that a cone whose shading roulette drew nothing
+    // is still normalised by its weights, not by zero.
+    let (surfaces, coverage, weight_sum) = match settings.shading {
         Shading::Every => {
             let (mut sum, mut cov) = (Vec3::ZERO, 0.0f32);
             for h in &mut hits {
@@ -193,7 +197,7 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
                 sum += shade_placed(&h, cone, wo, lights, settings.nee, sampler, place) * h.weight;
                 cov += h.weight;
             }
-            (sum, cov)
+            (sum, cov, cov)
         }
         Shading::Reservoir { picks, roulette } => {
             // Weighted reservoir sampling (one reservoir per pick) over bound weights ŵ_k
@@ -217,26 +221,38 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
             // Coverage roulette: shade with probability min(1, Σŵ).
             let p = if roulette { wsum.min(1.0) } else { 1.0 };
             if !(p > 0.0) || (p < 1.0 && sampler.next_1d() >= p) {
-                (Vec3::ZERO, 0.0)
+                (Vec3::ZERO, 0.0, wsum)
             } else {
-                let (mut sum, mut cov) = (Vec3::ZERO, 0.0f32);
+                let (mut sum, mut cov, mut factors, mut picked) =
+                    (Vec3::ZERO, 0.0f32, 0.0f32, 0u32);
                 for h in kept.iter().take(n).flatten() {
                     let k = hits.exact_factor(h);
+                    factors += k;
+                    picked += 1;
                     if k > 0.0 {
                         sum += shade_placed(h, cone, wo, lights, settings.nee, sampler, place) * k;
                         cov += k;
                     }
                 }
                 let scale = wsum / (n as f32 * p);
-                (sum * scale, cov * scale)
+                let mean_factor = if picked > 0 {
+                    factors / picked as f32
+                } else {
+                    1.0
+                };
+                (sum * scale, cov * scale, wsum * mean_factor)
             }
         }
     };
-    (
-        surfaces,
-        hits.transmittance(),
-        hits.primitives(),
-        coverage,
-        first,
-    )
+    let mut transmittance = hits.transmittance();
+    let (mut surfaces, mut coverage) = (surfaces, coverage);
+    if settings.normalize {
+        let total = weight_sum + transmittance;
+        if total > 0.0 && total.is_finite() {
+            surfaces /= total;
+            coverage /= total;
+            transmittance /= total;
+        }
+    }
+    (surfaces, transmittance, hits.primitives(), coverage, first)
 }
