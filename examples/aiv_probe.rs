@@ -13,6 +13,9 @@ use aggtool::eval::budget::{aiv_pairs, Truth};
 use aggtool::runtime::LodScene;
 use aggtool::trace::Accel;
 
+/// A (voxel key, direction, baked V̂, traced V̂) pair.
+type Pair = (u64, glam::Vec3, f32, f32);
+
 fn main() -> anyhow::Result<()> {
     let a: Vec<String> = std::env::args().collect();
     if a.len() < 3 {
@@ -26,7 +29,7 @@ fn main() -> anyhow::Result<()> {
     let accel = Accel::build(&scene);
     let truth = Truth::new(&accel, lod.grid(level), level, samples);
     let pairs = aiv_pairs(&lod, &truth, n, 1);
-    let stats = |f: &dyn Fn(&(u64, glam::Vec3, f32, f32)) -> (f32, f32)| {
+    let stats = |f: &dyn Fn(&Pair) -> (f32, f32)| {
         let (mut sa, mut sb, mut saa, mut sbb, mut sab) = (0f64, 0f64, 0f64, 0f64, 0f64);
         for p in &pairs {
             let (x, y) = f(p);

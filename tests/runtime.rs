@@ -555,7 +555,11 @@ fn hits_and_trace_agree() {
             let norm = if total > 0.0 { total } else { 1.0 };
             assert!((cov / norm - want.coverage).abs() <= 1e-5 * (1.0 + cov));
             let t = hits.transmittance() / norm;
-            assert!((t - want.transmittance).abs() <= 1e-6, "{t} {}", want.transmittance);
+            assert!(
+                (t - want.transmittance).abs() <= 1e-6,
+                "{t} {}",
+                want.transmittance
+            );
             // The traversal layer's transmittance is the ABV as baked, not normalised.
             assert_eq!(lod.transmittance(&c, &every), hits.transmittance());
             met += (want.primitives > 0) as u32;

@@ -603,7 +603,7 @@ pub fn budget_scene(
         bake_to_file(scene, name, &bake, agg_path, progress)
             .with_context(|| format!("baking {name}"))?;
     }
-    let lod = LodScene::new(Aggregate::open(&agg_path)?);
+    let lod = LodScene::new(Aggregate::open(agg_path)?);
     let Some(level) = (0..lod.level_count()).find(|&l| lod.grid(l).res == settings.res) else {
         anyhow::bail!("{}: no {}³ level", agg_path.display(), settings.res);
     };
