@@ -3,22 +3,8 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
-fn aggtool(args: &[&str], cwd: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_aggtool"))
-        .args(args)
-        .current_dir(cwd)
-        .output()
-        .expect("run aggtool")
-}
-
-fn ok(o: &Output) -> String {
-    assert!(
-        o.status.success(),
-        "stderr: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
+mod common;
+use common::{aggtool, ok};
 
 /// `aggtool convert foliage.glb` in `dir` with a tiny 8³/4³ bake (`--samples 8`, 8² maps) and
 /// `extra` flags into `out`; returns the child (stderr kept) after checking it succeeded.

@@ -2,15 +2,9 @@
 //! the one-machine bake, and the merge refuses incomplete or mixed sets of parts.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
-fn aggtool(args: &[&str], dir: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_aggtool"))
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .unwrap()
-}
+mod common;
+use common::aggtool;
 
 fn ok(args: &[&str], dir: &Path) -> String {
     let o = aggtool(args, dir);

@@ -4,24 +4,10 @@
 //! on a 200-triangle plane, 8² pixels: each sweep takes about a second.
 
 use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Output;
 
-fn aggtool(args: &[&str], cwd: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_aggtool"))
-        .args(args)
-        .current_dir(cwd)
-        .output()
-        .expect("run aggtool")
-}
-
-fn ok(o: &Output) -> String {
-    assert!(
-        o.status.success(),
-        "stderr: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
+mod common;
+use common::{aggtool, ok};
 
 /// `aggtool sweep plane45.glb` with tiny bakes and renders, `extra` flags, into `out`.
 fn tiny_sweep(dir: &Path, extra: &[&str], out: &str) -> Output {

@@ -1,7 +1,27 @@
 //! Helpers shared by the integration tests.
 #![allow(dead_code)]
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// Runs the `aggtool` binary of this build with `args` in `cwd`.
+pub fn aggtool(args: &[&str], cwd: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_aggtool"))
+        .args(args)
+        .current_dir(cwd)
+        .output()
+        .expect("run aggtool")
+}
+
+/// The stdout of a run that must have succeeded (its stderr in the message otherwise).
+pub fn ok(o: &Output) -> String {
+    assert!(
+        o.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
 
 /// `../shared/assets` beside the checkout, or `None` (with a message) when it is absent:
 /// tests that need it skip, they never fail for its absence.
