@@ -519,7 +519,9 @@ pub struct BudgetSettings {
     pub reference_spp: u32,
     /// Oracle surface samples per voxel (at most [`MAX_SAMPLES`]).
     pub samples: u32,
-    /// Bake settings (`max_res` is raised to `res`).
+    /// Bake settings (`max_res` is replaced by `res`: the budget studies a bake's finest
+    /// level, as the quality study does, not a coarse level of a finer bake, which has more
+    /// samples per voxel).
     pub bake: BakeSettings,
 }
 
@@ -597,7 +599,7 @@ pub fn budget_scene(
     std::fs::create_dir_all(dir)?;
     if !agg_path.exists() {
         let bake = BakeSettings {
-            max_res: settings.bake.max_res.max(settings.res),
+            max_res: settings.res,
             ..settings.bake.clone()
         };
         bake_to_file(scene, name, &bake, agg_path, progress)
