@@ -100,7 +100,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             roulette: false,
         },
     );
-    let rr = run("roulette", Shading::default());
+    let rr = run(
+        "roulette",
+        Shading::Reservoir {
+            picks: 1,
+            roulette: true,
+        },
+    );
     println!(
         "{agg}: {} cones ({}×{} at {spp}); open {:.1} ms, first walk (levels prepared) {:.3} s",
         cones.len(),

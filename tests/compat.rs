@@ -22,7 +22,7 @@ use std::path::Path;
 
 use aggtool::format::Aggregate;
 use aggtool::render::View;
-use aggtool::runtime::{LodScene, TraceSettings};
+use aggtool::runtime::{LodScene, Shading, TraceSettings};
 use aggtool::util::no_progress;
 use glam::Vec3;
 
@@ -55,9 +55,14 @@ fn render(agg: Aggregate) -> (Vec3, [Vec3; 3]) {
         4,
         1,
         // The shading of the builds that printed the pinned values below (these tests are of
-        // the format): without the per-cone normalisation added since.
+        // the format): without the per-cone normalisation added since, and with the coverage
+        // roulette that was on by default then.
         &TraceSettings {
             normalize: false,
+            shading: Shading::Reservoir {
+                picks: 1,
+                roulette: true,
+            },
             ..Default::default()
         },
         &no_progress,

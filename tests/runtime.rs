@@ -616,7 +616,13 @@ fn reservoir_shading_is_unbiased() {
     };
     let (b, eb) = mean(reservoir(1), 2);
     let (c, ec) = mean(reservoir(3), 3);
-    let (d, ed) = mean(Shading::default(), 4);
+    let (d, ed) = mean(
+        Shading::Reservoir {
+            picks: 1,
+            roulette: true,
+        },
+        4,
+    );
     let tol = |e1: f64, e2: f64| 4.0 * (e1 * e1 + e2 * e2).sqrt();
     assert!(
         (a - d).abs() < tol(ea, ed),
