@@ -7,7 +7,7 @@
 //! render loops' own (user + system, all threads).
 //!
 //! ```text
-//! cargo run --release --example shading_noise -- ASSET.glb ASSET.agg [--res 64] [--spp 64] [--reference-spp 1024]
+//! cargo run --release --example shading_noise -- ASSET.glb ASSET.agg [--res 64] [--spp 64] [--reference-spp 1024] [--no-normalize]
 //! ```
 
 mod common;
@@ -90,6 +90,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let settings = TraceSettings {
             shading,
             nee,
+            normalize: !args.iter().any(|a| a == "--no-normalize"),
             ..Default::default()
         };
         let c = cpu_seconds();

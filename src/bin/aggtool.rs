@@ -65,8 +65,8 @@ enum Command {
         /// With --speed: the bakes' finest resolutions (default: the image's).
         #[arg(long, value_delimiter = ',')]
         bake_res: Vec<u32>,
-        /// With --speed: where bakes are kept and reused (NAME-RES.agg; default: the output
-        /// folder).
+        /// Where bakes are kept and reused (NAME-RES.agg, RES the finest resolution; default:
+        /// bake into the output folder, every time for the quality study).
         #[arg(long)]
         agg_dir: Option<PathBuf>,
         /// Error budget instead (issue 17): at each --res, the LoD rendered with one
@@ -78,6 +78,10 @@ enum Command {
         /// With --budget: oracle surface samples per voxel (at most 64).
         #[arg(long, default_value_t = 32)]
         budget_samples: u32,
+        /// Quality study: render the LoD methods without the per-cone normalisation (as
+        /// `render --no-normalize`), to measure what it does.
+        #[arg(long, conflicts_with_all = ["speed", "budget"])]
+        no_normalize: bool,
         /// Output folder (table.md, table.json, pictures).
         #[arg(short, long, default_value = "aggtool-eval")]
         output: PathBuf,
@@ -995,6 +999,7 @@ fn eval(
     bake_res: Vec<u32>,
     agg_dir: Option<PathBuf>,
     budget_samples: Option<u32>,
+    normalize: bool,
     output: &Path,
 ) -> Result<()> {
     use aggtool::eval;
@@ -1162,10 +1167,15 @@ fn eval(
         );
         return Ok(());
     }
+    if let Some(d) = &agg_dir {
+        std::fs::create_dir_all(d)?;
+    }
     let settings = eval::StudySettings {
         resolutions: res,
         spp,
         reference_spp,
+        agg_dir,
+        normalize,
         ..Default::default()
     };
     let mut all = Vec::new();
@@ -1251,6 +1261,7 @@ fn run(cli: Cli) -> Result<()> {
             agg_dir,
             budget,
             budget_samples,
+            no_normalize,
             output,
         } => eval(
             &assets,
@@ -1263,6 +1274,7 @@ fn run(cli: Cli) -> Result<()> {
             bake_res,
             agg_dir,
             budget.then_some(budget_samples),
+            !no_normalize,
             &output,
         ),
         Command::Reference {

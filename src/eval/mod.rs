@@ -52,6 +52,12 @@ pub struct StudySettings {
     pub reference_spp: u32,
     /// Bake settings (`max_res` is raised to the largest resolution).
     pub bake: BakeSettings,
+    /// Where bakes are kept and reused, as NAME-RES.agg with RES the finest resolution
+    /// studied (`aggtool eval --agg-dir`); `None` bakes every scene again into the output
+    /// folder. A reused file is taken as it is: its settings are the ones it records.
+    pub agg_dir: Option<PathBuf>,
+    /// [`TraceSettings::normalize`] of the LoD methods (ours, cube, volume).
+    pub normalize: bool,
 }
 
 impl Default for StudySettings {
@@ -64,6 +70,8 @@ impl Default for StudySettings {
                 max_res: 64,
                 ..Default::default()
             },
+            agg_dir: None,
+            normalize: true,
         }
     }
 }
@@ -186,8 +194,9 @@ pub fn tile_png(path: &Path, rows: &[Vec<Vec<u8>>], w: u32, h: u32) -> Result<()
     Ok(())
 }
 
-/// Runs the quality study on one scene: bakes it into `dir`, renders every method at every
-/// resolution, writes one picture per resolution, and returns the figures.
+/// Runs the quality study on one scene: bakes it into `dir` (or reuses its bake in
+/// `settings.agg_dir`), renders every method at every resolution, writes one picture per
+/// resolution, and returns the figures.
 pub fn study_scene(
     name: &str,
     scene: &Scene,
@@ -201,10 +210,15 @@ pub fn study_scene(
         max_res: settings.bake.max_res.max(max_res),
         ..settings.bake.clone()
     };
-    let agg_path = dir.join(format!("{name}.agg"));
+    let agg_path = match &settings.agg_dir {
+        Some(d) => d.join(format!("{name}-{}.agg", bake.max_res)),
+        None => dir.join(format!("{name}.agg")),
+    };
     let t = Instant::now();
-    bake_to_file(scene, name, &bake, &agg_path, progress)
-        .with_context(|| format!("baking {name}"))?;
+    if settings.agg_dir.is_none() || !agg_path.exists() {
+        bake_to_file(scene, name, &bake, &agg_path, progress)
+            .with_context(|| format!("baking {name}"))?;
+    }
     let bake_seconds = t.elapsed().as_secs_f64();
     let lod = LodScene::new(Aggregate::open(&agg_path)?);
     let agg = lod.aggregate();
@@ -242,6 +256,7 @@ pub fn study_scene(
             let ts = TraceSettings {
                 level: Some(l),
                 primitive: kind,
+                normalize: settings.normalize,
                 ..Default::default()
             };
             let (img, secs) = lod_render(&lod, &view, settings.spp, 1, &ts)?;
