@@ -22,7 +22,8 @@ use aggtool::util::{cpu_seconds, no_progress};
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let (Some(asset), Some(agg)) = (
-        args.iter().find(|a| !a.starts_with("--") && !a.ends_with(".agg")),
+        args.iter()
+            .find(|a| !a.starts_with("--") && !a.ends_with(".agg")),
         args.iter().find(|a| a.ends_with(".agg")),
     ) else {
         return Err("give ASSET and FILE.agg".into());
