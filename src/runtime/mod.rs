@@ -132,7 +132,7 @@ pub enum Shading {
         /// Shade a cone whose total coverage weight W is below one only with probability W
         /// (and weigh it by 1/W): still unbiased, and a cone grazing the aggregate's fringe is
         /// shaded as often as a ray of the reference renderer hits there. Off by default: it
-        /// saves 12–19% of a 64² render's CPU time but raises the noise variance 2.5–5× on the
+        /// saves 10–19% of a 64² render's CPU time but raises the noise variance 2.4–5× on the
         /// quality study's scenes (`examples/shading_noise.rs`), a loss at equal time too.
         roulette: bool,
     },
