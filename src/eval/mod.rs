@@ -333,7 +333,11 @@ pub fn study_scene(
         });
     }
     drop(lod);
-    std::fs::remove_file(&agg_path).ok();
+    // A bake made in the output folder is scratch; one kept in `agg_dir` is what the caller
+    // asked to keep (and may be a link to a bake of theirs).
+    if settings.agg_dir.is_none() {
+        std::fs::remove_file(&agg_path).ok();
+    }
     Ok(results)
 }
 
