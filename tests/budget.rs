@@ -4,20 +4,13 @@
 
 use aggtool::bake::BakeSettings;
 use aggtool::eval::budget::{budget_scene, BudgetSettings, Oracles};
-use aggtool::gen::{self, GenSettings};
+
+mod common;
 
 #[test]
 fn budget_rows_agree_with_the_runtime_and_all_oracles_close_the_gap() {
     let dir = tempfile::tempdir().unwrap();
-    let scene = gen::generate(
-        "lattice",
-        &GenSettings {
-            triangles: 3000,
-            ..Default::default()
-        },
-    )
-    .unwrap()
-    .to_scene();
+    let scene = common::gen_scene("lattice", 3000);
     let settings = BudgetSettings {
         res: 16,
         spp: 16,

@@ -3,7 +3,8 @@
 
 use aggtool::bake::BakeSettings;
 use aggtool::eval::{study_scene, SceneResult, StudySettings};
-use aggtool::gen::{self, GenSettings};
+
+mod common;
 
 fn ours(r: &[SceneResult]) -> f64 {
     r[0].methods
@@ -18,15 +19,7 @@ fn study_reuses_kept_bakes_and_renders_unnormalised_on_request() {
     let dir = tempfile::tempdir().unwrap();
     let kept = dir.path().join("bakes");
     std::fs::create_dir_all(&kept).unwrap();
-    let scene = gen::generate(
-        "lattice",
-        &GenSettings {
-            triangles: 3000,
-            ..Default::default()
-        },
-    )
-    .unwrap()
-    .to_scene();
+    let scene = common::gen_scene("lattice", 3000);
     let settings = StudySettings {
         resolutions: vec![8],
         spp: 8,

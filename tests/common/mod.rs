@@ -51,3 +51,16 @@ pub fn generated(
     let scene = aggtool::import::load(&path, Default::default()).unwrap();
     (dir, scene)
 }
+
+/// Generated hard case `name` of about `triangles` triangles, in memory (no file).
+pub fn gen_scene(name: &str, triangles: usize) -> aggtool::scene::Scene {
+    aggtool::gen::generate(
+        name,
+        &aggtool::gen::GenSettings {
+            triangles,
+            ..Default::default()
+        },
+    )
+    .unwrap()
+    .to_scene()
+}
