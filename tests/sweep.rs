@@ -91,6 +91,12 @@ fn sweep_writes_tables_and_plots_and_resumes() {
         let rmse = r["rmse"].as_f64().unwrap();
         assert!(rmse.is_finite() && rmse > 0.0, "{r}");
         assert!(r["bytes"].as_u64().unwrap() > 0 && r["bake_seconds"].as_f64().unwrap() > 0.0);
+        // The table's costs are CPU seconds, recorded beside the wall seconds.
+        let cpu = |k: &str| r[k].as_f64().unwrap();
+        assert!(
+            cpu("bake_cpu_seconds") > 0.0 && cpu("render_cpu_seconds") >= 0.0,
+            "{r}"
+        );
         assert!(r["components"]["voxels"].as_u64().unwrap() > 0, "{r}");
         assert!(s.join(r["image"].as_str().unwrap()).exists());
     }

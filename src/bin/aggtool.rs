@@ -700,11 +700,13 @@ fn sweep(
             }
             RowEvent::Reference(None) => println!("reused: reference ({reference_spp} spp)"),
             RowEvent::Done(r) => println!(
-                "baked: {}: bake {:.2} s, {}, render {:.2} s, RMSE {:.5}",
+                "baked: {}: bake {:.2} s ({:.1} CPU s), {}, render {:.2} s ({:.2} CPU s), RMSE {:.5}",
                 r.label,
                 r.bake_seconds,
+                r.bake_cpu_seconds,
                 mib(r.bytes),
                 r.render_seconds,
+                r.render_cpu_seconds,
                 r.rmse
             ),
             RowEvent::Reused { row, same_as } => match same_as {

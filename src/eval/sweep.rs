@@ -1,6 +1,6 @@
 //! `aggtool sweep`: what accuracy costs. One asset baked under many settings: every named
 //! preset, and a base preset with one setting at a time changed (`--vary NAME=V1,V2,...`);
-//! per setting the bake seconds, the bytes per component, the LoD render seconds and the RMSE
+//! per setting the bake CPU seconds, the bytes per component, the LoD render CPU seconds and the RMSE
 //! against one converged reference of the same view, in `table.md`, `table.json` and three
 //! Pareto plots (RMSE against bake seconds, MiB and render seconds; [`super::plot`]).
 //!
@@ -121,6 +121,11 @@ pub struct Row {
     pub hash: String,
     /// Wall seconds of the bake (import excluded: the asset is imported once).
     pub bake_seconds: f64,
+    /// CPU seconds (user + system, all threads) of the bake: the figure the table and the
+    /// plots use, since wall seconds on a shared machine measure its other jobs too. Rows saved
+    /// before it was recorded read 0 and fall back to the wall seconds.
+    #[serde(default)]
+    pub bake_cpu_seconds: f64,
     /// Rays the bake traced.
     pub bake_rays: u64,
     /// File bytes, and bytes per component (payloads; headers and padding are the rest).
@@ -128,6 +133,10 @@ pub struct Row {
     pub components: ComponentBytes,
     /// Wall seconds of the LoD render loop (the file opened lazily just before).
     pub render_seconds: f64,
+    /// CPU seconds of the LoD render, the levels' lazy preparation included (0 in rows saved
+    /// before it was recorded: the wall seconds stand in).
+    #[serde(default)]
+    pub render_cpu_seconds: f64,
     /// Levels the render touched (resolutions).
     pub levels_used: Vec<u32>,
     /// Against the reference.
@@ -144,6 +153,25 @@ impl Row {
     /// File bytes in MiB.
     pub fn mib(&self) -> f64 {
         self.bytes as f64 / (1024.0 * 1024.0)
+    }
+
+    /// The bake's cost in the table and plots: CPU seconds, or wall seconds for a row saved
+    /// before CPU seconds were recorded.
+    pub fn bake_cost(&self) -> f64 {
+        if self.bake_cpu_seconds > 0.0 {
+            self.bake_cpu_seconds
+        } else {
+            self.bake_seconds
+        }
+    }
+
+    /// The render's cost, as [`Row::bake_cost`].
+    pub fn render_cost(&self) -> f64 {
+        if self.render_cpu_seconds > 0.0 {
+            self.render_cpu_seconds
+        } else {
+            self.render_seconds
+        }
     }
 }
 
@@ -357,9 +385,12 @@ pub fn sweep(
         let agg_rel = format!("aggs/{stem}.agg");
         let agg_path = dir.join(&agg_rel);
         let t = Instant::now();
+        let c0 = crate::util::cpu_seconds();
         let report = bake_to_file(scene, &asset_name, &p.settings, &agg_path, progress)
             .with_context(|| format!("{}: baking {}", p.label, asset_path.display()))?;
         let bake_seconds = t.elapsed().as_secs_f64();
+        let bake_cpu_seconds = crate::util::cpu_seconds() - c0;
+        let c0 = crate::util::cpu_seconds();
         // Render, level by footprint.
         let lod = LodScene::open(&agg_path)
             .with_context(|| format!("cannot read {}", agg_path.display()))?;
@@ -375,6 +406,7 @@ pub fn sweep(
         if let Some(e) = lod.first_error() {
             bail!("{}: {e}", agg_path.display());
         }
+        let render_cpu_seconds = crate::util::cpu_seconds() - c0;
         let levels_used = lod.resolutions_used();
         let c = compare(&img, &truth).map_err(anyhow::Error::msg)?;
         let image_rel = format!("images/{stem}.png");
@@ -386,10 +418,12 @@ pub fn sweep(
             settings: p.settings.clone(),
             hash: hash.clone(),
             bake_seconds,
+            bake_cpu_seconds,
             bake_rays: report.rays,
             bytes: report.bytes,
             components: report.components,
             render_seconds: stats.seconds,
+            render_cpu_seconds,
             levels_used,
             rmse: c.rmse,
             relmse: c.relmse,
@@ -409,13 +443,17 @@ pub fn sweep(
     let mut plots = Vec::new();
     type Cost = fn(&Row) -> f64;
     let axes: [(&str, &str, Cost); 3] = [
-        ("pareto-bake-seconds.png", "bake seconds", |r| {
-            r.bake_seconds
-        }),
+        (
+            "pareto-bake-seconds.png",
+            "bake CPU seconds",
+            Row::bake_cost,
+        ),
         ("pareto-mib.png", "file MiB", |r| r.mib()),
-        ("pareto-render-seconds.png", "render seconds", |r| {
-            r.render_seconds
-        }),
+        (
+            "pareto-render-seconds.png",
+            "render CPU seconds",
+            Row::render_cost,
+        ),
     ];
     for (file, x_label, cost) in axes {
         let points: Vec<super::plot::Point> = rows
@@ -461,16 +499,16 @@ pub fn markdown_table(asset: &str, settings: &SweepSettings, rows: &[Row]) -> St
         super::plot::pareto_front(&rows.iter().map(|r| (cost(r), r.rmse)).collect::<Vec<_>>())
     };
     let (fb, fm, fr) = (
-        front(|r| r.bake_seconds),
+        front(Row::bake_cost),
         front(|r| r.mib()),
-        front(|r| r.render_seconds),
+        front(Row::render_cost),
     );
     let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
     let mut s = format!(
         "Sweep of {asset}: {}² pixels, {} spp, against a {}-spp reference; `*` marks the rows on the Pareto front of RMSE against that cost.\n\n",
         settings.res, settings.spp, settings.reference_spp
     );
-    s += "| setting | RMSE | relMSE | bake s | MiB | render s | records | lobes | moments | AIV | faces | ABV | levels used |\n";
+    s += "| setting | RMSE | relMSE | bake CPU s | MiB | render CPU s | records | lobes | moments | AIV | faces | ABV | levels used |\n";
     s += "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
     for (i, r) in rows.iter().enumerate() {
         let star = |f: &[bool]| if f[i] { "*" } else { "" };
@@ -481,11 +519,11 @@ pub fn markdown_table(asset: &str, settings: &SweepSettings, rows: &[Row]) -> St
             if r.base { " (base)" } else { "" },
             r.rmse,
             r.relmse,
-            r.bake_seconds,
+            r.bake_cost(),
             star(&fb),
             r.mib(),
             star(&fm),
-            r.render_seconds,
+            r.render_cost(),
             star(&fr),
             mib(c.voxels + c.keys + c.exposure),
             mib(c.lobes),
@@ -496,7 +534,7 @@ pub fn markdown_table(asset: &str, settings: &SweepSettings, rows: &[Row]) -> St
             r.levels_used
         );
     }
-    s += "\nComponents in MiB (payloads): records include keys and exposure; moments include the dielectric ones.\n";
+    s += "\nSeconds are CPU seconds (user + system, all threads; the render's include the levels' lazy preparation). Components in MiB (payloads): records include keys and exposure; moments include the dielectric ones.\n";
     s
 }
 
