@@ -113,14 +113,17 @@ fn estimators(
         "denoise σ/2+truncate",
         "truncate keep 25%",
     ];
-    for (res, spv, rays) in [
-        (4u32, 16u32, 16u32),
-        (8, 16, 16),
-        (32, 64, 16),
-        (16, 64, 16),
-        (8, 64, 16),
-        (32, 256, 16),
-        (16, 256, 16),
+    // (map resolution, samples, rays per sample, fewest rays per cell: 0 cross-validated).
+    for (res, spv, rays, min_rays) in [
+        (32u32, 16u32, 16u32, 1u32),
+        (32, 16, 16, 0),
+        (4, 16, 16, 1),
+        (8, 16, 16, 1),
+        (32, 64, 16, 1),
+        (16, 64, 16, 1),
+        (8, 64, 16, 1),
+        (32, 256, 16, 1),
+        (16, 256, 16, 1),
     ] {
         let mut err = vec![(0f64, 0usize); variants.len()];
         let mut rng = aggtool::math::rng::Pcg32::new(3, 0);
@@ -130,7 +133,7 @@ fn estimators(
             if samples.is_empty() {
                 continue;
             }
-            let (map, _, _) = aiv_map(accel, &samples, res, rays, seed);
+            let (map, _, _) = aiv_map(accel, &samples, res, rays, min_rays, seed);
             let per_cell = ((samples.len() as f32 * rays as f32) / (res * res) as f32).max(1.0);
             let mean = map.iter().sum::<f32>() / map.len() as f32;
             let sigma = (mean * (1.0 - mean)).max(0.0).sqrt() / per_cell.sqrt();
@@ -171,7 +174,7 @@ fn estimators(
                 }
             }
         }
-        println!("{res}² map, {spv} samples × {rays} rays:");
+        println!("{res}² map, {spv} samples × {rays} rays, at least {min_rays} rays a cell (0: cross-validated):");
         for (name, (se, n)) in variants.iter().zip(&err) {
             println!(
                 "  {name:<26} RMS {:.4} ({n} pairs)",

@@ -33,6 +33,12 @@ pub struct BakeSettings {
     /// Interior visibility: map resolution and rays per surface sample (paper: 16 to 64).
     pub aiv_res: u32,
     pub aiv_rays: u32,
+    /// The fewest rays an AIV map cell's estimate rests on (the cell pools the rays of the
+    /// smallest enclosing block of cells holding that many); 0 chooses it per voxel by
+    /// cross-validation over the voxel's surface samples ([`visibility::aiv_map`]), 1 is the
+    /// per-cell average of formats up to 1.5 (and of files that do not record it).
+    #[serde(default = "one")]
+    pub aiv_min_rays: u32,
     /// Boundary visibility: map resolution and rays per direction cell.
     pub abv_res: u32,
     pub abv_rays: u32,
@@ -72,6 +78,7 @@ impl Default for BakeSettings {
             max_samples: 1024,
             aiv_res: 32,
             aiv_rays: 16,
+            aiv_min_rays: 0,
             abv_res: 64,
             abv_rays: 1,
             abv_full_res: 64,
@@ -85,6 +92,11 @@ impl Default for BakeSettings {
             compression: crate::format::DEFAULT_COMPRESSION,
         }
     }
+}
+
+/// The serde default of `aiv_min_rays` in settings written before it existed.
+fn one() -> u32 {
+    1
 }
 
 /// Named starting points for [`BakeSettings`] (`aggtool convert --preset`); flags given beside
@@ -152,6 +164,7 @@ impl BakeSettings {
             },
             Preset::Max => BakeSettings {
                 ndf_lobes: 4,
+                aiv_min_rays: 1,
                 keep: 1.0,
                 energy: 1.0,
                 denoise: false,
@@ -241,6 +254,7 @@ impl BakeSettings {
             max_samples: self.max_samples,
             aiv_res: self.aiv_res,
             aiv_rays: self.aiv_rays,
+            aiv_min_rays: self.aiv_min_rays,
             abv_res: self.abv_res,
             abv_rays: self.abv_rays,
             abv_full_res: self.abv_full_res,
@@ -303,6 +317,7 @@ impl BakeSettings {
             max_samples: r.max_samples,
             aiv_res: r.aiv_res,
             aiv_rays: r.aiv_rays,
+            aiv_min_rays: r.aiv_min_rays,
             abv_res: r.abv_res,
             abv_rays: r.abv_rays,
             abv_full_res: r.abv_full_res,
@@ -322,6 +337,7 @@ impl BakeSettings {
         LevelSettings {
             samples_per_voxel: self.samples_at(res),
             aiv_rays: self.aiv_rays,
+            aiv_min_rays: self.aiv_min_rays,
             aiv_res: self.aiv_res,
             abv_res: self.abv_res,
             abv_rays: self.abv_rays,
@@ -399,7 +415,7 @@ mod tests {
             .unwrap_err()
             .contains("--ndf-lobes"));
         assert!(d.with_field("keep", "many").is_err());
-        assert_eq!(BakeSettings::field_names().len(), 17);
+        assert_eq!(BakeSettings::field_names().len(), 18);
     }
 
     /// Every preset survives the trip through the file's record unchanged.

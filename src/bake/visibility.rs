@@ -42,15 +42,18 @@ use glam::Vec2;
 
 use super::sampling::PointSample;
 use crate::math::lowdiscrepancy::sobol_2d;
-use crate::math::sphere_maps::{average_with_coarser_fill, equal_area_square_to_sphere, grid_cell};
+use crate::math::sphere_maps::{average_with_min_count, equal_area_square_to_sphere, grid_cell};
 use crate::trace::{offset_origin, Accel, Ray};
 
 /// The smallest exposure stored: the incident AIV is never scaled up more than this allows.
 pub const MIN_EXPOSURE: f32 = 1.0 / 16.0;
 
 /// The AIV map of a voxel (row-major `res × res`, values in [0, 1]), the number of rays traced,
-/// and the exposure η in [MIN_EXPOSURE, 1] (see the module notes). Cells no ray reached take the
-/// average of the smallest enclosing block of cells that some ray reached: a finest-level voxel
+/// and the exposure η in [MIN_EXPOSURE, 1] (see the module notes). A cell's value is the
+/// average of the smallest enclosing block of cells (itself first) that at least `min_rays`
+/// rays reached ([`average_with_min_count`]); `min_rays` 0 chooses it per voxel by
+/// cross-validation ([`cross_validated_min_rays`]). With 1, cells no ray reached still take
+/// the average of the smallest enclosing block that some ray reached: a finest-level voxel
 /// traces 16 samples × 16 rays = 256 rays over 32² cells, and filling the other 3/4 with the
 /// voxel's mean over the whole sphere pulled every outward-facing cell of a wall from 1 towards
 /// 1/2 (a 64³ level of the buildings hard case rendered at 0.91 coverage and 0.81 of the
@@ -60,35 +63,33 @@ pub fn aiv_map(
     samples: &[PointSample],
     res: u32,
     rays_per_sample: u32,
+    min_rays: u32,
     seed: u32,
 ) -> (Vec<f32>, u64, f32) {
-    let cells = (res * res) as usize;
-    let mut vis = vec![0f64; cells];
-    let mut weight = vec![0f64; cells];
-    let mut traced = 0u64;
+    let mut rays: Vec<AivRay> = Vec::with_capacity(samples.len() * rays_per_sample as usize);
     let mut index = 0u32;
     // Σw, Σw·v, Σw·v² over (sample, side) pairs with at least two rays.
     let (mut m0, mut m1, mut m2) = (0f64, 0f64, 0f64);
-    for s in samples {
+    for (j, s) in samples.iter().enumerate() {
         // Per side (front = along the geometric normal): rays traced, rays escaped.
         let mut side = [[0u32; 2]; 2];
         for _ in 0..rays_per_sample {
             let u: Vec2 = sobol_2d(index, seed);
             index = index.wrapping_add(1);
             let d = equal_area_square_to_sphere(u);
-            let cell = grid_cell(u, res) as usize;
             let ray = Ray::new(offset_origin(s.position, s.geometric_normal, d), d);
-            traced += 1;
             let cos = d.dot(s.geometric_normal);
             let k = (cos < 0.0) as usize;
-            // Projected-area weighting (format 1.2, see the module notes).
-            let w = s.surface.weight as f64 * cos.abs() as f64;
             side[k][0] += 1;
-            if !accel.occluded(&ray) {
-                vis[cell] += w;
-                side[k][1] += 1;
-            }
-            weight[cell] += w;
+            let seen = !accel.occluded(&ray);
+            side[k][1] += seen as u32;
+            rays.push(AivRay {
+                cell: grid_cell(u, res),
+                // Projected-area weighting (format 1.2, see the module notes).
+                weight: s.surface.weight as f64 * cos.abs() as f64,
+                seen,
+                fold: (j & 1) as u8,
+            });
         }
         let w = s.surface.weight as f64;
         for [t, e] in side {
@@ -106,14 +107,87 @@ pub fn aiv_map(
     } else {
         1.0
     };
-    let total_w: f64 = weight.iter().sum();
+    let all = cell_sums(&rays, res, None);
+    let total_w: f64 = all.weight.iter().sum();
     let mean = if total_w > 0.0 {
-        vis.iter().sum::<f64>() / total_w
+        (all.vis.iter().sum::<f64>() / total_w) as f32
     } else {
         1.0
     };
-    let map = average_with_coarser_fill(&vis, &weight, res, mean as f32);
-    (map, traced, exposure)
+    let min_rays = if min_rays == 0 {
+        cross_validated_min_rays(&rays, res, mean)
+    } else {
+        min_rays
+    };
+    let map = average_with_min_count(&all.vis, &all.weight, &all.count, min_rays, res, mean);
+    (map, rays.len() as u64, exposure)
+}
+
+/// One AIV ray: its map cell, its projected-area weight, whether it escaped, and the fold of
+/// its surface sample (samples alternate between folds 0 and 1).
+#[derive(Clone, Copy)]
+struct AivRay {
+    cell: u32,
+    weight: f64,
+    seen: bool,
+    fold: u8,
+}
+
+/// Per-cell sums of a map: Σ w·v, Σ w, and the ray count.
+struct CellSums {
+    vis: Vec<f64>,
+    weight: Vec<f64>,
+    count: Vec<u32>,
+}
+
+/// The sums of the rays of `fold` (all rays for `None`).
+fn cell_sums(rays: &[AivRay], res: u32, fold: Option<u8>) -> CellSums {
+    let cells = (res * res) as usize;
+    let mut s = CellSums {
+        vis: vec![0.0; cells],
+        weight: vec![0.0; cells],
+        count: vec![0; cells],
+    };
+    for r in rays.iter().filter(|r| fold.is_none_or(|f| r.fold == f)) {
+        let c = r.cell as usize;
+        s.vis[c] += if r.seen { r.weight } else { 0.0 };
+        s.weight[c] += r.weight;
+        s.count[c] += 1;
+    }
+    s
+}
+
+/// The fewest rays an AIV cell's estimate may rest on that [`aiv_map`] tries when its
+/// `min_rays` is 0 (`BakeSettings::aiv_min_rays`).
+pub const AIV_MIN_RAYS_CANDIDATES: [u32; 5] = [1, 2, 4, 8, 16];
+
+/// The bandwidth of a voxel's AIV estimate, chosen by two-fold cross-validation over its
+/// surface samples: for each candidate of [`AIV_MIN_RAYS_CANDIDATES`], the map built from one
+/// fold's rays ([`average_with_min_count`]) predicts the other fold's rays, and the candidate
+/// with the least weighted squared error Σ w (v − V̂(cell))² over both ways wins (ties to
+/// the finer). A finest-level voxel traces 16 × 16 rays over 32² cells: where visibility
+/// varies little over directions (thin, scattered geometry: the lattice, foliage) a cell should
+/// pool the rays of its neighbours; where it jumps (the horizon of a solid's wall) pooling
+/// blurs the jump, and the map should stay fine. Measured with `examples/aiv_probe` (RMS of
+/// baked − traced V̂ over 20,000 voxel-direction pairs at 64³): lattice 0.238 (1 ray a
+/// cell) → 0.158 (8 rays) / 0.165 (chosen), displaced sphere 0.217 → 0.271 / 0.222.
+fn cross_validated_min_rays(rays: &[AivRay], res: u32, mean: f32) -> u32 {
+    let folds = [cell_sums(rays, res, Some(0)), cell_sums(rays, res, Some(1))];
+    let mut best = (f64::INFINITY, AIV_MIN_RAYS_CANDIDATES[0]);
+    for k in AIV_MIN_RAYS_CANDIDATES {
+        let mut score = 0f64;
+        for (f, sums) in folds.iter().enumerate() {
+            let m = average_with_min_count(&sums.vis, &sums.weight, &sums.count, k, res, mean);
+            for r in rays.iter().filter(|r| r.fold as usize != f) {
+                let e = r.seen as u32 as f64 - m[r.cell as usize] as f64;
+                score += r.weight * e * e;
+            }
+        }
+        if score < best.0 - 1e-12 {
+            best = (score, k);
+        }
+    }
+    best.1
 }
 
 #[cfg(test)]
@@ -157,7 +231,7 @@ mod tests {
                 }
             })
             .collect();
-        let (map, traced, exposure) = aiv_map(&accel, &samples, 32, 64, 7);
+        let (map, traced, exposure) = aiv_map(&accel, &samples, 32, 64, 0, 7);
         assert_eq!(traced, 2048 * 64);
         // A solid: only the outer side is ever visible.
         assert!((exposure - 0.5).abs() < 0.01, "exposure {exposure}");
@@ -245,7 +319,7 @@ mod tests {
             }
         }
         let res = 16;
-        let (map, _, _) = aiv_map(&accel, &samples, res, 64, 5);
+        let (map, _, _) = aiv_map(&accel, &samples, res, 64, 1, 5);
         // ~1000 rays per cell: every cell is 1/2 up to Monte Carlo noise.
         for (i, m) in map.iter().enumerate() {
             assert!((m - 0.5).abs() < 0.12, "cell {i}: {m}");
@@ -257,5 +331,37 @@ mod tests {
             ) as usize;
             assert!((map[cell] - 0.5).abs() < 0.08, "towards {n}: {}", map[cell]);
         }
+    }
+
+    /// 256 rays over a 32² map, one per cell of a stratified 16² pattern (as a finest-level
+    /// voxel traces them), with visibility `v(x, y, j)` for the ray of cell (x, y), j its index.
+    fn synthetic(mut v: impl FnMut(u32, u32, u32) -> bool) -> Vec<AivRay> {
+        (0..256u32)
+            .map(|j| {
+                let (x, y) = (2 * (j % 16) + (j / 16) % 2, 2 * (j / 16) + (j % 2));
+                AivRay {
+                    cell: y * 32 + x,
+                    weight: 1.0,
+                    seen: v(x, y, j),
+                    fold: (j & 1) as u8,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn cross_validation_pools_noise_and_keeps_edges() {
+        // Visibility 1/2 in every direction, drawn at random: the best estimate pools widely.
+        let mut rng = crate::math::rng::Pcg32::new(3, 0);
+        let noisy = synthetic(|_, _, _| rng.next_f32() < 0.5);
+        assert!(cross_validated_min_rays(&noisy, 32, 0.5) >= 8);
+        // A sharp horizon (a solid's wall): pooling would blur it, the map stays fine.
+        let edge = synthetic(|x, y, _| x + y < 32);
+        assert_eq!(cross_validated_min_rays(&edge, 32, 0.5), 1);
+        // Everything visible: every candidate is exact, the finest wins the tie.
+        assert_eq!(
+            cross_validated_min_rays(&synthetic(|_, _, _| true), 32, 1.0),
+            1
+        );
     }
 }

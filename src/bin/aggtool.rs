@@ -550,6 +550,11 @@ struct BakeArgs {
     /// Interior-visibility rays per surface sample [default: 16; draft 4, high 32].
     #[arg(long)]
     aiv_rays: Option<u32>,
+    /// Fewest rays an interior-visibility cell's estimate rests on (a cell pools the rays of
+    /// the smallest enclosing block of cells holding that many): 0 chooses it per voxel by
+    /// cross-validation, 1 is the per-cell average of earlier versions [default: 0; max 1].
+    #[arg(long)]
+    aiv_min_rays: Option<u32>,
     /// Boundary-visibility map resolution (concentric, per boundary face) [default: 64;
     /// draft 32].
     #[arg(long)]
@@ -617,6 +622,7 @@ impl BakeArgs {
         set(&mut s.max_samples, self.max_samples);
         set(&mut s.aiv_res, self.aiv_res);
         set(&mut s.aiv_rays, self.aiv_rays);
+        set(&mut s.aiv_min_rays, self.aiv_min_rays);
         set(&mut s.abv_res, self.abv_res);
         set(&mut s.abv_rays, self.abv_rays);
         set(&mut s.abv_full_res, self.abv_full_res);

@@ -3389,6 +3389,7 @@ impl<'a> BakeSettings<'a> {
   pub const VT_ABV_FULL_RES: ::flatbuffers::VOffsetT = 34;
   pub const VT_LOSSLESS: ::flatbuffers::VOffsetT = 36;
   pub const VT_COMPRESSION: ::flatbuffers::VOffsetT = 38;
+  pub const VT_AIV_MIN_RAYS: ::flatbuffers::VOffsetT = 40;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3400,6 +3401,7 @@ impl<'a> BakeSettings<'a> {
     args: &'args BakeSettingsArgs
   ) -> ::flatbuffers::WIPOffset<BakeSettings<'bldr>> {
     let mut builder = BakeSettingsBuilder::new(_fbb);
+    builder.add_aiv_min_rays(args.aiv_min_rays);
     builder.add_compression(args.compression);
     builder.add_abv_full_res(args.abv_full_res);
     builder.add_min_res(args.min_res);
@@ -3562,6 +3564,17 @@ impl<'a> BakeSettings<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<i32>(BakeSettings::VT_COMPRESSION, Some(0)).unwrap()}
   }
+  /// Recorded since aggtool's cross-validated AIV (files of format 1.5; no layout change,
+  /// readers need not know it): the fewest rays an AIV cell's estimate rests on, 0 when the
+  /// bake chose it per voxel by cross-validation. Absent in older files: 1, the per-cell
+  /// average they were baked with.
+  #[inline]
+  pub fn aiv_min_rays(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(BakeSettings::VT_AIV_MIN_RAYS, Some(1)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for BakeSettings<'_> {
@@ -3588,6 +3601,7 @@ impl ::flatbuffers::Verifiable for BakeSettings<'_> {
      .visit_field::<u32>("abv_full_res", Self::VT_ABV_FULL_RES, false)?
      .visit_field::<bool>("lossless", Self::VT_LOSSLESS, false)?
      .visit_field::<i32>("compression", Self::VT_COMPRESSION, false)?
+     .visit_field::<u32>("aiv_min_rays", Self::VT_AIV_MIN_RAYS, false)?
      .finish();
     Ok(())
   }
@@ -3611,6 +3625,7 @@ pub struct BakeSettingsArgs {
     pub abv_full_res: u32,
     pub lossless: bool,
     pub compression: i32,
+    pub aiv_min_rays: u32,
 }
 impl<'a> Default for BakeSettingsArgs {
   #[inline]
@@ -3634,6 +3649,7 @@ impl<'a> Default for BakeSettingsArgs {
       abv_full_res: 0,
       lossless: false,
       compression: 0,
+      aiv_min_rays: 1,
     }
   }
 }
@@ -3716,6 +3732,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> BakeSettingsBuilder<'a, 'b, A
     self.fbb_.push_slot::<i32>(BakeSettings::VT_COMPRESSION, compression, 0);
   }
   #[inline]
+  pub fn add_aiv_min_rays(&mut self, aiv_min_rays: u32) {
+    self.fbb_.push_slot::<u32>(BakeSettings::VT_AIV_MIN_RAYS, aiv_min_rays, 1);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> BakeSettingsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     BakeSettingsBuilder {
@@ -3751,6 +3771,7 @@ impl ::core::fmt::Debug for BakeSettings<'_> {
       ds.field("abv_full_res", &self.abv_full_res());
       ds.field("lossless", &self.lossless());
       ds.field("compression", &self.compression());
+      ds.field("aiv_min_rays", &self.aiv_min_rays());
       ds.finish()
   }
 }

@@ -33,6 +33,10 @@ pub struct RecordedSettings {
     pub aiv_res: u32,
     /// Interior-visibility rays per surface sample.
     pub aiv_rays: u32,
+    /// Fewest rays an AIV cell's estimate rests on; 0: chosen per voxel by cross-validation.
+    /// 1 in files that do not record it (the per-cell average they were baked with).
+    #[serde(default = "one")]
+    pub aiv_min_rays: u32,
     /// Boundary-visibility map resolution.
     pub abv_res: u32,
     /// Boundary-visibility rays per direction cell (or per block of cells above
@@ -73,6 +77,7 @@ impl RecordedSettings {
             max_samples: s.max_samples(),
             aiv_res: s.aiv_res(),
             aiv_rays: s.aiv_rays(),
+            aiv_min_rays: s.aiv_min_rays(),
             abv_res: s.abv_res(),
             abv_rays: s.abv_rays(),
             abv_full_res: s.abv_full_res(),
@@ -100,6 +105,7 @@ impl RecordedSettings {
             max_samples: self.max_samples,
             aiv_res: self.aiv_res,
             aiv_rays: self.aiv_rays,
+            aiv_min_rays: self.aiv_min_rays,
             abv_res: self.abv_res,
             abv_rays: self.abv_rays,
             ndf_lobes: self.ndf_lobes,
@@ -118,4 +124,9 @@ impl RecordedSettings {
             compression: self.compression,
         }
     }
+}
+
+/// The serde default of `aiv_min_rays` in records that predate it.
+fn one() -> u32 {
+    1
 }

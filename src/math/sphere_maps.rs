@@ -108,23 +108,45 @@ pub fn grid_cell(p: Vec2, res: u32) -> u32 {
 /// rays than cells (a finest-level voxel: 16 samples × 16 rays over 32² cells) then stays
 /// unbiased in every direction instead of falling back to the mean over the whole sphere.
 pub fn average_with_coarser_fill(sum: &[f64], weight: &[f64], res: u32, default: f32) -> Vec<f32> {
+    let count: Vec<u32> = weight.iter().map(|&w| (w > 0.0) as u32).collect();
+    average_with_min_count(sum, weight, &count, 1, res, default)
+}
+
+/// As [`average_with_coarser_fill`], but a cell's estimate comes from the smallest enclosing
+/// 2^k × 2^k block (the cell itself first) that holds at least `min_count` samples (`count`
+/// per cell) and some weight: an adaptive bandwidth, fine where samples are dense and coarse
+/// where they are sparse, so that no cell rests on one binary ray.
+pub fn average_with_min_count(
+    sum: &[f64],
+    weight: &[f64],
+    count: &[u32],
+    min_count: u32,
+    res: u32,
+    default: f32,
+) -> Vec<f32> {
     debug_assert_eq!(sum.len(), (res * res) as usize);
     debug_assert_eq!(weight.len(), sum.len());
-    // The pyramid of (sum, weight) per block, level 0 being the map itself.
-    let mut pyramid: Vec<(u32, Vec<(f64, f64)>)> = vec![(
+    debug_assert_eq!(count.len(), sum.len());
+    // The pyramid of (sum, weight, count) per block, level 0 being the map itself.
+    let mut pyramid: Vec<(u32, Vec<(f64, f64, u32)>)> = vec![(
         res,
-        sum.iter().copied().zip(weight.iter().copied()).collect(),
+        sum.iter()
+            .zip(weight)
+            .zip(count)
+            .map(|((&s, &w), &n)| (s, w, n))
+            .collect(),
     )];
     while pyramid.last().is_some_and(|(r, _)| *r > 1) {
         let (r, cells) = pyramid.last().expect("non-empty");
         let (r, h) = (*r, (*r).div_ceil(2));
-        let mut next = vec![(0.0, 0.0); (h * h) as usize];
+        let mut next = vec![(0.0, 0.0, 0u32); (h * h) as usize];
         for y in 0..r {
             for x in 0..r {
-                let (s, w) = cells[(y * r + x) as usize];
+                let (s, w, n) = cells[(y * r + x) as usize];
                 let c = &mut next[((y / 2) * h + x / 2) as usize];
                 c.0 += s;
                 c.1 += w;
+                c.2 += n;
             }
         }
         pyramid.push((h, next));
@@ -132,14 +154,18 @@ pub fn average_with_coarser_fill(sum: &[f64], weight: &[f64], res: u32, default:
     (0..res * res)
         .map(|i| {
             let (mut x, mut y) = (i % res, i / res);
+            let mut last = None;
             for (r, cells) in &pyramid {
-                let (s, w) = cells[(y * r + x) as usize];
+                let (s, w, n) = cells[(y * r + x) as usize];
                 if w > 0.0 {
-                    return (s / w) as f32;
+                    last = Some((s / w) as f32);
+                    if n >= min_count {
+                        return (s / w) as f32;
+                    }
                 }
                 (x, y) = (x / 2, y / 2);
             }
-            default
+            last.unwrap_or(default)
         })
         .collect()
 }

@@ -168,8 +168,19 @@ class BakeSettings(object):
             return self._tab.Get(flatbuffers.number_types.Int32Flags, o + self._tab.Pos)
         return 0
 
+    # Recorded since aggtool's cross-validated AIV (files of format 1.5; no layout change,
+    # readers need not know it): the fewest rays an AIV cell's estimate rests on, 0 when the
+    # bake chose it per voxel by cross-validation. Absent in older files: 1, the per-cell
+    # average they were baked with.
+    # BakeSettings
+    def AivMinRays(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(40))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
+        return 1
+
 def BakeSettingsStart(builder):
-    builder.StartObject(18)
+    builder.StartObject(19)
 
 def Start(builder):
     BakeSettingsStart(builder)
@@ -281,6 +292,12 @@ def BakeSettingsAddCompression(builder, compression):
 
 def AddCompression(builder, compression):
     BakeSettingsAddCompression(builder, compression)
+
+def BakeSettingsAddAivMinRays(builder, aivMinRays):
+    builder.PrependUint32Slot(18, aivMinRays, 1)
+
+def AddAivMinRays(builder, aivMinRays):
+    BakeSettingsAddAivMinRays(builder, aivMinRays)
 
 def BakeSettingsEnd(builder):
     return builder.EndObject()
