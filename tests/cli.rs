@@ -423,6 +423,14 @@ fn presets_and_overrides() {
         (&max["lossless"], &max["denoise"], &max["compression"]),
         (&true.into(), &false.into(), &0.into())
     );
+    // The AIV bandwidth: chosen per voxel by default, the paper's per-cell average in max, a
+    // flag over either; recorded in the file.
+    assert_eq!(
+        (&draft["aiv_min_rays"], &max["aiv_min_rays"]),
+        (&0.into(), &1.into())
+    );
+    let pooled = settings(&["--aiv-min-rays", "4"], "k.agg");
+    assert_eq!(pooled["aiv_min_rays"], 4);
     let e = aggtool(&["convert", "foliage.glb", "--preset", "fast"], p);
     assert!(!e.status.success());
     assert!(String::from_utf8_lossy(&e.stderr).contains("possible values"));

@@ -1874,9 +1874,14 @@ fn inspect(file: &Path, json: bool) -> Result<()> {
         }
     );
     println!(
-        "settings: max-res {} min-res {} samples {} (max {}) aiv {}² × {} rays/sample ({}-weighted), abv {}² × {} rays/cell{}, ndf-lobes {}, moment-res {}, keep {} energy {}{}",
+        "settings: max-res {} min-res {} samples {} (max {}) aiv {}² × {} rays/sample ({}-weighted{}), abv {}² × {} rays/cell{}, ndf-lobes {}, moment-res {}, keep {} energy {}{}",
         s.max_res, s.min_res, s.samples, s.max_samples, s.aiv_res, s.aiv_rays,
         if sm.settings.aiv_weighting == aggtool::format::AivWeighting::ProjectedArea { "projected-area" } else { "area" },
+        match s.aiv_min_rays {
+            0 => ", cells pooled per voxel by cross-validation".to_string(),
+            1 => String::new(),
+            n => format!(", cells pooled to at least {n} rays"),
+        },
         s.abv_res, s.abv_rays,
         match s.abv_full_res {
             0 => String::new(),
