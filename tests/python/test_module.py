@@ -153,7 +153,7 @@ def test_traversal_layer(aggtool_module):
         scene = aggtool.open(str(tree(tmp)))
         lo, hi = (np.array(x) for x in scene.bounds)
         rng = np.random.default_rng(5)
-        n = 4000
+        n = 16000
         o = np.tile(np.float32([0.0, 0.6, 3.0]), (n, 1))
         dirs = (rng.uniform(lo, hi, (n, 3)) - o).astype(np.float32)
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
@@ -195,8 +195,9 @@ def test_traversal_layer(aggtool_module):
         assert ((aiv >= 0) & (aiv <= 1) & (inc >= aiv - 1e-6) & (inc <= 1)).all()
         # A host shading every hit with ABSDF samples under the constant sky estimates what
         # trace does (Eq. 30 with MIS and reservoir picks, each cone divided by the sum of
-        # its weights and its transmittance, TraceSettings::normalize): the means of 4000
-        # cones agree within 3% (two independent estimates).
+        # its weights and its transmittance, TraceSettings::normalize): the means of 16000
+        # cones agree within 3% (two independent estimates; with 4000 cones their Monte Carlo
+        # difference alone reached 3.1% on a bake of this version, 1.5% with 16000).
         lo_k = np.where(ok[:, None], val * (inc / np.where(ok, pdf, 1))[:, None], 0) * sky
         host = np.zeros((n, 3))
         np.add.at(host, cone, lo_k * w[:, None])
