@@ -2,7 +2,7 @@
 //! `aggtool eval --budget`), on random (voxel, direction) pairs of one level:
 //!
 //! ```sh
-//! cargo run --release --example aiv_probe -- ASSET ASSET.agg [LEVEL] [PAIRS] [SAMPLES]
+//! cargo run --release --example aiv_probe -- ASSET ASSET.agg [LEVEL] [PAIRS] [SAMPLES] [--estimators] [--chosen]
 //! ```
 //!
 //! Prints the mean and RMS of baked − traced, their correlation, the same for the baked value
@@ -82,7 +82,55 @@ fn main() -> anyhow::Result<()> {
     if a.iter().any(|x| x == "--estimators") {
         estimators(&scene, &accel, &lod, &truth, level)?;
     }
+    if a.iter().any(|x| x == "--chosen") {
+        chosen(&scene, &accel, &lod, level);
+    }
     Ok(())
+}
+
+/// Which AIV bandwidth the cross-validation chose, on (up to) 1500 voxels of the level: the
+/// map baked with `min_rays` 0 compared with the map of each candidate (the bake's samples,
+/// rays and seed; settings of the default preset at the level's resolution).
+fn chosen(scene: &aggtool::scene::Scene, accel: &Accel, lod: &LodScene, level: usize) {
+    use aggtool::bake::sampling::{pieces_by_voxel, sample_voxel};
+    use aggtool::bake::visibility::{aiv_map, AIV_MIN_RAYS_CANDIDATES};
+    let grid = lod.grid(level);
+    let settings = aggtool::bake::BakeSettings {
+        max_res: lod.grid(0).res,
+        ..Default::default()
+    };
+    let spv = settings.samples_at(grid.res);
+    let pieces = pieces_by_voxel(scene, &grid);
+    let mut keys: Vec<u64> = pieces.keys().copied().collect();
+    keys.sort_unstable();
+    let keys: Vec<u64> = keys
+        .into_iter()
+        .step_by((pieces.len() / 1500).max(1))
+        .collect();
+    let mut counts = vec![0usize; AIV_MIN_RAYS_CANDIDATES.len() + 1];
+    for &key in &keys {
+        let seed = (key as u32) ^ ((key >> 32) as u32).rotate_left(16);
+        let samples = sample_voxel(scene, &pieces[&key], spv, seed);
+        if samples.is_empty() {
+            continue;
+        }
+        let (res, rays) = (settings.aiv_res, settings.aiv_rays);
+        let (map, _, _) = aiv_map(accel, &samples, res, rays, 0, seed);
+        let k = AIV_MIN_RAYS_CANDIDATES
+            .iter()
+            .position(|&k| aiv_map(accel, &samples, res, rays, k, seed).0 == map)
+            .unwrap_or(AIV_MIN_RAYS_CANDIDATES.len());
+        counts[k] += 1;
+    }
+    let total: usize = counts.iter().sum();
+    print!(
+        "chosen AIV bandwidth over {total} voxels of the {}³ level:",
+        grid.res
+    );
+    for (k, c) in AIV_MIN_RAYS_CANDIDATES.iter().zip(&counts) {
+        print!(" {k} rays {:.1}%,", 100.0 * *c as f64 / total.max(1) as f64);
+    }
+    println!(" other {}", counts[AIV_MIN_RAYS_CANDIDATES.len()]);
 }
 
 /// The bake's AIV estimator rerun on (up to) 1500 voxels of the level with variants of its
