@@ -37,7 +37,7 @@ pub struct BakeSettings {
     /// smallest enclosing block of cells holding that many); 0 chooses it per voxel by
     /// cross-validation over the voxel's surface samples ([`visibility::aiv_map`]), 1 is the
     /// per-cell average of formats up to 1.5 (and of files that do not record it).
-    #[serde(default = "one")]
+    #[serde(default = "crate::format::settings::one")]
     pub aiv_min_rays: u32,
     /// Boundary visibility: map resolution and rays per direction cell.
     pub abv_res: u32,
@@ -92,11 +92,6 @@ impl Default for BakeSettings {
             compression: crate::format::DEFAULT_COMPRESSION,
         }
     }
-}
-
-/// The serde default of `aiv_min_rays` in settings written before it existed.
-fn one() -> u32 {
-    1
 }
 
 /// Named starting points for [`BakeSettings`] (`aggtool convert --preset`); flags given beside

@@ -126,7 +126,8 @@ impl RecordedSettings {
     }
 }
 
-/// The serde default of `aiv_min_rays` in records that predate it.
-fn one() -> u32 {
+/// The serde default of `aiv_min_rays` in records and settings that predate it (also
+/// `bake::BakeSettings`'s).
+pub(crate) fn one() -> u32 {
     1
 }
