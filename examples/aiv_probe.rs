@@ -88,9 +88,9 @@ fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Which AIV bandwidth the cross-validation chose, on (up to) 1500 voxels of the level: the
-/// map baked with `min_rays` 0 compared with the map of each candidate (the bake's samples,
-/// rays and seed; settings of the default preset at the level's resolution).
+/// Which AIV bandwidth the cross-validation chose, on (up to) 1500 voxels of the level (the
+/// bake's samples, rays and seed; settings of the default preset at the level's resolution).
+/// The bake reports the same over every voxel (`stats:` lines, `--report`).
 fn chosen(scene: &aggtool::scene::Scene, accel: &Accel, lod: &LodScene, level: usize) {
     use aggtool::bake::sampling::{pieces_by_voxel, sample_voxel};
     use aggtool::bake::visibility::{aiv_map, AIV_MIN_RAYS_CANDIDATES};
@@ -115,10 +115,10 @@ fn chosen(scene: &aggtool::scene::Scene, accel: &Accel, lod: &LodScene, level: u
             continue;
         }
         let (res, rays) = (settings.aiv_res, settings.aiv_rays);
-        let (map, _, _) = aiv_map(accel, &samples, res, rays, 0, seed);
+        let chosen = aiv_map(accel, &samples, res, rays, 0, seed).min_rays;
         let k = AIV_MIN_RAYS_CANDIDATES
             .iter()
-            .position(|&k| aiv_map(accel, &samples, res, rays, k, seed).0 == map)
+            .position(|&k| k == chosen)
             .unwrap_or(AIV_MIN_RAYS_CANDIDATES.len());
         counts[k] += 1;
     }
@@ -181,7 +181,7 @@ fn estimators(
             if samples.is_empty() {
                 continue;
             }
-            let (map, _, _) = aiv_map(accel, &samples, res, rays, min_rays, seed);
+            let map = aiv_map(accel, &samples, res, rays, min_rays, seed).map;
             let per_cell = ((samples.len() as f32 * rays as f32) / (res * res) as f32).max(1.0);
             let mean = map.iter().sum::<f32>() / map.len() as f32;
             let sigma = (mean * (1.0 - mean)).max(0.0).sqrt() / per_cell.sqrt();

@@ -431,6 +431,47 @@ fn presets_and_overrides() {
     );
     let pooled = settings(&["--aiv-min-rays", "4"], "k.agg");
     assert_eq!(pooled["aiv_min_rays"], 4);
+    // The bake reports the bandwidth of every voxel kept: all at the flag's, or spread over
+    // the candidates when chosen.
+    for (flag, out) in [("4", "k4.agg"), ("0", "k0.agg")] {
+        let o = aggtool(
+            &[
+                "convert",
+                "foliage.glb",
+                "--max-res",
+                "8",
+                "--samples",
+                "4",
+                "--aiv-min-rays",
+                flag,
+                "-o",
+                out,
+                "--report",
+                "r.json",
+            ],
+            p,
+        );
+        ok(&o);
+        let stdout = String::from_utf8_lossy(&o.stdout);
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(p.join("r.json")).unwrap()).unwrap();
+        for l in report["levels"].as_array().unwrap() {
+            let bw: Vec<u64> = l["aiv_bandwidth"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_u64().unwrap())
+                .collect();
+            assert_eq!(bw.iter().sum::<u64>(), l["voxels"].as_u64().unwrap(), "{l}");
+            if flag == "4" {
+                assert_eq!(bw[2], l["voxels"].as_u64().unwrap(), "{l}");
+            }
+        }
+        assert!(stdout.contains("AIV bandwidth"), "{stdout}");
+        if flag == "4" {
+            assert!(stdout.contains("AIV bandwidth 4 rays 100%"), "{stdout}");
+        }
+    }
     let e = aggtool(&["convert", "foliage.glb", "--preset", "fast"], p);
     assert!(!e.status.success());
     assert!(String::from_utf8_lossy(&e.stderr).contains("possible values"));

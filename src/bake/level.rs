@@ -124,9 +124,21 @@ pub fn voxel_primitive(
     appearance.and(ellipsoid)
 }
 
+/// What baking one voxel cost, and the AIV bandwidth it chose.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct VoxelCost {
+    /// AIV rays traced.
+    pub rays: u64,
+    /// CPU seconds spent on (sampling + statistics, AIV).
+    pub cpu: [f64; 2],
+    /// The fewest rays an AIV cell rests on ([`super::visibility::AivEstimate::min_rays`]);
+    /// 0 where no voxel was kept.
+    pub aiv_min_rays: u32,
+}
+
 /// Bakes one voxel from the pieces of surface inside it: samples, ABSDF statistics, the
 /// ellipsoid and the AIV tree. `None` when every sample was cut out (nothing to keep). Also
-/// returns the rays traced and the CPU seconds spent on (statistics, AIV).
+/// returns what it cost ([`VoxelCost`]).
 pub fn bake_voxel(
     scene: &Scene,
     accel: &Accel,
@@ -134,24 +146,31 @@ pub fn bake_voxel(
     key: u64,
     pieces: &[super::sampling::Piece],
     s: &LevelSettings,
-) -> (Option<VoxelData>, u64, [f64; 2]) {
+) -> (Option<VoxelData>, VoxelCost) {
     let t0 = std::time::Instant::now();
     let area: f64 = pieces.iter().map(|p| p.area).sum();
     let seed = voxel_seed(key);
     let (samples, coverage, appearance, ellipsoid) = voxel_statistics(scene, grid, pieces, s, seed);
     let (Some(appearance), Some(ellipsoid)) = (appearance, ellipsoid) else {
-        return (None, 0, [t0.elapsed().as_secs_f64(), 0.0]);
+        let cost = VoxelCost {
+            cpu: [t0.elapsed().as_secs_f64(), 0.0],
+            ..Default::default()
+        };
+        return (None, cost);
     };
     let t1 = std::time::Instant::now();
-    let (map, rays, exposure) =
-        aiv_map(accel, &samples, s.aiv_res, s.aiv_rays, s.aiv_min_rays, seed);
+    let est = aiv_map(accel, &samples, s.aiv_res, s.aiv_rays, s.aiv_min_rays, seed);
     // A finest-level voxel traces fewer rays than its map has cells (16 × 16 over 32²), but
     // its noise is taken as a ray's per cell at least: with the true 1/4 the chandelier's 64³
     // level lost 3.3 of its 11 MiB and rendered 6% worse (RMSE 0.0297 against 0.0279).
     let per_cell =
         ((samples.len() as f32 * s.aiv_rays as f32) / (s.aiv_res * s.aiv_res) as f32).max(1.0);
-    let aiv = compress(&map, s.aiv_res, per_cell, s);
-    let cpu = [(t1 - t0).as_secs_f64(), t1.elapsed().as_secs_f64()];
+    let aiv = compress(&est.map, s.aiv_res, per_cell, s);
+    let cost = VoxelCost {
+        rays: est.rays,
+        cpu: [(t1 - t0).as_secs_f64(), t1.elapsed().as_secs_f64()],
+        aiv_min_rays: est.min_rays,
+    };
     (
         Some(VoxelData {
             key,
@@ -161,10 +180,9 @@ pub fn bake_voxel(
             ellipsoid,
             aiv,
             // Quantized to 1/256 so that stored and baked values compare equal.
-            exposure: quantize_exposure(exposure),
+            exposure: quantize_exposure(est.exposure),
         }),
-        rays,
-        cpu,
+        cost,
     )
 }
 
@@ -236,14 +254,14 @@ pub fn sorted_boundary_faces(keys: impl Iterator<Item = u64>, res: u32) -> Vec<F
 pub fn bake_level(scene: &Scene, accel: &Accel, grid: Grid, s: &LevelSettings) -> LevelData {
     let pieces = pieces_by_voxel(scene, &grid);
     let list: Vec<(u64, Vec<super::sampling::Piece>)> = pieces.into_iter().collect();
-    let results: Vec<(Option<VoxelData>, u64, [f64; 2])> = list
+    let results: Vec<(Option<VoxelData>, VoxelCost)> = list
         .par_iter()
         .map(|(key, pieces)| bake_voxel(scene, accel, &grid, *key, pieces, s))
         .collect();
     let mut rays = 0;
     let mut voxels = Vec::with_capacity(results.len());
-    for (v, r, _) in results {
-        rays += r;
+    for (v, c) in results {
+        rays += c.rays;
         voxels.extend(v);
     }
     let faces = sorted_boundary_faces(voxels.iter().map(|v| v.key), grid.res);

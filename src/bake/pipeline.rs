@@ -4,15 +4,15 @@
 //! the bytes do not depend on the thread count.
 
 use std::path::Path;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use rayon::prelude::*;
 
 use super::level::{
-    bake_face, bake_voxel, primitive_level, sorted_boundary_faces, voxel_primitive,
+    bake_face, bake_voxel, primitive_level, sorted_boundary_faces, voxel_primitive, VoxelCost,
 };
 use super::sampling::pieces_by_voxel;
+use super::visibility::AIV_MIN_RAYS_CANDIDATES;
 use super::BakeSettings;
 use crate::format::effects::{effect_lines, EffectLine};
 use crate::format::encode::{self, ComponentBytes, Counts, IndexEntry, LevelEntry};
@@ -53,9 +53,30 @@ pub struct LevelReport {
     pub cpu_statistics: f64,
     pub cpu_aiv: f64,
     pub aiv_rays: u64,
+    /// Voxels per AIV bandwidth: `aiv_bandwidth[i]` voxels rest each cell on at least
+    /// [`AIV_MIN_RAYS_CANDIDATES`]`[i]` rays (chosen by cross-validation, or the setting).
+    pub aiv_bandwidth: [u64; AIV_MIN_RAYS_CANDIDATES.len()],
     pub abv_rays: u64,
     pub bytes: u64,
     pub counts: Counts,
+}
+
+impl LevelReport {
+    /// "1 ray 23%, 2 rays 54%, …": the share of the level's voxels at each AIV bandwidth
+    /// (those with none omitted).
+    pub fn aiv_bandwidth_summary(&self) -> String {
+        let total: u64 = self.aiv_bandwidth.iter().sum();
+        AIV_MIN_RAYS_CANDIDATES
+            .iter()
+            .zip(&self.aiv_bandwidth)
+            .filter(|(_, &n)| n > 0)
+            .map(|(k, &n)| {
+                let unit = if *k == 1 { "ray" } else { "rays" };
+                format!("{k} {unit} {:.0}%", 100.0 * n as f64 / total as f64)
+            })
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
 }
 
 /// What a bake did, for the `stats:` lines and `--report`.
@@ -179,8 +200,8 @@ fn bake_levels(
         sec.voxelize = t.elapsed().as_secs_f64();
         // Voxels, block by block.
         let bar = StageCounter::new(progress, format!("{res}³ voxels"), pieces.len() as u64);
-        let cpu_stats = AtomicU64::new(0);
-        let cpu_aiv = AtomicU64::new(0);
+        let (mut cpu_stats, mut cpu_aiv) = (0f64, 0f64);
+        let mut aiv_bandwidth = [0u64; AIV_MIN_RAYS_CANDIDATES.len()];
         let mut aiv_rays = 0u64;
         let mut keys_prims: Vec<(u64, Ellipsoid)> = Vec::with_capacity(pieces.len());
         let mut voxel_blocks = Vec::new();
@@ -201,20 +222,28 @@ fn bake_levels(
                 sec.voxels += t.elapsed().as_secs_f64();
                 continue;
             }
-            let baked: Vec<(Option<VoxelData>, u64)> = chunk
+            let baked: Vec<(Option<VoxelData>, VoxelCost)> = chunk
                 .par_iter()
                 .map(|(key, p)| {
-                    let (v, r, cpu) = bake_voxel(scene, &accel, &grid, *key, p, &ls);
-                    cpu_stats.fetch_add((cpu[0] * 1e9) as u64, Ordering::Relaxed);
-                    cpu_aiv.fetch_add((cpu[1] * 1e9) as u64, Ordering::Relaxed);
+                    let (v, cost) = bake_voxel(scene, &accel, &grid, *key, p, &ls);
                     bar.add(1);
-                    (v, r)
+                    (v, cost)
                 })
                 .collect();
             let voxels: Vec<VoxelData> = baked
                 .into_iter()
-                .filter_map(|(v, r)| {
-                    aiv_rays += r;
+                .filter_map(|(v, cost)| {
+                    aiv_rays += cost.rays;
+                    cpu_stats += cost.cpu[0];
+                    cpu_aiv += cost.cpu[1];
+                    if v.is_some() {
+                        if let Some(i) = AIV_MIN_RAYS_CANDIDATES
+                            .iter()
+                            .position(|&k| k == cost.aiv_min_rays)
+                        {
+                            aiv_bandwidth[i] += 1;
+                        }
+                    }
                     v
                 })
                 .collect();
@@ -342,9 +371,10 @@ fn bake_levels(
             samples_per_voxel: ls.samples_per_voxel,
             abv_rays_per_face: ls.abv_rays * (ls.abv_res / ls.abv_stride).pow(2),
             seconds: sec,
-            cpu_statistics: cpu_stats.load(Ordering::Relaxed) as f64 * 1e-9,
-            cpu_aiv: cpu_aiv.load(Ordering::Relaxed) as f64 * 1e-9,
+            cpu_statistics: cpu_stats,
+            cpu_aiv,
             aiv_rays,
+            aiv_bandwidth,
             abv_rays,
             bytes,
             counts,

@@ -48,8 +48,22 @@ use crate::trace::{offset_origin, Accel, Ray};
 /// The smallest exposure stored: the incident AIV is never scaled up more than this allows.
 pub const MIN_EXPOSURE: f32 = 1.0 / 16.0;
 
-/// The AIV map of a voxel (row-major `res × res`, values in [0, 1]), the number of rays traced,
-/// and the exposure η in [MIN_EXPOSURE, 1] (see the module notes). A cell's value is the
+/// A voxel's AIV estimate ([`aiv_map`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct AivEstimate {
+    /// Row-major `res × res`, values in [0, 1].
+    pub map: Vec<f32>,
+    /// Rays traced.
+    pub rays: u64,
+    /// η in [MIN_EXPOSURE, 1] (see the module notes).
+    pub exposure: f32,
+    /// The fewest rays a cell's estimate rests on: the `min_rays` asked for, or the one
+    /// cross-validation chose when asked for 0.
+    pub min_rays: u32,
+}
+
+/// The AIV map of a voxel, the number of rays traced, the exposure and the bandwidth the
+/// estimate used ([`AivEstimate`]). A cell's value is the
 /// average of the smallest enclosing block of cells (itself first) that at least `min_rays`
 /// rays reached ([`average_with_min_count`]); `min_rays` 0 chooses it per voxel by
 /// cross-validation ([`cross_validated_min_rays`]). With 1, cells no ray reached still take
@@ -65,7 +79,7 @@ pub fn aiv_map(
     rays_per_sample: u32,
     min_rays: u32,
     seed: u32,
-) -> (Vec<f32>, u64, f32) {
+) -> AivEstimate {
     let mut rays: Vec<AivRay> = Vec::with_capacity(samples.len() * rays_per_sample as usize);
     let mut index = 0u32;
     // Σw, Σw·v, Σw·v² over (sample, side) pairs with at least two rays.
@@ -120,7 +134,12 @@ pub fn aiv_map(
         min_rays
     };
     let map = average_with_min_count(&all.vis, &all.weight, &all.count, min_rays, res, mean);
-    (map, rays.len() as u64, exposure)
+    AivEstimate {
+        map,
+        rays: rays.len() as u64,
+        exposure,
+        min_rays,
+    }
 }
 
 /// One AIV ray: its map cell, its projected-area weight, whether it escaped, and the fold of
@@ -231,7 +250,12 @@ mod tests {
                 }
             })
             .collect();
-        let (map, traced, exposure) = aiv_map(&accel, &samples, 32, 64, 0, 7);
+        let AivEstimate {
+            map,
+            rays: traced,
+            exposure,
+            ..
+        } = aiv_map(&accel, &samples, 32, 64, 0, 7);
         assert_eq!(traced, 2048 * 64);
         // A solid: only the outer side is ever visible.
         assert!((exposure - 0.5).abs() < 0.01, "exposure {exposure}");
@@ -319,7 +343,7 @@ mod tests {
             }
         }
         let res = 16;
-        let (map, _, _) = aiv_map(&accel, &samples, res, 64, 1, 5);
+        let map = aiv_map(&accel, &samples, res, 64, 1, 5).map;
         // ~1000 rays per cell: every cell is 1/2 up to Monte Carlo noise.
         for (i, m) in map.iter().enumerate() {
             assert!((m - 0.5).abs() < 0.12, "cell {i}: {m}");
