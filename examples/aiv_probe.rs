@@ -108,6 +108,7 @@ fn chosen(scene: &aggtool::scene::Scene, accel: &Accel, lod: &LodScene, level: u
         .step_by((pieces.len() / 1500).max(1))
         .collect();
     let mut counts = vec![0usize; AIV_MIN_RAYS_CANDIDATES.len() + 1];
+    let mut denoise = std::collections::BTreeMap::new();
     for &key in &keys {
         let seed = (key as u32) ^ ((key >> 32) as u32).rotate_left(16);
         let samples = sample_voxel(scene, &pieces[&key], spv, seed);
@@ -115,10 +116,11 @@ fn chosen(scene: &aggtool::scene::Scene, accel: &Accel, lod: &LodScene, level: u
             continue;
         }
         let (res, rays) = (settings.aiv_res, settings.aiv_rays);
-        let chosen = aiv_map(accel, &samples, res, rays, 0, seed).min_rays;
+        let est = aiv_map(accel, &samples, res, rays, 0, true, seed);
+        *denoise.entry(format!("{}", est.denoise)).or_insert(0usize) += 1;
         let k = AIV_MIN_RAYS_CANDIDATES
             .iter()
-            .position(|&k| k == chosen)
+            .position(|&k| k == est.min_rays)
             .unwrap_or(AIV_MIN_RAYS_CANDIDATES.len());
         counts[k] += 1;
     }
@@ -131,6 +133,7 @@ fn chosen(scene: &aggtool::scene::Scene, accel: &Accel, lod: &LodScene, level: u
         print!(" {k} rays {:.1}%,", 100.0 * *c as f64 / total.max(1) as f64);
     }
     println!(" other {}", counts[AIV_MIN_RAYS_CANDIDATES.len()]);
+    println!("chosen shrinkage (multiples of the noise σ): {denoise:?}");
 }
 
 /// The bake's AIV estimator rerun on (up to) 1500 voxels of the level with variants of its
@@ -181,7 +184,7 @@ fn estimators(
             if samples.is_empty() {
                 continue;
             }
-            let map = aiv_map(accel, &samples, res, rays, min_rays, seed).map;
+            let map = aiv_map(accel, &samples, res, rays, min_rays, false, seed).map;
             let per_cell = ((samples.len() as f32 * rays as f32) / (res * res) as f32).max(1.0);
             let mean = map.iter().sum::<f32>() / map.len() as f32;
             let sigma = (mean * (1.0 - mean)).max(0.0).sqrt() / per_cell.sqrt();

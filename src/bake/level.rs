@@ -12,7 +12,7 @@ use super::boundary::boundary_faces;
 use super::boundary_visibility::{abv_map, PrimitiveLevel};
 use super::primitive::fit_ellipsoid_bounding;
 use super::sampling::{pieces_by_voxel, sample_voxel};
-use super::visibility::aiv_map;
+use super::visibility::{aiv_map, aiv_rays_per_cell, map_noise_sigma};
 use crate::absdf::estimate::{estimate, EstimateSettings};
 use crate::format::level::{FaceData, LevelData, VoxelData};
 use crate::math::haar::{forward, shrink, truncate, SparseHaar};
@@ -62,17 +62,23 @@ impl Default for LevelSettings {
 }
 
 /// Haar transform, shrinkage of the Monte Carlo noise (`rays_per_cell` rays estimated each
-/// pixel, a binomial proportion; skipped when `denoise` is off), truncation.
-fn compress(map: &[f32], res: u32, rays_per_cell: f32, s: &LevelSettings) -> SparseHaar {
+/// pixel, a binomial proportion: a threshold of `denoise` times its σ, [`map_noise_sigma`];
+/// skipped when the level's `denoise` is off), truncation.
+fn compress(
+    map: &[f32],
+    res: u32,
+    rays_per_cell: f32,
+    denoise: f32,
+    s: &LevelSettings,
+) -> SparseHaar {
     let (c, mut d) = forward(map, res as usize);
-    if s.denoise {
+    if s.denoise && denoise > 0.0 {
         let mean = (map.iter().map(|&v| v as f64).sum::<f64>() / map.len().max(1) as f64) as f32;
-        // Fewer rays than cells (an ABV whose blocks of cells share rays): the fill makes
-        // blocks of cells share one estimate, whose noise reaches the Haar details of the
-        // block's size with the amplitude of white noise of 1/rays_per_cell per cell, so σ
-        // grows past that of a single ray.
-        let sigma = (mean * (1.0 - mean)).max(0.0).sqrt() / rays_per_cell.max(1.0 / 1024.0).sqrt();
-        shrink(&mut d, sigma, res as usize);
+        shrink(
+            &mut d,
+            denoise * map_noise_sigma(mean, rays_per_cell),
+            res as usize,
+        );
     }
     truncate(c, &mut d, s.keep, s.energy);
     SparseHaar::new(c, &d, res as usize)
@@ -159,13 +165,20 @@ pub fn bake_voxel(
         return (None, cost);
     };
     let t1 = std::time::Instant::now();
-    let est = aiv_map(accel, &samples, s.aiv_res, s.aiv_rays, s.aiv_min_rays, seed);
+    let est = aiv_map(
+        accel,
+        &samples,
+        s.aiv_res,
+        s.aiv_rays,
+        s.aiv_min_rays,
+        s.denoise,
+        seed,
+    );
     // A finest-level voxel traces fewer rays than its map has cells (16 × 16 over 32²), but
     // its noise is taken as a ray's per cell at least: with the true 1/4 the chandelier's 64³
     // level lost 3.3 of its 11 MiB and rendered 6% worse (RMSE 0.0297 against 0.0279).
-    let per_cell =
-        ((samples.len() as f32 * s.aiv_rays as f32) / (s.aiv_res * s.aiv_res) as f32).max(1.0);
-    let aiv = compress(&est.map, s.aiv_res, per_cell, s);
+    let per_cell = aiv_rays_per_cell(est.rays, s.aiv_res);
+    let aiv = compress(&est.map, s.aiv_res, per_cell, est.denoise, s);
     let cost = VoxelCost {
         rays: est.rays,
         cpu: [(t1 - t0).as_secs_f64(), t1.elapsed().as_secs_f64()],
@@ -218,6 +231,7 @@ pub fn bake_face(
                 &m.values,
                 s.abv_res,
                 m.rays_per_cell,
+                1.0,
                 &LevelSettings {
                     denoise: s.denoise && m.estimated_res == s.abv_res,
                     ..*s

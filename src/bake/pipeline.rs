@@ -236,13 +236,11 @@ fn bake_levels(
                     aiv_rays += cost.rays;
                     cpu_stats += cost.cpu[0];
                     cpu_aiv += cost.cpu[1];
-                    if v.is_some() {
-                        if let Some(i) = AIV_MIN_RAYS_CANDIDATES
-                            .iter()
-                            .position(|&k| k == cost.aiv_min_rays)
-                        {
-                            aiv_bandwidth[i] += 1;
-                        }
+                    if let Some(i) = AIV_MIN_RAYS_CANDIDATES
+                        .iter()
+                        .position(|&k| k == cost.aiv_min_rays)
+                    {
+                        aiv_bandwidth[i] += 1;
                     }
                     v
                 })
