@@ -385,7 +385,7 @@ fn presets_and_overrides() {
         &["gen", "foliage", "-o", ".", "--triangles", "300"],
         p,
     ));
-    let settings = |extra: &[&str], out: &str| {
+    let convert = |extra: &[&str], out: &str| {
         let mut args = vec![
             "convert",
             "foliage.glb",
@@ -397,7 +397,12 @@ fn presets_and_overrides() {
             out,
         ];
         args.extend_from_slice(extra);
-        ok(&aggtool(&args, p));
+        let o = aggtool(&args, p);
+        ok(&o);
+        o
+    };
+    let settings = |extra: &[&str], out: &str| {
+        convert(extra, out);
         inspect_json(p, out)["settings"].clone()
     };
     let draft = settings(&["--preset", "draft", "--aiv-res", "8"], "d.agg");
@@ -434,24 +439,7 @@ fn presets_and_overrides() {
     // The bake reports the bandwidth of every voxel kept: all at the flag's, or spread over
     // the candidates when chosen.
     for (flag, out) in [("4", "k4.agg"), ("0", "k0.agg")] {
-        let o = aggtool(
-            &[
-                "convert",
-                "foliage.glb",
-                "--max-res",
-                "8",
-                "--samples",
-                "4",
-                "--aiv-min-rays",
-                flag,
-                "-o",
-                out,
-                "--report",
-                "r.json",
-            ],
-            p,
-        );
-        ok(&o);
+        let o = convert(&["--aiv-min-rays", flag, "--report", "r.json"], out);
         let stdout = String::from_utf8_lossy(&o.stdout);
         let report: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(p.join("r.json")).unwrap()).unwrap();
