@@ -151,7 +151,7 @@ pub fn aiv_map(
     } else {
         min_rays
     };
-    let map = estimate_map(&rays, None, min_rays, res, mean);
+    let map = average_with_min_count(&all.vis, &all.weight, &all.count, min_rays, res, mean);
     let denoise = if denoise {
         cross_validated_denoise(&rays, res, min_rays, mean)
     } else {
@@ -204,14 +204,6 @@ fn cell_sums(rays: &[AivRay], res: u32, fold: Option<u8>) -> CellSums {
 /// `min_rays` is 0 (`BakeSettings::aiv_min_rays`).
 pub const AIV_MIN_RAYS_CANDIDATES: [u32; 5] = [1, 2, 4, 8, 16];
 
-/// The rays of `fold` (all for `None`) averaged per cell, each cell over the smallest
-/// enclosing block of cells that at least `min_rays` rays reached
-/// ([`average_with_min_count`]); `mean` where no ray says anything.
-fn estimate_map(rays: &[AivRay], fold: Option<u8>, min_rays: u32, res: u32, mean: f32) -> Vec<f32> {
-    let s = cell_sums(rays, res, fold);
-    average_with_min_count(&s.vis, &s.weight, &s.count, min_rays, res, mean)
-}
-
 /// The bandwidth of a voxel's AIV estimate, chosen by two-fold cross-validation over its
 /// surface samples: for each candidate of [`AIV_MIN_RAYS_CANDIDATES`], the map built from one
 /// fold's rays ([`average_with_min_count`]) predicts the other fold's rays, and the candidate
@@ -223,11 +215,14 @@ fn estimate_map(rays: &[AivRay], fold: Option<u8>, min_rays: u32, res: u32, mean
 /// baked − traced V̂ over 20,000 voxel-direction pairs at 64³): lattice 0.238 (1 ray a
 /// cell) → 0.158 (8 rays) / 0.165 (chosen), displaced sphere 0.217 → 0.271 / 0.222.
 fn cross_validated_min_rays(rays: &[AivRay], res: u32, mean: f32) -> u32 {
+    let folds = [cell_sums(rays, res, Some(0)), cell_sums(rays, res, Some(1))];
     let mut best = (f64::INFINITY, AIV_MIN_RAYS_CANDIDATES[0]);
     for k in AIV_MIN_RAYS_CANDIDATES {
-        let score: f64 = (0..2u8)
-            .map(|f| held_out_error(rays, 1 - f, &estimate_map(rays, Some(f), k, res, mean)))
-            .sum();
+        let mut score = 0f64;
+        for (f, sums) in folds.iter().enumerate() {
+            let m = average_with_min_count(&sums.vis, &sums.weight, &sums.count, k, res, mean);
+            score += held_out_error(rays, 1 - f as u8, &m);
+        }
         if score < best.0 - 1e-12 {
             best = (score, k);
         }
@@ -265,30 +260,32 @@ pub fn aiv_rays_per_cell(rays: u64, res: u32) -> f32 {
 fn cross_validated_denoise(rays: &[AivRay], res: u32, min_rays: u32, mean: f32) -> f32 {
     use crate::math::haar::{forward, inverse, shrink};
     let n = res as usize;
-    let folds: Vec<(Vec<f32>, f32)> = (0..2u8)
+    // Per fold: the map, its Haar transform and its noise σ.
+    type Fold = (Vec<f32>, f32, Vec<[f32; 3]>, f32);
+    let folds: Vec<Fold> = (0..2u8)
         .map(|f| {
-            let rays_in = rays.iter().filter(|r| r.fold == f).count() as u64;
-            let m = estimate_map(rays, Some(f), min_rays, res, mean);
-            (m, aiv_rays_per_cell(rays_in, res))
+            let sums = cell_sums(rays, res, Some(f));
+            let map =
+                average_with_min_count(&sums.vis, &sums.weight, &sums.count, min_rays, res, mean);
+            let map_mean = (map.iter().map(|&v| v as f64).sum::<f64>() / map.len() as f64) as f32;
+            let traced = sums.count.iter().map(|&c| c as u64).sum();
+            let (c, d) = forward(&map, n);
+            let sigma = map_noise_sigma(map_mean, aiv_rays_per_cell(traced, res));
+            (map, c, d, sigma)
         })
         .collect();
     let mut best = (f64::INFINITY, AIV_DENOISE_CANDIDATES[0]);
     for scale in AIV_DENOISE_CANDIDATES {
         let mut score = 0f64;
-        for (f, (map, per_cell)) in folds.iter().enumerate() {
-            let m = if scale > 0.0 {
-                let (c, mut d) = forward(map, n);
-                let map_mean = map.iter().map(|&v| v as f64).sum::<f64>() / map.len() as f64;
-                shrink(
-                    &mut d,
-                    scale * map_noise_sigma(map_mean as f32, *per_cell),
-                    n,
-                );
-                inverse(c, &d, n)
+        for (f, (map, c, d, sigma)) in folds.iter().enumerate() {
+            let held_out = 1 - f as u8;
+            score += if scale > 0.0 {
+                let mut d = d.clone();
+                shrink(&mut d, scale * sigma, n);
+                held_out_error(rays, held_out, &inverse(*c, &d, n))
             } else {
-                map.clone()
+                held_out_error(rays, held_out, map)
             };
-            score += held_out_error(rays, 1 - f as u8, &m);
         }
         if score < best.0 - 1e-12 {
             best = (score, scale);
