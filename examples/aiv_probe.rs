@@ -110,7 +110,7 @@ fn chosen(scene: &aggtool::scene::Scene, accel: &Accel, lod: &LodScene, level: u
     let mut counts = vec![0usize; AIV_MIN_RAYS_CANDIDATES.len() + 1];
     let mut denoise = std::collections::BTreeMap::new();
     for &key in &keys {
-        let seed = (key as u32) ^ ((key >> 32) as u32).rotate_left(16);
+        let seed = aggtool::bake::level::voxel_seed(key);
         let samples = sample_voxel(scene, &pieces[&key], spv, seed);
         if samples.is_empty() {
             continue;
@@ -146,7 +146,7 @@ fn estimators(
     level: usize,
 ) -> anyhow::Result<()> {
     use aggtool::bake::sampling::{pieces_by_voxel, sample_voxel};
-    use aggtool::bake::visibility::aiv_map;
+    use aggtool::bake::visibility::{aiv_map, aiv_rays_per_cell, map_noise_sigma};
     use aggtool::math::haar::{forward, inverse, shrink, truncate};
     use aggtool::math::sphere_maps::{equal_area_sphere_to_square, grid_cell};
     let grid = lod.grid(level);
@@ -179,15 +179,15 @@ fn estimators(
         let mut err = vec![(0f64, 0usize); variants.len()];
         let mut rng = aggtool::math::rng::Pcg32::new(3, 0);
         for &key in &keys {
-            let seed = (key as u32) ^ ((key >> 32) as u32).rotate_left(16);
+            let seed = aggtool::bake::level::voxel_seed(key);
             let samples = sample_voxel(scene, &pieces[&key], spv, seed);
             if samples.is_empty() {
                 continue;
             }
             let map = aiv_map(accel, &samples, res, rays, min_rays, false, seed).map;
-            let per_cell = ((samples.len() as f32 * rays as f32) / (res * res) as f32).max(1.0);
+            let per_cell = aiv_rays_per_cell(samples.len() as u64 * rays as u64, res);
             let mean = map.iter().sum::<f32>() / map.len() as f32;
-            let sigma = (mean * (1.0 - mean)).max(0.0).sqrt() / per_cell.sqrt();
+            let sigma = map_noise_sigma(mean, per_cell);
             let mut maps = Vec::new();
             for v in 0..variants.len() {
                 let (c, mut d) = forward(&map, res as usize);

@@ -84,7 +84,9 @@ fn compress(
     SparseHaar::new(c, &d, res as usize)
 }
 
-fn voxel_seed(key: u64) -> u32 {
+/// The seed of a voxel's samples and rays, from its Morton key: the same on every thread and
+/// every farm shard (tools that rerun the bake's estimators use it too).
+pub fn voxel_seed(key: u64) -> u32 {
     (key as u32) ^ ((key >> 32) as u32).rotate_left(16)
 }
 

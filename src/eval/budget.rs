@@ -216,7 +216,7 @@ impl<'a> Truth<'a> {
         let samples = pieces
             .par_iter()
             .map(|(key, p)| {
-                let seed = ((*key as u32) ^ ((*key >> 32) as u32).rotate_left(16)) ^ 0x5bd1_e995;
+                let seed = crate::bake::level::voxel_seed(*key) ^ 0x5bd1_e995;
                 let s: Vec<TruthSample> = sample_voxel(scene, p, n, seed)
                     .into_iter()
                     .map(|s: PointSample| TruthSample {
