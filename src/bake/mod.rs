@@ -74,7 +74,7 @@ impl Default for BakeSettings {
         BakeSettings {
             max_res: 256,
             min_res: 4,
-            samples: 16,
+            samples: 32,
             max_samples: 1024,
             aiv_res: 32,
             aiv_rays: 16,
@@ -99,12 +99,12 @@ impl Default for BakeSettings {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Preset {
-    /// A quick look: 64³ finest level, a quarter of the samples and visibility rays, 16² AIV
+    /// A quick look: 64³ finest level, an eighth of the samples, a quarter of the AIV rays, 16² AIV
     /// and 32² ABV maps, at most two lobes, fast compression.
     Draft,
     /// [`BakeSettings::default`].
     Default,
-    /// Twice the samples and visibility rays, two ABV rays per cell, and a finer truncation
+    /// Twice the samples and AIV rays, two ABV rays per cell, and a finer truncation
     /// (15% of the coefficients, 98% of the detail energy).
     High,
     /// The paper's ablation control (Table 4 "Maximum"): up to 4 lobes, no truncation or
@@ -150,7 +150,7 @@ impl BakeSettings {
             },
             Preset::Default => d,
             Preset::High => BakeSettings {
-                samples: 32,
+                samples: 64,
                 aiv_rays: 32,
                 abv_rays: 2,
                 keep: 0.15,

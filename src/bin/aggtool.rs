@@ -525,7 +525,7 @@ fn absdf_plot(case: &str, output: &Path, samples: u32, slice: u32, exposure: f32
 #[derive(clap::Args, Debug, Clone)]
 struct BakeArgs {
     /// Starting point for every setting below: draft (64³, a quarter of the rays), default,
-    /// high (twice the rays, finer truncation), max (the paper's ablation control: 4 lobes, no
+    /// high (twice the samples and rays, finer truncation), max (the paper's ablation control: 4 lobes, no
     /// truncation, quantization or compression). Flags given beside it override it.
     #[arg(long, default_value = "default", value_parser = ["draft", "default", "high", "max"])]
     preset: String,
@@ -537,7 +537,7 @@ struct BakeArgs {
     #[arg(long)]
     min_res: Option<u32>,
     /// Surface samples per voxel at the finest level; a level of resolution r gets
-    /// samples·(max_res/r)², at most --max-samples [default: 16; draft 4, high 32].
+    /// samples·(max_res/r)², at most --max-samples [default: 32; draft 4, high 64].
     #[arg(long)]
     samples: Option<u32>,
     /// Cap on the surface samples per voxel of coarser levels [default: 1024].
