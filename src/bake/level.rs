@@ -47,14 +47,14 @@ impl Default for LevelSettings {
     fn default() -> Self {
         LevelSettings {
             samples_per_voxel: 64,
-            aiv_rays: 16,
+            aiv_rays: 32,
             aiv_min_rays: 0,
             aiv_res: 32,
             abv_res: 64,
             abv_rays: 1,
             abv_stride: 1,
-            keep: 0.10,
-            energy: 0.95,
+            keep: 0.15,
+            energy: 0.98,
             denoise: true,
             estimate: EstimateSettings::default(),
         }

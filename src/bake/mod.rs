@@ -77,15 +77,15 @@ impl Default for BakeSettings {
             samples: 32,
             max_samples: 1024,
             aiv_res: 32,
-            aiv_rays: 16,
+            aiv_rays: 32,
             aiv_min_rays: 0,
             abv_res: 64,
             abv_rays: 1,
             abv_full_res: 64,
             ndf_lobes: 4,
             moment_res: 3,
-            keep: 0.10,
-            energy: 0.95,
+            keep: 0.15,
+            energy: 0.98,
             denoise: true,
             keep_all_effects: false,
             lossless: false,
@@ -99,13 +99,13 @@ impl Default for BakeSettings {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Preset {
-    /// A quick look: 64³ finest level, an eighth of the samples, a quarter of the AIV rays, 16² AIV
-    /// and 32² ABV maps, at most two lobes, fast compression.
+    /// A quick look: 64³ finest level, an eighth of the samples and of the AIV rays, 16² AIV
+    /// and 32² ABV maps, at most two lobes, the coarser truncation of format 1.5's default
+    /// (10% of the coefficients, 95% of the detail energy), fast compression.
     Draft,
     /// [`BakeSettings::default`].
     Default,
-    /// Twice the samples and AIV rays, two ABV rays per cell, and a finer truncation
-    /// (15% of the coefficients, 98% of the detail energy).
+    /// Twice the surface samples and two ABV rays per cell.
     High,
     /// The paper's ablation control (Table 4 "Maximum"): up to 4 lobes, no truncation or
     /// denoising of the visibility wavelets, no quantization, no compression.
@@ -145,16 +145,15 @@ impl BakeSettings {
                 abv_res: 32,
                 abv_full_res: 32,
                 ndf_lobes: 2,
+                keep: 0.10,
+                energy: 0.95,
                 compression: 3,
                 ..d
             },
             Preset::Default => d,
             Preset::High => BakeSettings {
                 samples: 64,
-                aiv_rays: 32,
                 abv_rays: 2,
-                keep: 0.15,
-                energy: 0.98,
                 ..d
             },
             Preset::Max => BakeSettings {

@@ -524,9 +524,10 @@ fn absdf_plot(case: &str, output: &Path, samples: u32, slice: u32, exposure: f32
 /// Defaults live in `aggtool::bake::BakeSettings` and its presets alone (see `--preset`).
 #[derive(clap::Args, Debug, Clone)]
 struct BakeArgs {
-    /// Starting point for every setting below: draft (64³, a quarter of the rays), default,
-    /// high (twice the samples and rays, finer truncation), max (the paper's ablation control: 4 lobes, no
-    /// truncation, quantization or compression). Flags given beside it override it.
+    /// Starting point for every setting below: draft (64³, an eighth of the samples and rays,
+    /// coarser truncation), default, high (twice the samples, two ABV rays per cell), max (the
+    /// paper's ablation control: 4 lobes, no truncation, quantization or compression). Flags
+    /// given beside it override it.
     #[arg(long, default_value = "default", value_parser = ["draft", "default", "high", "max"])]
     preset: String,
     /// Finest level resolution (a power of two); levels halve down to --min-res [preset
@@ -547,7 +548,7 @@ struct BakeArgs {
     /// draft 16].
     #[arg(long)]
     aiv_res: Option<u32>,
-    /// Interior-visibility rays per surface sample [default: 16; draft 4, high 32].
+    /// Interior-visibility rays per surface sample [default: 32; draft 4].
     #[arg(long)]
     aiv_rays: Option<u32>,
     /// Fewest rays an interior-visibility cell's estimate rests on (a cell pools the rays of
@@ -574,11 +575,11 @@ struct BakeArgs {
     /// Directional-moment grid resolution (Eq. 23) [default: 3].
     #[arg(long)]
     moment_res: Option<u32>,
-    /// Fraction of wavelet coefficients kept [default: 0.1; high 0.15, max 1].
+    /// Fraction of wavelet coefficients kept [default: 0.15; draft 0.1, max 1].
     #[arg(long)]
     keep: Option<f32>,
     /// Detail energy kept by the wavelet truncation (more coefficients kept until reached)
-    /// [default: 0.95; high 0.98, max 1].
+    /// [default: 0.98; draft 0.95, max 1].
     #[arg(long)]
     energy: Option<f32>,
     /// Store every effect in full even where the asset does not need it.
