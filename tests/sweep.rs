@@ -61,11 +61,11 @@ fn sweep_writes_tables_and_plots_and_resumes() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
     gen_plane(p);
-    // First sweep: four presets, one varied lobe count, and keep=10%, which is the default
+    // First sweep: four presets, one varied lobe count, and keep=15%, which is the default
     // preset's value: baked once, reported as the same settings.
     let out = ok(&tiny_sweep(
         p,
-        &["--vary", "ndf_lobes=1", "--vary", "keep=10%"],
+        &["--vary", "ndf_lobes=1", "--vary", "keep=15%"],
         "s",
     ));
     let s = p.join("s");
@@ -84,7 +84,7 @@ fn sweep_writes_tables_and_plots_and_resumes() {
             "preset=high",
             "preset=max",
             "ndf_lobes=1",
-            "keep=10%"
+            "keep=15%"
         ]
     );
     for r in &rows {
@@ -111,7 +111,7 @@ fn sweep_writes_tables_and_plots_and_resumes() {
     assert_eq!(rows[5]["rmse"], rows[1]["rmse"]);
     assert_eq!(labels(&out, "baked").len(), 5, "{out}");
     assert!(
-        out.contains("reused: keep=10% (same settings as preset=default)"),
+        out.contains("reused: keep=15% (same settings as preset=default)"),
         "{out}"
     );
     let md = std::fs::read_to_string(s.join("table.md")).unwrap();
@@ -133,7 +133,7 @@ fn sweep_writes_tables_and_plots_and_resumes() {
     let mtime = std::fs::metadata(&row1).unwrap().modified().unwrap();
     let out = ok(&tiny_sweep(
         p,
-        &["--vary", "ndf_lobes=1,2", "--vary", "keep=10%"],
+        &["--vary", "ndf_lobes=1,2", "--vary", "keep=15%"],
         "s",
     ));
     assert_eq!(labels(&out, "baked"), ["ndf_lobes=2"], "{out}");
