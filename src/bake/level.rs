@@ -43,20 +43,14 @@ pub struct LevelSettings {
     pub estimate: EstimateSettings,
 }
 
+/// The default bake's finest level ([`super::BakeSettings::level`]), with 64 surface samples a
+/// voxel: one source for the defaults, not a second copy of them.
 impl Default for LevelSettings {
     fn default() -> Self {
+        let d = super::BakeSettings::default();
         LevelSettings {
             samples_per_voxel: 64,
-            aiv_rays: 32,
-            aiv_min_rays: 0,
-            aiv_res: 32,
-            abv_res: 64,
-            abv_rays: 1,
-            abv_stride: 1,
-            keep: 0.15,
-            energy: 0.98,
-            denoise: true,
-            estimate: EstimateSettings::default(),
+            ..d.level(d.max_res)
         }
     }
 }
