@@ -7,6 +7,7 @@ use aggtool::absdf::{Absdf, MaterialMoments, Moments, NdfLobe, VoxelAppearance};
 use aggtool::bsdf::Bsdf;
 use aggtool::math::rng::Pcg32;
 use aggtool::math::sampling::square_to_uniform_sphere;
+use aggtool::math::unit_or_zero;
 use aggtool::scene::SurfaceParams;
 use aggtool::tables::Tables;
 use aggtool::validation::chi2::{chi2_test, Chi2Settings};
@@ -205,6 +206,20 @@ fn sampling_matches_pdf() {
             for wi in sphere_grid(4) {
                 let (f, p) = a.eval_pdf(wi, wo);
                 assert_eq!((f, p), (a.eval(wi, wo), a.pdf(wi, wo)));
+            }
+            // A sample's value and pdf are what evaluating its direction gives, to the bit,
+            // for ω_o as given and as unit_or_zero gives it (the Python module's voxel_eval
+            // re-checks sampled directions this way; the directional moments are looked up
+            // by cell, so a re-normalisation that moved ω_i by one ulp once broke it).
+            for wo in [wo, unit_or_zero(wo), 3.0 * wo] {
+                for _ in 0..20_000 {
+                    let u = Vec2::new(rng.next_f32(), rng.next_f32());
+                    let Some(s) = a.sample(wo, rng.next_f32(), u) else {
+                        continue;
+                    };
+                    assert_eq!(unit_or_zero(s.wi), s.wi);
+                    assert_eq!(a.eval_pdf(s.wi, wo), (s.value, s.pdf), "{name} {wo} {s:?}");
+                }
             }
         }
     }

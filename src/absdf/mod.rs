@@ -37,7 +37,7 @@ use crate::math::microfacet::{ggx_lambda_iso, schlick_weight, ALPHA_MIN};
 use crate::math::sg::COSINE_SHARPNESS;
 use crate::math::sggx::{Sggx, SggxDensity};
 use crate::math::sphere_maps::{equal_area_sphere_to_square, grid_cell};
-use crate::math::{finite_or_zero, finite_vec_or_zero};
+use crate::math::{finite_or_zero, finite_vec_or_zero, unit_or_zero};
 use crate::tables::Tables;
 
 /// One lobe of the surface normal distribution.
@@ -449,7 +449,7 @@ impl Bsdf for Absdf<'_> {
         if !(wi.is_finite() && wo.is_finite()) {
             return Vec3::ZERO;
         }
-        let (wi, wo) = (wi.normalize_or_zero(), wo.normalize_or_zero());
+        let (wi, wo) = (unit_or_zero(wi), unit_or_zero(wo));
         if wi == Vec3::ZERO || wo == Vec3::ZERO {
             return Vec3::ZERO;
         }
@@ -503,7 +503,7 @@ impl Bsdf for Absdf<'_> {
         if !(wi.is_finite() && wo.is_finite()) {
             return 0.0;
         }
-        let (wi, wo) = (wi.normalize_or_zero(), wo.normalize_or_zero());
+        let (wi, wo) = (unit_or_zero(wi), unit_or_zero(wo));
         let ps = self.specular_probability();
         let mut p = 0.0;
         if ps > 0.0 {
@@ -522,7 +522,7 @@ impl Bsdf for Absdf<'_> {
         if !wo.is_finite() {
             return None;
         }
-        let wo = wo.normalize_or_zero();
+        let wo = unit_or_zero(wo);
         if wo == Vec3::ZERO {
             return None;
         }
@@ -553,7 +553,7 @@ impl Bsdf for Absdf<'_> {
         if !(oh > 0.0) {
             return None;
         }
-        let wi = (2.0 * oh * wh - wo).normalize_or_zero();
+        let wi = unit_or_zero(2.0 * oh * wh - wo);
         let pdf = self.pdf(wi, wo);
         if !(pdf > 0.0) || wi == Vec3::ZERO {
             return None;

@@ -303,11 +303,15 @@ fn unit_rows(a: &PyReadonlyArray2<'_, f32>, what: &str, m: usize) -> PyResult<Ve
     }
     (0..n)
         .map(|i| {
-            Vec3::from_slice(&s[3 * i..])
-                .try_normalize()
-                .ok_or_else(|| {
-                    PyValueError::new_err(format!("{what} {i}: non-finite or zero-length"))
-                })
+            // Idempotent: a direction `voxel_sample` returned evaluates to the same bits in
+            // `voxel_eval` (the ABSDF's directional moments are looked up by cell).
+            let v = aggtool::math::unit_or_zero(Vec3::from_slice(&s[3 * i..]));
+            if v == Vec3::ZERO {
+                return Err(PyValueError::new_err(format!(
+                    "{what} {i}: non-finite or zero-length"
+                )));
+            }
+            Ok(v)
         })
         .collect()
 }
