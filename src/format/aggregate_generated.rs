@@ -4662,10 +4662,13 @@ impl<'a> Block<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, HaarNode>>>(Block::VT_ABV_NODES, None)}
   }
-  /// 1.1, voxel blocks: per voxel (same order as `voxels`) the exposure η in [1/16, 1]:
-  /// E[v]²/E[v²] over (surface sample, side) pairs, v the side's visibility (1 for an open
-  /// sheet, 1/2 for the walls of a solid). The runtime divides the incident AIV by it (and caps
-  /// the result at 1). Absent (older files, or no voxel below one): 1 for every voxel.
+  /// 1.1, voxel blocks: per voxel (same order as `voxels`) the exposure η in [1/16, 1]: the
+  /// runtime divides the incident AIV by it (and caps the result at 1), for the correlation of
+  /// the visibility towards the light and towards the viewer (1 for an open sheet or a piece
+  /// of a wall, at most 1/2 for a whole solid). Bakes of 1.1 to 1.5 before aggtool's fitted
+  /// exposure stored E[v]²/E[v²] over (surface sample, side) pairs, v the side's visibility;
+  /// since, the fit of its AIV rays that CHANGES.md (1.5) describes. Absent (older files, or
+  /// no voxel below one): 1 for every voxel.
   #[inline]
   pub fn exposure(&self) -> Option<::flatbuffers::Vector<'a, f32>> {
     // Safety:
