@@ -131,12 +131,13 @@ pub fn aiv_map(
                 weight: s.surface.weight as f64 * cos.abs() as f64,
                 seen,
                 fold: (j & 1) as u8,
-                // The side, until its counts are known.
-                escape: k as f32,
+                side: k as u8,
+                // Set below, once the side's counts are known.
+                escape: 0.0,
             });
         }
         for r in &mut rays[first..] {
-            let [t, e] = side[r.escape as usize];
+            let [t, e] = side[r.side as usize];
             r.escape = if t >= 2 {
                 (e - r.seen as u32) as f32 / (t - 1) as f32
             } else {
@@ -180,6 +181,8 @@ struct AivRay {
     weight: f64,
     seen: bool,
     fold: u8,
+    /// 0 along the sample's geometric normal, 1 against it.
+    side: u8,
     /// The escape fraction of the ray's side from its sample's other rays on that side (0 when
     /// it has none): the exposure fit's weight.
     escape: f32,
@@ -532,6 +535,7 @@ mod tests {
                     weight: 1.0,
                     seen: v(x, y, j),
                     fold: (j & 1) as u8,
+                    side: 0,
                     escape: 1.0,
                 }
             })
