@@ -158,9 +158,10 @@ pub fn aiv_map(
         min_rays
     };
     let map = average_with_min_count(&all.vis, &all.weight, &all.count, min_rays, res, mean);
-    let exposure = fitted_exposure(&rays, res, min_rays, mean);
+    let folds = fold_maps(&rays, res, min_rays, mean);
+    let exposure = fitted_exposure(&rays, &folds);
     let denoise = if denoise {
-        cross_validated_denoise(&rays, res, min_rays, mean)
+        cross_validated_denoise(&rays, res, &folds)
     } else {
         0.0
     };
@@ -188,20 +189,26 @@ struct AivRay {
     escape: f32,
 }
 
-/// The exposure η fitted to the exposed sides' rays (see the module notes): of η = 2^(−k/4),
-/// k = 0..16, the one whose min(1, V̂'(ω)/η) from the other fold's map best predicts the rays
-/// weighted by w·e (ties to the larger η; 1 when no ray has an exposed side).
-fn fitted_exposure(rays: &[AivRay], res: u32, min_rays: u32, mean: f32) -> f32 {
-    let maps = [0u8, 1].map(|f| {
+/// Per fold of samples, its map at bandwidth `min_rays` and the rays it rests on: what the
+/// exposure fit and the shrinkage's cross-validation predict the other fold's rays with.
+fn fold_maps(rays: &[AivRay], res: u32, min_rays: u32, mean: f32) -> [(Vec<f32>, u64); 2] {
+    [0u8, 1].map(|f| {
         let c = cell_sums(rays, res, Some(f));
-        average_with_min_count(&c.vis, &c.weight, &c.count, min_rays, res, mean)
-    });
+        let map = average_with_min_count(&c.vis, &c.weight, &c.count, min_rays, res, mean);
+        (map, c.count.iter().map(|&n| n as u64).sum())
+    })
+}
+
+/// The exposure η fitted to the exposed sides' rays (see the module notes): of η = 2^(−k/4),
+/// k = 0..16, the one whose min(1, V̂'(ω)/η) from the other fold's map ([`fold_maps`]) best
+/// predicts the rays weighted by w·e (ties to the larger η; 1 when no ray has an exposed side).
+fn fitted_exposure(rays: &[AivRay], folds: &[(Vec<f32>, u64); 2]) -> f32 {
     let mut best = (f64::INFINITY, 1.0f32);
     for k in 0..=16 {
         let scale = 2f32.powf(k as f32 / 4.0);
         let mut err = 0f64;
         for r in rays.iter().filter(|r| r.escape > 0.0) {
-            let p = (scale * maps[1 - r.fold as usize][r.cell as usize]).min(1.0);
+            let p = (scale * folds[1 - r.fold as usize].0[r.cell as usize]).min(1.0);
             let d = p as f64 - r.seen as u32 as f64;
             err += r.weight * r.escape as f64 * d * d;
         }
@@ -293,23 +300,16 @@ pub fn aiv_rays_per_cell(rays: u64, res: u32) -> f32 {
 /// solid's map, 0 below the horizon and 1 above without noise, it erases the horizon's
 /// details (`examples/aiv_probe --estimators`, displaced sphere at 32³ from 256 samples ×
 /// 16 rays: RMS 0.095 raw, 0.152 shrunk).
-fn cross_validated_denoise(rays: &[AivRay], res: u32, min_rays: u32, mean: f32) -> f32 {
+fn cross_validated_denoise(rays: &[AivRay], res: u32, folds: &[(Vec<f32>, u64); 2]) -> f32 {
     use crate::math::haar::{forward, inverse, shrink};
     let n = res as usize;
-    // Per fold: the map, its Haar transform and its noise σ.
-    type Fold = (Vec<f32>, f32, Vec<[f32; 3]>, f32);
-    let folds: Vec<Fold> = (0..2u8)
-        .map(|f| {
-            let sums = cell_sums(rays, res, Some(f));
-            let map =
-                average_with_min_count(&sums.vis, &sums.weight, &sums.count, min_rays, res, mean);
-            let map_mean = (map.iter().map(|&v| v as f64).sum::<f64>() / map.len() as f64) as f32;
-            let traced = sums.count.iter().map(|&c| c as u64).sum();
-            let (c, d) = forward(&map, n);
-            let sigma = map_noise_sigma(map_mean, aiv_rays_per_cell(traced, res));
-            (map, c, d, sigma)
-        })
-        .collect();
+    // Per fold ([`fold_maps`]): the map, its Haar transform and its noise σ.
+    let folds = folds.each_ref().map(|(map, traced)| {
+        let map_mean = (map.iter().map(|&v| v as f64).sum::<f64>() / map.len() as f64) as f32;
+        let (c, d) = forward(map, n);
+        let sigma = map_noise_sigma(map_mean, aiv_rays_per_cell(*traced, res));
+        (map, c, d, sigma)
+    });
     let mut best = (f64::INFINITY, AIV_DENOISE_CANDIDATES[0]);
     for scale in AIV_DENOISE_CANDIDATES {
         let mut score = 0f64;
@@ -320,7 +320,7 @@ fn cross_validated_denoise(rays: &[AivRay], res: u32, min_rays: u32, mean: f32) 
                 shrink(&mut d, scale * sigma, n);
                 held_out_error(rays, held_out, &inverse(*c, &d, n))
             } else {
-                held_out_error(rays, held_out, map)
+                held_out_error(rays, held_out, map.as_slice())
             };
         }
         if score < best.0 - 1e-12 {
@@ -563,12 +563,15 @@ mod tests {
         // Noise around 1/2 everywhere: the shrinkage should remove it.
         let mut rng = crate::math::rng::Pcg32::new(3, 0);
         let noisy = synthetic(|_, _, _| rng.next_f32() < 0.5);
-        assert!(cross_validated_denoise(&noisy, 32, 1, 0.5) >= 0.5);
+        assert!(cross_validated_denoise(&noisy, 32, &fold_maps(&noisy, 32, 1, 0.5)) >= 0.5);
         // A solid's horizon, noiseless: the universal threshold would erase its details.
         let edge = synthetic(|x, y, _| x + y < 32);
-        assert!(cross_validated_denoise(&edge, 32, 1, 0.5) < 1.0);
+        assert!(cross_validated_denoise(&edge, 32, &fold_maps(&edge, 32, 1, 0.5)) < 1.0);
         // Everything visible: nothing to shrink, the weakest wins the tie.
         let all = synthetic(|_, _, _| true);
-        assert_eq!(cross_validated_denoise(&all, 32, 1, 1.0), 0.0);
+        assert_eq!(
+            cross_validated_denoise(&all, 32, &fold_maps(&all, 32, 1, 1.0)),
+            0.0
+        );
     }
 }
