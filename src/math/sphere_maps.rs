@@ -124,50 +124,76 @@ pub fn average_with_min_count(
     res: u32,
     default: f32,
 ) -> Vec<f32> {
-    debug_assert_eq!(sum.len(), (res * res) as usize);
-    debug_assert_eq!(weight.len(), sum.len());
-    debug_assert_eq!(count.len(), sum.len());
-    // The pyramid of (sum, weight, count) per block, level 0 being the map itself.
-    let mut pyramid: Vec<(u32, Vec<(f64, f64, u32)>)> = vec![(
-        res,
-        sum.iter()
-            .zip(weight)
-            .zip(count)
-            .map(|((&s, &w), &n)| (s, w, n))
-            .collect(),
-    )];
-    while pyramid.last().is_some_and(|(r, _)| *r > 1) {
-        let (r, cells) = pyramid.last().expect("non-empty");
-        let (r, h) = (*r, (*r).div_ceil(2));
-        let mut next = vec![(0.0, 0.0, 0u32); (h * h) as usize];
-        for y in 0..r {
-            for x in 0..r {
-                let (s, w, n) = cells[(y * r + x) as usize];
-                let c = &mut next[((y / 2) * h + x / 2) as usize];
-                c.0 += s;
-                c.1 += w;
-                c.2 += n;
-            }
-        }
-        pyramid.push((h, next));
-    }
-    (0..res * res)
-        .map(|i| {
-            let (mut x, mut y) = (i % res, i / res);
-            let mut last = None;
-            for (r, cells) in &pyramid {
-                let (s, w, n) = cells[(y * r + x) as usize];
-                if w > 0.0 {
-                    last = Some((s / w) as f32);
-                    if n >= min_count {
-                        return (s / w) as f32;
-                    }
+    BlockPyramid::new(sum, weight, count, res).map(min_count, default)
+}
+
+/// The (Σ value, Σ weight, count) of every 2^k × 2^k block of a `res × res` map, level 0 being
+/// the map itself: [`average_with_min_count`] for many `min_count`s, or for a few cells, from
+/// one pass over the map (a bandwidth chosen by cross-validation scores each candidate on the
+/// held-out rays' cells only).
+pub struct BlockPyramid {
+    levels: Vec<(u32, Vec<(f64, f64, u32)>)>,
+}
+
+impl BlockPyramid {
+    pub fn new(sum: &[f64], weight: &[f64], count: &[u32], res: u32) -> Self {
+        debug_assert_eq!(sum.len(), (res * res) as usize);
+        debug_assert_eq!(weight.len(), sum.len());
+        debug_assert_eq!(count.len(), sum.len());
+        let mut levels: Vec<(u32, Vec<(f64, f64, u32)>)> = vec![(
+            res,
+            sum.iter()
+                .zip(weight)
+                .zip(count)
+                .map(|((&s, &w), &n)| (s, w, n))
+                .collect(),
+        )];
+        while levels.last().is_some_and(|(r, _)| *r > 1) {
+            let (r, cells) = levels.last().expect("non-empty");
+            let (r, h) = (*r, (*r).div_ceil(2));
+            let mut next = vec![(0.0, 0.0, 0u32); (h * h) as usize];
+            for y in 0..r {
+                for x in 0..r {
+                    let (s, w, n) = cells[(y * r + x) as usize];
+                    let c = &mut next[((y / 2) * h + x / 2) as usize];
+                    c.0 += s;
+                    c.1 += w;
+                    c.2 += n;
                 }
-                (x, y) = (x / 2, y / 2);
             }
-            last.unwrap_or(default)
-        })
-        .collect()
+            levels.push((h, next));
+        }
+        BlockPyramid { levels }
+    }
+
+    /// The estimate of cell `i`: the average of the smallest enclosing block holding at least
+    /// `min_count` samples and some weight; the largest block with weight if none holds that
+    /// many; `default` if no block has weight.
+    #[inline]
+    pub fn value(&self, i: u32, min_count: u32, default: f32) -> f32 {
+        let res = self.levels[0].0;
+        let (mut x, mut y) = (i % res, i / res);
+        let mut last = None;
+        for (r, cells) in &self.levels {
+            let (s, w, n) = cells[(y * r + x) as usize];
+            if w > 0.0 {
+                last = Some((s / w) as f32);
+                if n >= min_count {
+                    return (s / w) as f32;
+                }
+            }
+            (x, y) = (x / 2, y / 2);
+        }
+        last.unwrap_or(default)
+    }
+
+    /// [`BlockPyramid::value`] of every cell.
+    pub fn map(&self, min_count: u32, default: f32) -> Vec<f32> {
+        let res = self.levels[0].0;
+        (0..res * res)
+            .map(|i| self.value(i, min_count, default))
+            .collect()
+    }
 }
 
 #[cfg(test)]
