@@ -198,13 +198,14 @@ pub fn quantize_exposure(e: f32) -> f32 {
     ((e.clamp(MIN_EXPOSURE, 1.0) * 256.0).round() / 256.0).clamp(MIN_EXPOSURE, 1.0)
 }
 
-/// Bakes one boundary face's ABV tree; returns it with the rays traced.
+/// Bakes one boundary face's ABV tree; returns it with the rays traced and the bandwidth its
+/// map chose (the fewest P⁺ rays a cell rests on).
 pub fn bake_face(
     level: &PrimitiveLevel,
     accel: &Accel,
     face: Face,
     s: &LevelSettings,
-) -> (FaceData, u64) {
+) -> (FaceData, u64, u32) {
     let key = morton3(glam::UVec3::new(face.voxel.0, face.voxel.1, face.voxel.2));
     let seed = (key as u32).wrapping_mul(6) ^ face.dir as u32 ^ ((key >> 32) as u32).rotate_left(7);
     let m = abv_map(
@@ -219,19 +220,20 @@ pub fn bake_face(
     (
         FaceData {
             face,
-            // Estimated below the full resolution, the map's noise is under control already.
+            // Pooled over blocks of cells, the map's noise is under control already.
             abv: compress(
                 &m.values,
                 s.abv_res,
                 m.rays_per_cell,
                 1.0,
                 &LevelSettings {
-                    denoise: s.denoise && m.estimated_res == s.abv_res,
+                    denoise: s.denoise && m.min_rays == 1,
                     ..*s
                 },
             ),
         },
         m.traced,
+        m.min_rays,
     )
 }
 
@@ -273,12 +275,12 @@ pub fn bake_level(scene: &Scene, accel: &Accel, grid: Grid, s: &LevelSettings) -
     }
     let faces = sorted_boundary_faces(voxels.iter().map(|v| v.key), grid.res);
     let level = primitive_level(grid, voxels.iter().map(|v| (v.key, v.ellipsoid)));
-    let face_results: Vec<(FaceData, u64)> = faces
+    let face_results: Vec<(FaceData, u64, u32)> = faces
         .par_iter()
         .map(|f| bake_face(&level, accel, *f, s))
         .collect();
-    rays += face_results.iter().map(|(_, r)| r).sum::<u64>();
-    let faces = face_results.into_iter().map(|(f, _)| f).collect();
+    rays += face_results.iter().map(|(_, r, _)| r).sum::<u64>();
+    let faces = face_results.into_iter().map(|(f, _, _)| f).collect();
     LevelData {
         grid,
         voxels,

@@ -8,6 +8,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
+use super::boundary_visibility::ABV_MIN_RAYS_CANDIDATES;
 use super::level::{
     bake_face, bake_voxel, primitive_level, sorted_boundary_faces, voxel_primitive, VoxelCost,
 };
@@ -57,6 +58,9 @@ pub struct LevelReport {
     /// [`AIV_MIN_RAYS_CANDIDATES`]`[i]` rays (chosen by cross-validation, or the setting).
     pub aiv_bandwidth: [u64; AIV_MIN_RAYS_CANDIDATES.len()],
     pub abv_rays: u64,
+    /// Faces per ABV bandwidth: `abv_bandwidth[i]` faces rest each cell on at least
+    /// [`ABV_MIN_RAYS_CANDIDATES`]`[i]` P⁺ rays (chosen by cross-validation).
+    pub abv_bandwidth: [u64; ABV_MIN_RAYS_CANDIDATES.len()],
     pub bytes: u64,
     pub counts: Counts,
 }
@@ -65,18 +69,28 @@ impl LevelReport {
     /// "1 ray 23%, 2 rays 54%, …": the share of the level's voxels at each AIV bandwidth
     /// (those with none omitted).
     pub fn aiv_bandwidth_summary(&self) -> String {
-        let total: u64 = self.aiv_bandwidth.iter().sum();
-        AIV_MIN_RAYS_CANDIDATES
-            .iter()
-            .zip(&self.aiv_bandwidth)
-            .filter(|(_, &n)| n > 0)
-            .map(|(k, &n)| {
-                let unit = if *k == 1 { "ray" } else { "rays" };
-                format!("{k} {unit} {:.0}%", 100.0 * n as f64 / total as f64)
-            })
-            .collect::<Vec<_>>()
-            .join(", ")
+        bandwidth_summary(&AIV_MIN_RAYS_CANDIDATES, &self.aiv_bandwidth)
     }
+
+    /// The same for the faces' ABV bandwidths.
+    pub fn abv_bandwidth_summary(&self) -> String {
+        bandwidth_summary(&ABV_MIN_RAYS_CANDIDATES, &self.abv_bandwidth)
+    }
+}
+
+/// "1 ray 23%, 2 rays 54%, …" of `counts[i]` items at bandwidth `candidates[i]`.
+fn bandwidth_summary(candidates: &[u32], counts: &[u64]) -> String {
+    let total: u64 = counts.iter().sum();
+    candidates
+        .iter()
+        .zip(counts)
+        .filter(|(_, &n)| n > 0)
+        .map(|(k, &n)| {
+            let unit = if *k == 1 { "ray" } else { "rays" };
+            format!("{k} {unit} {:.0}%", 100.0 * n as f64 / total as f64)
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 /// What a bake did, for the `stats:` lines and `--report`.
@@ -288,6 +302,7 @@ fn bake_levels(
         let prims = primitive_level(grid, keys_prims.into_iter());
         let bar = StageCounter::new(progress, format!("{res}³ faces"), faces.len() as u64);
         let mut abv_rays = 0u64;
+        let mut abv_bandwidth = [0u64; ABV_MIN_RAYS_CANDIDATES.len()];
         let mut face_blocks = Vec::new();
         g += voxel_chunks;
         let face_chunks = faces.len().div_ceil(BLOCK_FACES) as u64;
@@ -305,7 +320,12 @@ fn bake_levels(
                     r
                 })
                 .collect();
-            abv_rays += baked.iter().map(|b| b.1).sum::<u64>();
+            for b in &baked {
+                abv_rays += b.1;
+                if let Some(i) = ABV_MIN_RAYS_CANDIDATES.iter().position(|&k| k == b.2) {
+                    abv_bandwidth[i] += 1;
+                }
+            }
             let data: Vec<_> = baked.into_iter().map(|b| b.0).collect();
             sec.faces += t.elapsed().as_secs_f64();
             let t = Instant::now();
@@ -374,6 +394,7 @@ fn bake_levels(
             aiv_rays,
             aiv_bandwidth,
             abv_rays,
+            abv_bandwidth,
             bytes,
             counts,
         });

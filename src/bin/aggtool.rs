@@ -1761,7 +1761,7 @@ fn convert(
     println!("output: {} ({})", out.display(), mib(r.bytes));
     for l in &r.levels {
         println!(
-            "stats: level {:>4}³: {:>8} voxels ({:.3}% occupied), {:>8} faces, {:>5} samples/voxel, {:>4} ABV rays/face, {}; voxelize {:.2} s, voxels {:.2} s (cpu: statistics {:.1} s, AIV {:.1} s), faces {:.2} s; rays {} AIV + {} ABV; AIV bandwidth {}",
+            "stats: level {:>4}³: {:>8} voxels ({:.3}% occupied), {:>8} faces, {:>5} samples/voxel, {:>4} ABV rays/face, {}; voxelize {:.2} s, voxels {:.2} s (cpu: statistics {:.1} s, AIV {:.1} s), faces {:.2} s; rays {} AIV + {} ABV; AIV bandwidth {}; ABV bandwidth {}",
             l.res,
             l.voxels,
             100.0 * l.occupancy,
@@ -1776,7 +1776,8 @@ fn convert(
             l.seconds.faces,
             l.aiv_rays,
             l.abv_rays,
-            l.aiv_bandwidth_summary()
+            l.aiv_bandwidth_summary(),
+            l.abv_bandwidth_summary()
         );
     }
     let c = &r.components;
