@@ -456,6 +456,17 @@ fn presets_and_overrides() {
             }
         }
         assert!(stdout.contains("AIV bandwidth"), "{stdout}");
+        // Every boundary face's ABV bandwidth, chosen by cross-validation.
+        for l in report["levels"].as_array().unwrap() {
+            let bw: u64 = l["abv_bandwidth"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_u64().unwrap())
+                .sum();
+            assert_eq!(bw, l["faces"].as_u64().unwrap(), "{l}");
+        }
+        assert!(stdout.contains("; ABV bandwidth "), "{stdout}");
         if flag == "4" {
             assert!(stdout.contains("AIV bandwidth 4 rays 100%"), "{stdout}");
         }
