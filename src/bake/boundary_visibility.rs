@@ -188,13 +188,13 @@ pub fn abv_map(
     } else {
         1.0
     };
-    let as_f64 = |v: &[u32]| v.iter().map(|&x| x as f64).collect::<Vec<_>>();
     let min_rays = if h_sum > 1 {
         cross_validated_min_rays(&fold_hit, &fold_escape, res)
     } else {
         1
     };
-    let values = BlockPyramid::new(&as_f64(&escape), &as_f64(&hit), &hit, res).map(min_rays, fill);
+    let values =
+        BlockPyramid::new(&counts_f64(&escape), &counts_f64(&hit), &hit, res).map(min_rays, fill);
     let side = (res / blocks).max(1);
     let mut block_hit = vec![false; (blocks * blocks) as usize];
     for (c, &h) in hit.iter().enumerate() {
@@ -215,6 +215,11 @@ pub fn abv_map(
     }
 }
 
+/// Ray counts as the sums a [`BlockPyramid`] averages.
+fn counts_f64(v: &[u32]) -> Vec<f64> {
+    v.iter().map(|&x| x as f64).collect()
+}
+
 /// Candidate bandwidths of an ABV map: the fewest P⁺ rays a cell's estimate rests on.
 pub const ABV_MIN_RAYS_CANDIDATES: [u32; 7] = [1, 2, 4, 8, 16, 32, 64];
 
@@ -222,9 +227,8 @@ pub const ABV_MIN_RAYS_CANDIDATES: [u32; 7] = [1, 2, 4, 8, 16, 32, 64];
 /// error of the binary outcomes, both ways; ties to the smaller K). Each fold's block sums are
 /// built once and only the held-out rays' cells are evaluated.
 fn cross_validated_min_rays(hit: &[Vec<u32>; 2], escape: &[Vec<u32>; 2], res: u32) -> u32 {
-    let as_f64 = |v: &[u32]| v.iter().map(|&x| x as f64).collect::<Vec<_>>();
-    let pyramids =
-        [0, 1].map(|f| BlockPyramid::new(&as_f64(&escape[f]), &as_f64(&hit[f]), &hit[f], res));
+    let pyramids = [0, 1]
+        .map(|f| BlockPyramid::new(&counts_f64(&escape[f]), &counts_f64(&hit[f]), &hit[f], res));
     let fill = [0, 1].map(|f| {
         let (h, e) = (hit[f].iter().sum::<u32>(), escape[f].iter().sum::<u32>());
         if h > 0 {
