@@ -158,16 +158,20 @@ fn mixture(s: &[SurfaceSample], k: usize) -> (Vec<NdfLobe>, f64) {
     (lobes, ll)
 }
 
-/// Estimates the appearance statistics of a set of surface samples. `None` without samples.
+/// Whether [`estimate`] uses a sample: a positive finite weight and a finite non-zero normal.
+pub fn usable(x: &SurfaceSample) -> bool {
+    x.weight > 0.0
+        && x.weight.is_finite()
+        && x.normal.is_finite()
+        && x.normal.length_squared() > 0.0
+}
+
+/// Estimates the appearance statistics of a set of surface samples. `None` without a
+/// [`usable`] sample.
 pub fn estimate(samples: &[SurfaceSample], settings: &EstimateSettings) -> Option<VoxelAppearance> {
     let s: Vec<SurfaceSample> = samples
         .iter()
-        .filter(|x| {
-            x.weight > 0.0
-                && x.weight.is_finite()
-                && x.normal.is_finite()
-                && x.normal.length_squared() > 0.0
-        })
+        .filter(|x| usable(x))
         .map(|x| SurfaceSample {
             normal: x.normal.normalize(),
             ..*x

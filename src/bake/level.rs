@@ -12,8 +12,8 @@ use super::boundary::boundary_faces;
 use super::boundary_visibility::{abv_map, PrimitiveLevel};
 use super::primitive::fit_ellipsoid_bounding;
 use super::sampling::{pieces_by_voxel, sample_voxel};
-use super::visibility::{aiv_map, aiv_rays_per_cell, map_noise_sigma};
-use crate::absdf::estimate::{estimate, EstimateSettings};
+use super::visibility::{aiv_map, aiv_rays_per_cell, exposed_weight, map_noise_sigma};
+use crate::absdf::estimate::{estimate, usable, EstimateSettings, SurfaceSample};
 use crate::format::level::{FaceData, LevelData, VoxelData};
 use crate::math::haar::{forward, shrink, truncate, SparseHaar};
 use crate::scene::Scene;
@@ -84,32 +84,28 @@ pub fn voxel_seed(key: u64) -> u32 {
     (key as u32) ^ ((key >> 32) as u32).rotate_left(16)
 }
 
-/// The surface samples of a voxel, their coverage, the ABSDF statistics and the ellipsoid:
-/// everything of [`bake_voxel`] but the AIV.
-#[allow(clippy::type_complexity)]
+/// The surface samples of a voxel, their coverage and the ellipsoid: everything of
+/// [`bake_voxel`] before the AIV. No ellipsoid where no sample is usable by the ABSDF
+/// ([`usable`]): `bake_voxel` keeps no such voxel.
 fn voxel_statistics(
     scene: &Scene,
     grid: &Grid,
     pieces: &[super::sampling::Piece],
     s: &LevelSettings,
     seed: u32,
-) -> (
-    Vec<super::sampling::PointSample>,
-    f32,
-    Option<crate::absdf::VoxelAppearance>,
-    Option<Ellipsoid>,
-) {
+) -> (Vec<super::sampling::PointSample>, f32, Option<Ellipsoid>) {
     let samples = sample_voxel(scene, pieces, s.samples_per_voxel, seed);
-    let surf: Vec<_> = samples.iter().map(|p| p.surface).collect();
-    let coverage: f32 = surf.iter().map(|x| x.weight).sum();
-    let appearance = estimate(&surf, &s.estimate);
+    let coverage: f32 = samples.iter().map(|p| p.surface.weight).sum();
+    if !samples.iter().any(|p| usable(&p.surface)) {
+        return (samples, coverage, None);
+    }
     let pts: Vec<Vec3> = samples.iter().map(|p| p.position).collect();
     let corners: Vec<Vec3> = pieces
         .iter()
         .flat_map(|p| p.polygon.iter().copied())
         .collect();
     let ellipsoid = fit_ellipsoid_bounding(&pts, &corners, 1e-3 * grid.voxel_size());
-    (samples, coverage, appearance, ellipsoid)
+    (samples, coverage, ellipsoid)
 }
 
 /// The primitive [`bake_voxel`] would give this voxel (the same seed, samples and fit), without
@@ -122,8 +118,7 @@ pub fn voxel_primitive(
     pieces: &[super::sampling::Piece],
     s: &LevelSettings,
 ) -> Option<Ellipsoid> {
-    let (_, _, appearance, ellipsoid) = voxel_statistics(scene, grid, pieces, s, voxel_seed(key));
-    appearance.and(ellipsoid)
+    voxel_statistics(scene, grid, pieces, s, voxel_seed(key)).2
 }
 
 /// What baking one voxel cost, and the AIV bandwidth it chose.
@@ -138,8 +133,9 @@ pub struct VoxelCost {
     pub aiv_min_rays: u32,
 }
 
-/// Bakes one voxel from the pieces of surface inside it: samples, ABSDF statistics, the
-/// ellipsoid and the AIV tree. `None` when every sample was cut out (nothing to keep). Also
+/// Bakes one voxel from the pieces of surface inside it: samples, the ellipsoid, the AIV tree,
+/// and the ABSDF statistics of the samples weighted by how exposed each is (its AIV escape
+/// fraction, [`exposed_weight`]). `None` when every sample was cut out (nothing to keep). Also
 /// returns what it cost ([`VoxelCost`]).
 pub fn bake_voxel(
     scene: &Scene,
@@ -152,8 +148,8 @@ pub fn bake_voxel(
     let t0 = std::time::Instant::now();
     let area: f64 = pieces.iter().map(|p| p.area).sum();
     let seed = voxel_seed(key);
-    let (samples, coverage, appearance, ellipsoid) = voxel_statistics(scene, grid, pieces, s, seed);
-    let (Some(appearance), Some(ellipsoid)) = (appearance, ellipsoid) else {
+    let (samples, coverage, ellipsoid) = voxel_statistics(scene, grid, pieces, s, seed);
+    let Some(ellipsoid) = ellipsoid else {
         let cost = VoxelCost {
             cpu: [t0.elapsed().as_secs_f64(), 0.0],
             ..Default::default()
@@ -170,11 +166,27 @@ pub fn bake_voxel(
         s.denoise,
         seed,
     );
+    let t2 = std::time::Instant::now();
+    let exposed: Vec<SurfaceSample> = samples
+        .iter()
+        .zip(&est.sample_escape)
+        .map(|(p, &e)| SurfaceSample {
+            weight: p.surface.weight * exposed_weight(e),
+            ..p.surface
+        })
+        .collect();
+    // Some sample is usable (the ellipsoid says so), and the weights stay positive.
+    let Some(appearance) = estimate(&exposed, &s.estimate) else {
+        return (None, VoxelCost::default());
+    };
     let per_cell = aiv_rays_per_cell(est.rays, s.aiv_res);
     let aiv = compress(&est.map, s.aiv_res, per_cell, est.denoise, s);
     let cost = VoxelCost {
         rays: est.rays,
-        cpu: [(t1 - t0).as_secs_f64(), t1.elapsed().as_secs_f64()],
+        cpu: [
+            (t1 - t0).as_secs_f64() + t2.elapsed().as_secs_f64(),
+            (t2 - t1).as_secs_f64(),
+        ],
         aiv_min_rays: est.min_rays,
     };
     (
@@ -337,5 +349,40 @@ mod tests {
         );
         // Cut-out leaves: some voxels are partly transparent.
         assert!(a.voxels.iter().any(|v| v.coverage < 0.95));
+    }
+
+    /// A white box with a red box buried inside it, in one voxel: the red faces see nothing
+    /// (AIV escape 0), so the ABSDF's albedo is the white box's ([`exposed_weight`]); by area
+    /// alone the red box is 14% of the surface and the green channel would be about 0.86.
+    #[test]
+    fn buried_surfaces_do_not_colour_the_absdf() {
+        use crate::gen::glb::{MaterialData, SceneData};
+        use crate::gen::shapes::cuboid;
+        let mut data = SceneData::single(
+            cuboid(Vec3::ZERO, Vec3::splat(0.5), 2),
+            MaterialData::new("white", [1.0, 1.0, 1.0], 0.0, 0.5),
+        );
+        data.meshes[0].push((cuboid(Vec3::ZERO, Vec3::splat(0.2), 2), 1));
+        data.materials
+            .push(MaterialData::new("red", [1.0, 0.0, 0.0], 0.0, 0.5));
+        let scene = data.to_scene();
+        let accel = Accel::build(&scene);
+        let (lo, hi) = scene.bounds();
+        let s = LevelSettings {
+            samples_per_voxel: 256,
+            aiv_rays: 16,
+            ..Default::default()
+        };
+        let level = bake_level(&scene, &accel, Grid::around(lo, hi, 1), &s);
+        assert_eq!(level.voxels.len(), 1);
+        let green: Vec<f32> = match &level.voxels[0].appearance.moments {
+            crate::absdf::Moments::Constant(m) => vec![m.c.y],
+            crate::absdf::Moments::Directional { diffuse, .. } => {
+                diffuse.iter().map(|m| m.c.y).collect()
+            }
+        };
+        for g in green {
+            assert!(g > 0.99, "green {g}: the buried red box shows");
+        }
     }
 }

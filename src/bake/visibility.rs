@@ -74,6 +74,27 @@ pub struct AivEstimate {
     /// The multiple of the noise σ ([`map_noise_sigma`]) the wavelet shrinkage should use:
     /// chosen by cross-validation among [`AIV_DENOISE_CANDIDATES`] when denoising, else 0.
     pub denoise: f32,
+    /// Per surface sample (in the order given), the fraction of its rays that escaped: how
+    /// exposed the sample is, the weight of its ABSDF statistics ([`exposed_weight`]).
+    pub sample_escape: Vec<f32>,
+}
+
+/// The weight factor of a surface sample in the voxel's ABSDF statistics: its AIV escape
+/// fraction, floored at 10⁻³ so that a voxel whose every sample is buried still has statistics.
+///
+/// Eq. 3 averages the BSDF over all of the voxel's surfaces, and Eq. 6 multiplies it by the
+/// averaged visibilities, as if what a surface is made of and how much of it sees out were
+/// independent. In a solid prop they are not: the inner faces of a wall, the underside of a
+/// plank and the floor under a barrel have their own normals and materials, and none of it is
+/// lit or seen. Weighting each sample by the fraction of the scene it sees out into (its AIV
+/// rays, already traced) lets the exposed surfaces set the lobes, the roughness and the
+/// albedo moments, which is Eq. 3 with the visibility of Eq. 6 moved inside the integral for
+/// the part of it that belongs to the sample rather than to the direction. Coverage, the
+/// ellipsoid and the AIV itself keep the plain area weights. Measured at 64³ with
+/// `examples/shading_noise` (RMSE of the default render): mill 0.0116 → 0.0102, barrel
+/// 0.0081 → 0.0072, building-garage 0.0253 → 0.0236 (see the README).
+pub fn exposed_weight(escape: f32) -> f32 {
+    escape.clamp(1e-3, 1.0)
 }
 
 /// The standard deviation of one cell of a visibility map estimated from `rays_per_cell`
@@ -110,6 +131,7 @@ pub fn aiv_map(
     seed: u32,
 ) -> AivEstimate {
     let mut rays: Vec<AivRay> = Vec::with_capacity(samples.len() * rays_per_sample as usize);
+    let mut sample_escape = Vec::with_capacity(samples.len());
     let mut index = 0u32;
     for (j, s) in samples.iter().enumerate() {
         // Per side (front = along the geometric normal): rays traced, rays escaped.
@@ -136,6 +158,13 @@ pub fn aiv_map(
                 escape: 0.0,
             });
         }
+        let traced = side[0][0] + side[1][0];
+        let escaped = side[0][1] + side[1][1];
+        sample_escape.push(if traced > 0 {
+            escaped as f32 / traced as f32
+        } else {
+            0.0
+        });
         for r in &mut rays[first..] {
             let [t, e] = side[r.side as usize];
             r.escape = if t >= 2 {
@@ -171,6 +200,7 @@ pub fn aiv_map(
         exposure,
         min_rays,
         denoise,
+        sample_escape,
     }
 }
 
