@@ -44,7 +44,9 @@ use super::hybrid::{LazyMesh, MeshAsset, Representation};
 use super::manifest::Manifest;
 use crate::film::{Camera, Image, ImageStats};
 use crate::lights::Lights;
-use crate::runtime::{Cone, ConeResult, LodScene, Placement, RuntimeError, Sampler, TraceSettings};
+use crate::runtime::{
+    Cone, ConeResult, LodScene, Placement, RuntimeError, Sampler, Stratified, TraceSettings,
+};
 use crate::spatial::box_interval;
 use crate::trace::{offset_origin, Hit as MeshHit, Ray, SurfacePoint};
 
@@ -712,9 +714,10 @@ pub fn render(
     settings: &TraceSettings,
     progress: crate::util::Progress,
 ) -> (Image, ImageStats) {
-    crate::film::render_image(camera, spp, seed, "LoD", progress, |s| {
+    crate::film::render_image(camera, spp, seed, "LoD", progress, |mut s| {
         *s.rays += 1;
-        asm.trace(&Cone::of_sample(&s), lights, settings, s.rng)
+        let cone = Cone::of_sample(&s);
+        asm.trace(&cone, lights, settings, &mut Stratified::of_sample(&mut s))
             .radiance
     })
 }

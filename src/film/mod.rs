@@ -18,7 +18,7 @@ use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 
 use crate::math::numerics::non_finite_count;
-use crate::math::rng::Pcg32;
+use crate::math::rng::{mix64, Pcg32};
 use crate::util::progress::{Progress, StageCounter};
 
 /// Tile edge of the parallel loop.
@@ -90,6 +90,12 @@ pub struct Sample<'a> {
     pub rng: &'a mut Pcg32,
     /// Rays traced for this sample (the renderer adds to it).
     pub rays: &'a mut u64,
+    /// The sample's index in its pixel, 0..spp: with `pixel_seed`, what a sampler stratified
+    /// over the pixel's samples draws from ([`crate::runtime::Stratified`]); the reference
+    /// renderer draws everything from `rng`.
+    pub index: u32,
+    /// A seed of the pixel's own (from the render seed and the pixel index, not from `rng`).
+    pub pixel_seed: u32,
 }
 
 /// Renders `camera`'s image with `spp` samples per pixel: `radiance(sample)` for each, over
@@ -124,7 +130,9 @@ pub fn render_image(
             let mut local_invalid = 0u64;
             for y in ty * TILE..((ty + 1) * TILE).min(h) {
                 for x in tx * TILE..((tx + 1) * TILE).min(w) {
-                    let mut rng = Pcg32::new(seed, (y as u64) * w as u64 + x as u64);
+                    let pixel = (y as u64) * w as u64 + x as u64;
+                    let mut rng = Pcg32::new(seed, pixel);
+                    let pixel_seed = (mix64(seed ^ mix64(pixel)) >> 32) as u32;
                     let mut sum = Vec3::ZERO;
                     for s in 0..spp {
                         let p = Vec2::new(x as f32, y as f32) + jitter(s, spp, &mut rng);
@@ -135,6 +143,8 @@ pub fn render_image(
                             aperture,
                             rng: &mut rng,
                             rays: &mut local_rays,
+                            index: s,
+                            pixel_seed,
                         });
                         if l.is_finite() {
                             sum += l;

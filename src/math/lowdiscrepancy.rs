@@ -92,6 +92,17 @@ pub fn sobol_2d(index: u32, seed: u32) -> Vec2 {
     )
 }
 
+/// Point `index` of a scrambled 1D sequence for `seed`, in [0, 1): the van der Corput point of
+/// the index, order shuffled and values Owen-scrambled (as [`sobol_2d`]'s first dimension, with
+/// seeds of its own), so that every aligned run of 2^m indices falls one to each interval of
+/// width 2^-m, whatever the seed, and each point alone is uniform over the seeds.
+#[inline]
+pub fn scrambled_1d(index: u32, seed: u32) -> f32 {
+    let i = owen_scramble(index, hash(seed, 3));
+    let x = owen_scramble(i.reverse_bits(), hash(seed, 4));
+    (x >> 8) as f32 / 16_777_216.0
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -143,5 +154,29 @@ mod tests {
         let exact = (1.0 - 3f64.cos()) / 3.0 * (2f64.sin() / 2.0) + 0.25;
         let est: f64 = (0..1024).map(|i| f(sobol_2d(i, 9)) as f64).sum::<f64>() / 1024.0;
         assert!((est - exact).abs() < 2e-3, "{est} vs {exact}");
+    }
+
+    /// The 1D points: each run of 2^m indices is stratified, and seeds differ.
+    #[test]
+    fn one_dimensional_points_are_stratified() {
+        for seed in [0u32, 3, 91, 65_537] {
+            for m in 0..=6 {
+                let n = 1u32 << m;
+                for start in [0u32, n, 5 * n] {
+                    let mut seen = vec![false; n as usize];
+                    for i in start..start + n {
+                        let x = scrambled_1d(i, seed);
+                        assert!((0.0..1.0).contains(&x), "{x}");
+                        let c = (x * n as f32) as usize;
+                        assert!(
+                            !seen[c],
+                            "seed {seed}, run {start}..+{n}: two in interval {c}"
+                        );
+                        seen[c] = true;
+                    }
+                }
+            }
+        }
+        assert_ne!(scrambled_1d(0, 1), scrambled_1d(0, 2));
     }
 }

@@ -93,6 +93,71 @@ pub trait Sampler {
     }
 }
 
+/// The sampler of one sample of a pixel: its first [`STRATIFIED_DIMENSIONS`] numbers (each call
+/// of [`Sampler::next_1d`] or [`Sampler::next_2d`] one dimension) are padded, scrambled
+/// low-discrepancy points of the sample's index, one independent sequence a dimension
+/// ([`crate::math::lowdiscrepancy`], seeded by the pixel and the dimension), so that the
+/// pixel's samples stratify the choices a cone makes first (which hit a reservoir shades, the
+/// light sample, the ABSDF sample); the numbers after them come from `inner`. Each number alone
+/// is uniform, so every estimate stays unbiased; what falls is its variance over the pixel.
+pub struct Stratified<'a, S: Sampler + ?Sized> {
+    inner: &'a mut S,
+    index: u32,
+    seed: u32,
+    dimension: u32,
+}
+
+/// The dimensions [`Stratified`] stratifies: the reservoir's pick, then two light and ABSDF
+/// sample sets (3 dimensions each).
+pub const STRATIFIED_DIMENSIONS: u32 = 7;
+
+impl<'a, S: Sampler + ?Sized> Stratified<'a, S> {
+    /// Sample `index` of the pixel of `seed`, drawing from `inner` past the stratified
+    /// dimensions.
+    pub fn new(inner: &'a mut S, index: u32, seed: u32) -> Self {
+        Stratified {
+            inner,
+            index,
+            seed,
+            dimension: 0,
+        }
+    }
+
+    /// The seed of the next stratified dimension, or `None` past them.
+    #[inline]
+    fn next_dimension(&mut self) -> Option<u32> {
+        if self.dimension >= STRATIFIED_DIMENSIONS {
+            return None;
+        }
+        self.dimension += 1;
+        Some(crate::math::rng::mix64(((self.seed as u64) << 32) | self.dimension as u64) as u32)
+    }
+}
+
+impl<'a> Stratified<'a, Pcg32> {
+    /// The sampler of one sample of the shared image loop ([`crate::film::Sample`]).
+    pub fn of_sample<'b>(s: &'a mut crate::film::Sample<'b>) -> Stratified<'a, Pcg32> {
+        Stratified::new(s.rng, s.index, s.pixel_seed)
+    }
+}
+
+impl<S: Sampler + ?Sized> Sampler for Stratified<'_, S> {
+    #[inline]
+    fn next_1d(&mut self) -> f32 {
+        match self.next_dimension() {
+            Some(d) => crate::math::lowdiscrepancy::scrambled_1d(self.index, d),
+            None => self.inner.next_1d(),
+        }
+    }
+    #[inline]
+    fn next_2d(&mut self) -> Vec2 {
+        match self.next_dimension() {
+            Some(d) => crate::math::lowdiscrepancy::sobol_2d(self.index, d),
+            None => self.inner.next_2d(),
+        }
+    }
+}
+
 impl Sampler for Pcg32 {
     #[inline]
     fn next_1d(&mut self) -> f32 {
@@ -518,10 +583,11 @@ pub fn render(
     settings: &TraceSettings,
     progress: crate::util::Progress,
 ) -> (crate::film::Image, crate::film::ImageStats) {
-    crate::film::render_image(camera, spp, seed, "LoD", progress, |s| {
+    crate::film::render_image(camera, spp, seed, "LoD", progress, |mut s| {
         *s.rays += 1;
+        let cone = Cone::of_sample(&s);
         scene
-            .trace(&Cone::of_sample(&s), lights, settings, s.rng)
+            .trace(&cone, lights, settings, &mut Stratified::of_sample(&mut s))
             .radiance
     })
 }

@@ -71,6 +71,10 @@ pub(crate) fn shade_with<S: Sampler + ?Sized>(
 /// Most reservoirs one cone keeps (picks beyond are folded into this many).
 const MAX_PICKS: usize = 8;
 
+/// Candidates of positive weight [`Picks`] holds to pick by cumulative weight; past them it
+/// keeps by [`reservoir_step`].
+const HELD_HITS: usize = 64;
+
 /// Where a cone is traced from when the scene sits inside a larger one (an instance of an
 /// assembly, [`crate::assembly`]): the hook of [`LodScene::trace_placed`]. The cone and the
 /// hits are in the scene's own space; the lights, and the directions the ABSDF is evaluated
@@ -200,24 +204,18 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
             (sum, cov, cov)
         }
         Shading::Reservoir { picks, roulette } => {
-            // Weighted reservoir sampling (one reservoir per pick) over bound weights ŵ_k
-            // (|B|_ω replaced by a cheap upper bound): each reservoir keeps hit k with
-            // probability ŵ_k / Σŵ; shading the kept one and scaling by Σŵ · w_k/ŵ_k is an
-            // unbiased estimate of Σ w_k L_o^k, with the exact |B|_ω computed once per pick.
+            // Weighted reservoir sampling over bound weights ŵ_k (|B|_ω replaced by a cheap
+            // upper bound): each pick keeps hit k with probability ŵ_k / Σŵ ([`Picks`], one
+            // number a cone); shading the kept one and scaling by Σŵ · w_k/ŵ_k is an unbiased
+            // estimate of Σ w_k L_o^k, with the exact |B|_ω computed once per pick.
             hits = hits.with_weights(Weights::Bound);
             let n = (picks.max(1) as usize).min(MAX_PICKS);
-            let mut kept: [Option<Hit>; MAX_PICKS] = [None; MAX_PICKS];
-            let mut wsum = 0.0f32;
+            let mut reservoir = Picks::new(n, sampler.next_1d());
             for h in &mut hits {
                 first = first.min(h.t);
-                wsum += h.weight;
-                let p = h.weight / wsum;
-                for slot in kept.iter_mut().take(n) {
-                    if sampler.next_1d() < p {
-                        *slot = Some(h);
-                    }
-                }
+                reservoir.push(h, h.weight);
             }
+            let (kept, wsum) = reservoir.finish();
             // Coverage roulette: shade with probability min(1, Σŵ).
             let p = if roulette { wsum.min(1.0) } else { 1.0 };
             if !(p > 0.0) || (p < 1.0 && sampler.next_1d() >= p) {
@@ -255,4 +253,237 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
         }
     }
     (surfaces, transmittance, hits.primitives(), coverage, first)
+}
+
+/// Weighted reservoir sampling of `n` picks from a stream of weighted candidates, driven by one
+/// uniform number for all of them: pick j takes u_j = u + j/n (mod 1), and keeps the
+/// candidate whose share of the cumulative weight holds u_j·Σw. The first [`HELD_HITS`]
+/// candidates of positive weight are held for that; one beyond them is kept by
+/// [`reservoir_step`], which leaves u_j uniform, and increasing in u where it keeps none. So
+/// each pick is candidate k with probability w_k / Σw, as with a fresh number per candidate,
+/// and is an increasing function of u: numbers stratified over a pixel's samples
+/// ([`super::Stratified`]) make stratified picks, and the n picks of one cone are spread over
+/// the candidates instead of drawn independently. Nothing is allocated.
+pub(crate) struct Picks<T: Copy> {
+    n: usize,
+    u: [f64; MAX_PICKS],
+    held: [Option<T>; HELD_HITS],
+    cumulative: [f64; HELD_HITS],
+    nheld: usize,
+    held_sum: f64,
+    kept: [Option<T>; MAX_PICKS],
+    sum: f32,
+}
+
+impl<T: Copy> Picks<T> {
+    /// `n` picks (1 to [`MAX_PICKS`]) driven by `u` in [0, 1) (anything else counts as 0).
+    pub(crate) fn new(n: usize, u: f32) -> Self {
+        let n = n.clamp(1, MAX_PICKS);
+        let u0 = if (0.0..1.0).contains(&u) {
+            u as f64
+        } else {
+            0.0
+        };
+        let mut us = [0f64; MAX_PICKS];
+        for (j, uj) in us.iter_mut().enumerate().take(n) {
+            *uj = (u0 + j as f64 / n as f64).fract();
+        }
+        Picks {
+            n,
+            u: us,
+            held: [None; HELD_HITS],
+            cumulative: [0.0; HELD_HITS],
+            nheld: 0,
+            held_sum: 0.0,
+            kept: [None; MAX_PICKS],
+            sum: 0.0,
+        }
+    }
+
+    /// The next candidate; one of weight zero, negative or NaN is never kept.
+    #[inline]
+    pub(crate) fn push(&mut self, item: T, weight: f32) {
+        if !(weight > 0.0) {
+            return;
+        }
+        self.sum += weight;
+        if self.nheld < HELD_HITS {
+            self.held_sum += weight as f64;
+            self.held[self.nheld] = Some(item);
+            self.cumulative[self.nheld] = self.held_sum;
+            self.nheld += 1;
+        } else {
+            let p = (weight / self.sum) as f64;
+            for (slot, uj) in self.kept.iter_mut().zip(self.u.iter_mut()).take(self.n) {
+                if reservoir_step(uj, p) {
+                    *slot = Some(item);
+                }
+            }
+        }
+    }
+
+    /// The picks (the first `n` entries; `None` only when no candidate had a positive
+    /// weight) and the sum of the candidates' weights.
+    pub(crate) fn finish(mut self) -> ([Option<T>; MAX_PICKS], f32) {
+        if self.nheld > 0 {
+            for (slot, uj) in self.kept.iter_mut().zip(self.u.iter()).take(self.n) {
+                if slot.is_none() {
+                    let target = *uj * self.held_sum;
+                    let i = self.cumulative[..self.nheld].partition_point(|&c| c <= target);
+                    *slot = self.held[i.min(self.nheld - 1)];
+                }
+            }
+        }
+        (self.kept, self.sum)
+    }
+}
+
+/// One step of a weighted reservoir driven by one uniform number `u` for the whole stream
+/// instead of one per candidate: keep the candidate when u < p (its probability ŵ_k / Σŵ so
+/// far), and rescale u to what is left of its interval, u/p or (u − p)/(1 − p), which is again
+/// uniform given the outcome, so that the candidate kept is distributed exactly as with a
+/// fresh number per step. Where no step keeps, the final u is an increasing function of the
+/// first. A p that is not in (0, 1] keeps nothing and leaves u as it is; p ≥ 1 keeps.
+#[inline]
+pub(crate) fn reservoir_step(u: &mut f64, p: f64) -> bool {
+    /// The largest f64 below one: u stays in [0, 1) whatever the rounding.
+    const BELOW_ONE: f64 = 1.0 - f64::EPSILON / 2.0;
+    if !(p > 0.0) {
+        return false;
+    }
+    if p >= 1.0 {
+        return true;
+    }
+    if *u < p {
+        *u = (*u / p).min(BELOW_ONE);
+        true
+    } else {
+        *u = ((*u - p) / (1.0 - p)).clamp(0.0, BELOW_ONE);
+        false
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::rng::Pcg32;
+    use crate::validation::chi2::gamma_q;
+
+    /// Candidate k's weight: zero, NaN and a range of positive weights.
+    fn weight(k: usize) -> f32 {
+        match k % 7 {
+            0 => 0.0,
+            3 => f32::NAN,
+            _ => 0.2 + (k % 5) as f32,
+        }
+    }
+
+    /// The picks of one stream of `len` candidates.
+    fn picks(len: usize, n: usize, u: f32) -> ([Option<usize>; MAX_PICKS], f32) {
+        let mut p = Picks::new(n, u);
+        for k in 0..len {
+            p.push(k, weight(k));
+        }
+        p.finish()
+    }
+
+    /// Pearson's test of the picks' frequencies against w_k / Σw, with one pick and three,
+    /// among the held candidates and past them; candidates of weight zero or NaN never picked.
+    #[test]
+    fn picks_follow_the_weights() {
+        for len in [6usize, HELD_HITS + 40] {
+            let total: f64 = (0..len)
+                .map(weight)
+                .filter(|w| *w > 0.0)
+                .map(|w| w as f64)
+                .sum();
+            for n in [1usize, 3] {
+                let mut rng = Pcg32::new(7, (len * 8 + n) as u64);
+                let mut observed = vec![0f64; len];
+                let draws = 20_000;
+                for _ in 0..draws {
+                    let (kept, sum) = picks(len, n, rng.next_f32());
+                    assert!(
+                        (sum as f64 - total).abs() < 1e-4 * total,
+                        "{sum} vs {total}"
+                    );
+                    for k in kept.iter().take(n) {
+                        observed[k.expect("every pick is made")] += 1.0;
+                    }
+                }
+                let m = (draws * n) as f64;
+                let (mut stat, mut cells) = (0.0, 0usize);
+                for (k, o) in observed.iter().enumerate() {
+                    let w = weight(k);
+                    if !(w > 0.0) {
+                        assert_eq!(*o, 0.0, "candidate {k} of weight {w} picked");
+                        continue;
+                    }
+                    let e = m * w as f64 / total;
+                    stat += (o - e).powi(2) / e;
+                    cells += 1;
+                }
+                let dof = (cells - 1) as f64;
+                let p = gamma_q(dof / 2.0, stat / 2.0);
+                assert!(
+                    p > 1e-4,
+                    "{len} candidates, {n} picks: χ² {stat} on {dof}, p {p}"
+                );
+            }
+        }
+    }
+
+    /// Stratified numbers make stratified picks: 64 numbers one to each 1/64 pick each held
+    /// candidate within one of 64·w/Σw times, and a cone's two picks are never the same
+    /// candidate when none holds half the weight.
+    #[test]
+    fn stratified_numbers_make_stratified_picks() {
+        let len = 12;
+        let total: f64 = (0..len)
+            .map(weight)
+            .filter(|w| *w > 0.0)
+            .map(|w| w as f64)
+            .sum();
+        let mut count = vec![0f64; len];
+        for i in 0..64 {
+            let (kept, _) = picks(len, 2, (i as f32 + 0.5) / 64.0);
+            let (a, b) = (kept[0].unwrap(), kept[1].unwrap());
+            assert_ne!(a, b, "number {i}");
+            count[a] += 1.0;
+        }
+        for (k, c) in count.iter().enumerate() {
+            let want = 64.0 * (weight(k).max(0.0) as f64) / total;
+            let want = if want.is_nan() { 0.0 } else { want };
+            assert!(
+                (c - want).abs() < 1.0,
+                "candidate {k}: {c} picks, {want} expected"
+            );
+        }
+        // No candidate of positive weight: no pick.
+        let mut p = Picks::<u8>::new(1, 0.5);
+        p.push(1, 0.0);
+        p.push(2, f32::NAN);
+        assert_eq!(p.finish().0[0], None);
+    }
+
+    /// A reservoir step leaves its number in [0, 1) whatever the probability, and one that is
+    /// not a probability neither keeps nor moves it.
+    #[test]
+    fn reservoir_steps_stay_in_range() {
+        let mut rng = Pcg32::new(3, 3);
+        let ps = [1e-300, 1e-9, 0.5, 1.0 - 1e-16, 1.0, 2.0];
+        for _ in 0..10_000 {
+            for &p in &ps {
+                let mut u = [rng.next_f32() as f64, 1.0 - f64::EPSILON / 2.0, 0.0]
+                    [rng.next_u32() as usize % 3];
+                reservoir_step(&mut u, p);
+                assert!((0.0..1.0).contains(&u), "u {u} after p {p}");
+            }
+        }
+        for p in [f64::NAN, 0.0, -1.0] {
+            let mut u = 0.25;
+            assert!(!reservoir_step(&mut u, p));
+            assert_eq!(u, 0.25);
+        }
+    }
 }
