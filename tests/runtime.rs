@@ -42,6 +42,19 @@ fn baked(scene: &Scene, s: &BakeSettings) -> LodScene {
     LodScene::new(Aggregate::from_bytes(baked_bytes(scene, s)).unwrap())
 }
 
+/// The hard case `name` at about `triangles` triangles.
+fn generated(name: &str, triangles: usize) -> Scene {
+    generate(
+        name,
+        &GenSettings {
+            triangles,
+            ..Default::default()
+        },
+    )
+    .unwrap()
+    .to_scene()
+}
+
 /// A cone along `o + t d` of aperture `a`.
 fn cone(o: Vec3, d: Vec3, a: f32) -> Cone {
     Cone::new(o, d, a)
@@ -71,15 +84,7 @@ fn gradient() -> Lights {
 
 #[test]
 fn misses_return_the_environment_exactly() {
-    let scene = generate(
-        "rings",
-        &GenSettings {
-            triangles: 2000,
-            ..Default::default()
-        },
-    )
-    .unwrap()
-    .to_scene();
+    let scene = generated("rings", 2000);
     let lod = baked(&scene, &small(8));
     let lights = gradient();
     let mut rng = Pcg32::new(1, 1);
@@ -422,15 +427,7 @@ fn dropped_effects_do_not_change_renders() {
 /// doubles, clamped to the coarsest; every forced level renders.
 #[test]
 fn level_selection_follows_the_footprint() {
-    let scene = generate(
-        "lattice",
-        &GenSettings {
-            triangles: 2000,
-            ..Default::default()
-        },
-    )
-    .unwrap()
-    .to_scene();
+    let scene = generated("lattice", 2000);
     let lod = baked(&scene, &small(16));
     let n = lod.level_count();
     assert_eq!(n, 4);
@@ -463,15 +460,7 @@ fn level_selection_follows_the_footprint() {
 /// the rays that meet the object matches the reference's within 15%.
 #[test]
 fn closed_geometry_keeps_its_brightness() {
-    let scene = generate(
-        "lattice",
-        &GenSettings {
-            triangles: 6000,
-            ..Default::default()
-        },
-    )
-    .unwrap()
-    .to_scene();
+    let scene = generated("lattice", 6000);
     let s = BakeSettings {
         max_res: 16,
         min_res: 16,
@@ -521,15 +510,7 @@ fn closed_geometry_keeps_its_brightness() {
 /// numbers; and the coverage is the sum of the hits' weights.
 #[test]
 fn hits_and_trace_agree() {
-    let scene = generate(
-        "foliage",
-        &GenSettings {
-            triangles: 4000,
-            ..Default::default()
-        },
-    )
-    .unwrap()
-    .to_scene();
+    let scene = generated("foliage", 4000);
     let lod = baked(&scene, &small(16));
     let view = view_of(&scene, 16, 1);
     let lights = view.lights().unwrap();
@@ -582,15 +563,7 @@ fn hits_and_trace_agree() {
 /// the same pixels the means agree within their Monte Carlo error.
 #[test]
 fn reservoir_shading_is_unbiased() {
-    let scene = generate(
-        "foliage",
-        &GenSettings {
-            triangles: 4000,
-            ..Default::default()
-        },
-    )
-    .unwrap()
-    .to_scene();
+    let scene = generated("foliage", 4000);
     let lod = baked(&scene, &small(16));
     let view = view_of(&scene, 8, 1);
     let lights = view.lights().unwrap();
@@ -652,15 +625,7 @@ fn reservoir_shading_is_unbiased() {
 /// a damaged block is found when a cone first needs its level, reported, and never read.
 #[test]
 fn opening_is_lazy_and_damage_is_reported() {
-    let scene = generate(
-        "lattice",
-        &GenSettings {
-            triangles: 2000,
-            ..Default::default()
-        },
-    )
-    .unwrap()
-    .to_scene();
+    let scene = generated("lattice", 2000);
     let bytes = baked_bytes(&scene, &small(16));
     let lod = LodScene::new(Aggregate::from_bytes_lazy(bytes.clone()).unwrap());
     assert!(lod.prepared().iter().all(|p| !p));
@@ -707,15 +672,7 @@ fn opening_is_lazy_and_damage_is_reported() {
 /// fresh random number per choice, and a pixel's estimate varies less from seed to seed.
 #[test]
 fn stratified_sampling_is_unbiased_and_less_noisy() {
-    let scene = generate(
-        "foliage",
-        &GenSettings {
-            triangles: 4000,
-            ..Default::default()
-        },
-    )
-    .unwrap()
-    .to_scene();
+    let scene = generated("foliage", 4000);
     let lod = baked(&scene, &small(16));
     let view = view_of(&scene, 8, 1);
     let lights = view.lights().unwrap();
