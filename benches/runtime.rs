@@ -1,6 +1,7 @@
 //! Criterion benchmarks of the LoD runtime: cones per second through the foliage (generated,
 //! 1M triangles) and Japanese maple aggregates baked at 64³, for the walk alone, the walk with
-//! exact coverage weights, and `trace` (reservoir shading), at the quality study's 64² view.
+//! exact coverage weights, and `trace` (reservoir shading; with PCG numbers and with the image
+//! loop's stratified ones), at the quality study's 64² view.
 //! `cargo bench --bench runtime`.
 //!
 //! The aggregates are baked on first use into `target/aggtool-bench/` (a few minutes each) and
@@ -9,7 +10,7 @@
 use std::path::PathBuf;
 
 use aggtool::math::rng::Pcg32;
-use aggtool::runtime::{Cone, LodScene, TraceSettings};
+use aggtool::runtime::{Cone, LodScene, Stratified, TraceSettings};
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use glam::Vec2;
 
@@ -126,6 +127,21 @@ fn bench(c: &mut Criterion) {
                 cones
                     .iter()
                     .map(|c| scene.trace(c, &lights, &s, &mut rng).radiance.x)
+                    .sum::<f32>()
+            })
+        });
+        // The image loop's sampler: sample i % 4 of pixel i / 4 (the cost of its scrambled
+        // low-discrepancy numbers against PCG's).
+        g.bench_function("trace, stratified", |b| {
+            let mut rng = Pcg32::new(2, 2);
+            b.iter(|| {
+                cones
+                    .iter()
+                    .enumerate()
+                    .map(|(i, c)| {
+                        let mut s4 = Stratified::new(&mut rng, i as u32 % 4, (i / 4) as u32);
+                        scene.trace(c, &lights, &s, &mut s4).radiance.x
+                    })
                     .sum::<f32>()
             })
         });

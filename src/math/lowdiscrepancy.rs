@@ -80,12 +80,19 @@ fn hash(a: u32, b: u32) -> u32 {
 /// Point `index` of the scrambled 2D sequence for `seed`, in [0,1)².
 #[inline]
 pub fn sobol_2d(index: u32, seed: u32) -> Vec2 {
+    sobol_2d_seeded(index, [hash(seed, 0), hash(seed, 1), hash(seed, 2)])
+}
+
+/// [`sobol_2d`] with its three scrambles' seeds given (the order's shuffle, then x and y):
+/// for a caller that derives many sequences' seeds at once.
+#[inline]
+pub fn sobol_2d_seeded(index: u32, seeds: [u32; 3]) -> Vec2 {
     // Shuffle the order (so that prefixes of different seeds differ), then generate.
-    let i = owen_scramble(index, hash(seed, 0));
+    let i = owen_scramble(index, seeds[0]);
     let x = i.reverse_bits();
     let y = sobol_dim1_of(i);
-    let x = owen_scramble(x, hash(seed, 1));
-    let y = owen_scramble(y, hash(seed, 2));
+    let x = owen_scramble(x, seeds[1]);
+    let y = owen_scramble(y, seeds[2]);
     Vec2::new(
         (x >> 8) as f32 / 16_777_216.0,
         (y >> 8) as f32 / 16_777_216.0,
@@ -98,8 +105,14 @@ pub fn sobol_2d(index: u32, seed: u32) -> Vec2 {
 /// width 2^-m, whatever the seed, and each point alone is uniform over the seeds.
 #[inline]
 pub fn scrambled_1d(index: u32, seed: u32) -> f32 {
-    let i = owen_scramble(index, hash(seed, 3));
-    let x = owen_scramble(i.reverse_bits(), hash(seed, 4));
+    scrambled_1d_seeded(index, [hash(seed, 3), hash(seed, 4)])
+}
+
+/// [`scrambled_1d`] with its two scrambles' seeds given (the order's shuffle, then the value).
+#[inline]
+pub fn scrambled_1d_seeded(index: u32, seeds: [u32; 2]) -> f32 {
+    let i = owen_scramble(index, seeds[0]);
+    let x = owen_scramble(i.reverse_bits(), seeds[1]);
     (x >> 8) as f32 / 16_777_216.0
 }
 

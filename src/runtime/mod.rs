@@ -123,14 +123,17 @@ impl<'a, S: Sampler + ?Sized> Stratified<'a, S> {
         }
     }
 
-    /// The seed of the next stratified dimension, or `None` past them.
+    /// The scramble seeds of the next stratified dimension (one 64-bit hash of the pixel's
+    /// seed and the dimension, and a multiple of it), or `None` past them.
     #[inline]
-    fn next_dimension(&mut self) -> Option<u32> {
+    fn next_dimension(&mut self) -> Option<[u32; 3]> {
         if self.dimension >= STRATIFIED_DIMENSIONS {
             return None;
         }
         self.dimension += 1;
-        Some(crate::math::rng::mix64(((self.seed as u64) << 32) | self.dimension as u64) as u32)
+        let h = crate::math::rng::mix64(((self.seed as u64) << 32) | self.dimension as u64);
+        let g = h.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+        Some([h as u32, (h >> 32) as u32, (g >> 32) as u32])
     }
 }
 
@@ -145,14 +148,14 @@ impl<S: Sampler + ?Sized> Sampler for Stratified<'_, S> {
     #[inline]
     fn next_1d(&mut self) -> f32 {
         match self.next_dimension() {
-            Some(d) => crate::math::lowdiscrepancy::scrambled_1d(self.index, d),
+            Some([a, b, _]) => crate::math::lowdiscrepancy::scrambled_1d_seeded(self.index, [a, b]),
             None => self.inner.next_1d(),
         }
     }
     #[inline]
     fn next_2d(&mut self) -> Vec2 {
         match self.next_dimension() {
-            Some(d) => crate::math::lowdiscrepancy::sobol_2d(self.index, d),
+            Some(seeds) => crate::math::lowdiscrepancy::sobol_2d_seeded(self.index, seeds),
             None => self.inner.next_2d(),
         }
     }

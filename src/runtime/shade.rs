@@ -73,7 +73,7 @@ const MAX_PICKS: usize = 8;
 
 /// Candidates of positive weight [`Picks`] holds to pick by cumulative weight; past them it
 /// keeps by [`reservoir_step`].
-const HELD_HITS: usize = 64;
+const HELD_HITS: usize = 16;
 
 /// Where a cone is traced from when the scene sits inside a larger one (an instance of an
 /// assembly, [`crate::assembly`]): the hook of [`LodScene::trace_placed`]. The cone and the
@@ -277,6 +277,7 @@ pub(crate) struct Picks<T: Copy> {
 
 impl<T: Copy> Picks<T> {
     /// `n` picks (1 to [`MAX_PICKS`]) driven by `u` in [0, 1) (anything else counts as 0).
+    #[inline]
     pub(crate) fn new(n: usize, u: f32) -> Self {
         let n = n.clamp(1, MAX_PICKS);
         let u0 = if (0.0..1.0).contains(&u) {
@@ -324,6 +325,7 @@ impl<T: Copy> Picks<T> {
 
     /// The picks (the first `n` entries; `None` only when no candidate had a positive
     /// weight) and the sum of the candidates' weights.
+    #[inline]
     pub(crate) fn finish(mut self) -> ([Option<T>; MAX_PICKS], f32) {
         if self.nheld > 0 {
             for (slot, uj) in self.kept.iter_mut().zip(self.u.iter()).take(self.n) {
