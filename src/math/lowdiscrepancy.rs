@@ -80,39 +80,40 @@ fn hash(a: u32, b: u32) -> u32 {
 /// Point `index` of the scrambled 2D sequence for `seed`, in [0,1)².
 #[inline]
 pub fn sobol_2d(index: u32, seed: u32) -> Vec2 {
-    sobol_2d_seeded(index, [hash(seed, 0), hash(seed, 1), hash(seed, 2)])
-}
-
-/// [`sobol_2d`] with its three scrambles' seeds given (the order's shuffle, then x and y):
-/// for a caller that derives many sequences' seeds at once.
-#[inline]
-pub fn sobol_2d_seeded(index: u32, seeds: [u32; 3]) -> Vec2 {
     // Shuffle the order (so that prefixes of different seeds differ), then generate.
-    let i = owen_scramble(index, seeds[0]);
+    let i = owen_scramble(index, hash(seed, 0));
     let x = i.reverse_bits();
     let y = sobol_dim1_of(i);
-    let x = owen_scramble(x, seeds[1]);
-    let y = owen_scramble(y, seeds[2]);
+    let x = owen_scramble(x, hash(seed, 1));
+    let y = owen_scramble(y, hash(seed, 2));
     Vec2::new(
         (x >> 8) as f32 / 16_777_216.0,
         (y >> 8) as f32 / 16_777_216.0,
     )
 }
 
-/// Point `index` of a scrambled 1D sequence for `seed`, in [0, 1): the van der Corput point of
-/// the index, order shuffled and values Owen-scrambled (as [`sobol_2d`]'s first dimension, with
-/// seeds of its own), so that every aligned run of 2^m indices falls one to each interval of
-/// width 2^-m, whatever the seed, and each point alone is uniform over the seeds.
+/// A cheaper padded point for per-pixel sampling: the index shuffled by a nested uniform
+/// scramble (a nonlinear permutation within every aligned run of 2^m indices, so that
+/// dimensions with their own shuffles are not correlated), then Sobol's first two dimensions
+/// with a random digital shift (XOR) each instead of a second and third Owen scramble. Every
+/// aligned run of 2^m indices is still a (0, m, 2)-net, and each point alone is uniform over
+/// the shifts. Seeds: the shuffle's, then x's and y's shifts.
 #[inline]
-pub fn scrambled_1d(index: u32, seed: u32) -> f32 {
-    scrambled_1d_seeded(index, [hash(seed, 3), hash(seed, 4)])
+pub fn shifted_2d(index: u32, seeds: [u32; 3]) -> Vec2 {
+    let i = owen_scramble(index, seeds[0]);
+    let x = i.reverse_bits() ^ seeds[1];
+    let y = sobol_dim1_of(i) ^ seeds[2];
+    Vec2::new(
+        (x >> 8) as f32 / 16_777_216.0,
+        (y >> 8) as f32 / 16_777_216.0,
+    )
 }
 
-/// [`scrambled_1d`] with its two scrambles' seeds given (the order's shuffle, then the value).
+/// The first dimension of [`shifted_2d`] alone: one aligned run of 2^m indices falls one to
+/// each interval of 2^-m.
 #[inline]
-pub fn scrambled_1d_seeded(index: u32, seeds: [u32; 2]) -> f32 {
-    let i = owen_scramble(index, seeds[0]);
-    let x = owen_scramble(i.reverse_bits(), seeds[1]);
+pub fn shifted_1d(index: u32, seeds: [u32; 2]) -> f32 {
+    let x = owen_scramble(index, seeds[0]).reverse_bits() ^ seeds[1];
     (x >> 8) as f32 / 16_777_216.0
 }
 
@@ -169,27 +170,46 @@ mod tests {
         assert!((est - exact).abs() < 2e-3, "{est} vs {exact}");
     }
 
-    /// The 1D points: each run of 2^m indices is stratified, and seeds differ.
+    /// The padded points of the image loop: every aligned run of 2^m indices is a net in 2D
+    /// and stratified in 1D, for any seeds; other seeds give other points.
     #[test]
-    fn one_dimensional_points_are_stratified() {
-        for seed in [0u32, 3, 91, 65_537] {
-            for m in 0..=6 {
+    fn shifted_points_are_stratified() {
+        let mut rng = crate::math::rng::Pcg32::new(11, 4);
+        for _ in 0..4 {
+            let seeds = [rng.next_u32(), rng.next_u32(), rng.next_u32()];
+            for m in 0..=6u32 {
                 let n = 1u32 << m;
-                for start in [0u32, n, 5 * n] {
-                    let mut seen = vec![false; n as usize];
+                for start in [0u32, n, 7 * n] {
+                    let mut seen1 = vec![false; n as usize];
+                    for a in 0..=m {
+                        let (nx, ny) = (1u32 << a, 1u32 << (m - a));
+                        let mut seen = vec![false; n as usize];
+                        for i in start..start + n {
+                            let p = shifted_2d(i, seeds);
+                            assert!((0.0..1.0).contains(&p.x) && (0.0..1.0).contains(&p.y));
+                            let cell = ((p.y * ny as f32) as u32) * nx + (p.x * nx as f32) as u32;
+                            assert!(!seen[cell as usize], "{seeds:?}: two in a {nx}x{ny} cell");
+                            seen[cell as usize] = true;
+                        }
+                    }
                     for i in start..start + n {
-                        let x = scrambled_1d(i, seed);
-                        assert!((0.0..1.0).contains(&x), "{x}");
+                        let x = shifted_1d(i, [seeds[0], seeds[1]]);
                         let c = (x * n as f32) as usize;
                         assert!(
-                            !seen[c],
-                            "seed {seed}, run {start}..+{n}: two in interval {c}"
+                            !seen1[c],
+                            "{seeds:?}, run {start}..+{n}: two in interval {c}"
                         );
-                        seen[c] = true;
+                        seen1[c] = true;
                     }
                 }
             }
         }
-        assert_ne!(scrambled_1d(0, 1), scrambled_1d(0, 2));
+        // Another shuffle's seed (hashed, as the image loop's are) gives another order, another
+        // shift other values.
+        let [a, b, c, d] = [1u64, 2, 3, 4].map(|k| (crate::math::rng::mix64(k) >> 32) as u32);
+        let run = |seeds: [u32; 3]| (0..16).map(|i| shifted_2d(i, seeds)).collect::<Vec<_>>();
+        assert_ne!(run([a, b, c]), run([d, b, c]));
+        assert_ne!(run([a, b, c]), run([a, d, c]));
+        assert_ne!(shifted_1d(0, [a, b]), shifted_1d(0, [a, c]));
     }
 }
