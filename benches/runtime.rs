@@ -130,8 +130,8 @@ fn bench(c: &mut Criterion) {
                     .sum::<f32>()
             })
         });
-        // The image loop's sampler: sample i % 4 of pixel i / 4 (the cost of its scrambled
-        // low-discrepancy numbers against PCG's).
+        // The image loop's sampler: sample i % 4 of pixel i / 4 (the cost of its shuffled and
+        // shifted low-discrepancy numbers against PCG's).
         g.bench_function("trace, stratified", |b| {
             let mut rng = Pcg32::new(2, 2);
             b.iter(|| {

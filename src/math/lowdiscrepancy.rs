@@ -77,6 +77,12 @@ fn hash(a: u32, b: u32) -> u32 {
     (super::rng::mix64(((a as u64) << 32) | b as u64) >> 32) as u32
 }
 
+/// A 32-bit fixed-point fraction as an f32 in [0, 1) (its top 24 bits, so it never rounds to 1).
+#[inline]
+fn unit(x: u32) -> f32 {
+    (x >> 8) as f32 / 16_777_216.0
+}
+
 /// Point `index` of the scrambled 2D sequence for `seed`, in [0,1)².
 #[inline]
 pub fn sobol_2d(index: u32, seed: u32) -> Vec2 {
@@ -86,10 +92,7 @@ pub fn sobol_2d(index: u32, seed: u32) -> Vec2 {
     let y = sobol_dim1_of(i);
     let x = owen_scramble(x, hash(seed, 1));
     let y = owen_scramble(y, hash(seed, 2));
-    Vec2::new(
-        (x >> 8) as f32 / 16_777_216.0,
-        (y >> 8) as f32 / 16_777_216.0,
-    )
+    Vec2::new(unit(x), unit(y))
 }
 
 /// A cheaper padded point for per-pixel sampling: the index shuffled by a nested uniform
@@ -103,10 +106,7 @@ pub fn shifted_2d(index: u32, seeds: [u32; 3]) -> Vec2 {
     let i = owen_scramble(index, seeds[0]);
     let x = i.reverse_bits() ^ seeds[1];
     let y = sobol_dim1_of(i) ^ seeds[2];
-    Vec2::new(
-        (x >> 8) as f32 / 16_777_216.0,
-        (y >> 8) as f32 / 16_777_216.0,
-    )
+    Vec2::new(unit(x), unit(y))
 }
 
 /// The first dimension of [`shifted_2d`] alone: one aligned run of 2^m indices falls one to
@@ -114,7 +114,7 @@ pub fn shifted_2d(index: u32, seeds: [u32; 3]) -> Vec2 {
 #[inline]
 pub fn shifted_1d(index: u32, seeds: [u32; 2]) -> f32 {
     let x = owen_scramble(index, seeds[0]).reverse_bits() ^ seeds[1];
-    (x >> 8) as f32 / 16_777_216.0
+    unit(x)
 }
 
 #[cfg(test)]
