@@ -7,8 +7,9 @@ use aggtool::eval::budget::{budget_scene, BudgetSettings, Oracles};
 
 mod common;
 
-#[test]
-fn budget_rows_agree_with_the_runtime_and_all_oracles_close_the_gap() {
+/// The lattice's budget at 16³ (small bakes and few samples: a test's budget), its rows as
+/// baked or normalised.
+fn lattice_budget(normalize: bool) -> aggtool::eval::budget::BudgetResult {
     let dir = tempfile::tempdir().unwrap();
     let scene = common::gen_scene("lattice", 3000);
     let settings = BudgetSettings {
@@ -26,6 +27,7 @@ fn budget_rows_agree_with_the_runtime_and_all_oracles_close_the_gap() {
             abv_full_res: 8,
             ..Default::default()
         },
+        normalize,
     };
     let agg = dir.path().join("lattice-16.agg");
     let r = budget_scene(
@@ -42,6 +44,12 @@ fn budget_rows_agree_with_the_runtime_and_all_oracles_close_the_gap() {
         aggtool::eval::budget::budget_table(std::slice::from_ref(&r))
     );
     assert!(r.picture.exists());
+    r
+}
+
+#[test]
+fn budget_rows_agree_with_the_runtime_and_all_oracles_close_the_gap() {
+    let r = lattice_budget(false);
     let row = |o: Oracles| r.rows.iter().find(|x| x.oracles == o).unwrap();
     let (baked, all) = (row(Oracles::default()), row(Oracles::ALL));
     for x in &r.rows {
@@ -73,5 +81,50 @@ fn budget_rows_agree_with_the_runtime_and_all_oracles_close_the_gap() {
         (all.mean_ratio - 1.0).abs() < 0.05,
         "all: mean {}",
         all.mean_ratio
+    );
+}
+
+/// With the rows normalised (the default, as the runtime renders): the "baked" row is the
+/// runtime's normalised estimator, the candidate-fix row is gone (it is the baked one), and
+/// every oracle but the crossing count (which needs no normalising) still closes most of the
+/// gap.
+#[test]
+fn normalised_budget_rows_agree_with_the_normalised_runtime() {
+    let r = lattice_budget(true);
+    assert!(r.normalized);
+    assert!(
+        r.rows.iter().all(|x| !x.oracles.normalize),
+        "no candidate-fix row"
+    );
+    let row = |o: Oracles| r.rows.iter().find(|x| x.oracles == o).unwrap();
+    let baked = row(Oracles::default());
+    let no_coverage = row(Oracles {
+        coverage: false,
+        ..Oracles::ALL
+    });
+    for x in &r.rows {
+        assert!(
+            x.rmse.is_finite() && x.bias.is_finite(),
+            "{}: {x:?}",
+            x.term
+        );
+    }
+    assert!(
+        (baked.rmse - r.runtime_rmse).abs() < 0.5 * r.runtime_rmse,
+        "baked row {} against the runtime's normalised {}",
+        baked.rmse,
+        r.runtime_rmse
+    );
+    assert!(
+        (baked.rmse - r.runtime_default_rmse[1]).abs() < 0.5 * r.runtime_default_rmse[1],
+        "baked row {} against the runtime's default normalised render {}",
+        baked.rmse,
+        r.runtime_default_rmse[1]
+    );
+    assert!(
+        no_coverage.bias < 0.8 * baked.bias,
+        "all but coverage: bias {} against the baked {}",
+        no_coverage.bias,
+        baked.bias
     );
 }

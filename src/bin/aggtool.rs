@@ -78,9 +78,9 @@ enum Command {
         /// With --budget: oracle surface samples per voxel (at most 64).
         #[arg(long, default_value_t = 32)]
         budget_samples: u32,
-        /// Quality study: render the LoD methods without the per-cone normalisation (as
-        /// `render --no-normalize`), to measure what it does.
-        #[arg(long, conflicts_with_all = ["speed", "budget"])]
+        /// Quality study and budget: render the LoD methods (the budget's rows) without the
+        /// per-cone normalisation (as `render --no-normalize`), to measure what it does.
+        #[arg(long, conflicts_with = "speed")]
         no_normalize: bool,
         /// Output folder (table.md, table.json, pictures).
         #[arg(short, long, default_value = "aggtool-eval")]
@@ -1069,6 +1069,7 @@ fn eval(
                     spp,
                     reference_spp,
                     samples,
+                    normalize,
                     ..Default::default()
                 };
                 let agg = agg_dir.join(format!("{name}-{r}.agg"));

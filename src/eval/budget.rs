@@ -31,6 +31,9 @@
 //! - **split**: the visibility split of Eq. 6 and 25 (and the exposure correction) replaced by
 //!   the joint J = Σ w_j f_j |n_j·ω_i||n_j·ω_o| V(x_j,ω_i)V(x_j,ω_o) / Σ w_j|n_j·ω_o|: F is
 //!   multiplied by J / S, S the split product of the same traced quantities, with η off;
+//! - **normalised** rows (the default, as the runtime renders; `--no-normalize` for the rows
+//!   as baked): each ray's sum divided by the sum of its weights, g_k·V̂(ω_o) over the hits
+//!   (V̂(ω_o) over the crossings with the coverage oracle) plus the background's;
 //! - **all** of them at once: F = J per crossing and the background 1[miss]: what remains
 //!   against the reference is the LoD's own spatial averaging (a voxel's surfaces averaged over
 //!   the voxel where the pixel sees part of it) and Monte Carlo noise: if it were large, the
@@ -457,6 +460,7 @@ pub fn radiance(
     let mut sum = Vec3::ZERO;
     // The mesh crossings along the ray (for the coverage and ABV oracles).
     let mut crossings = 0u32;
+    let mut wsum = 0.0f32;
     if oracles.coverage || oracles.abv {
         let eps = 1e-4 * truth.grid.voxel_size();
         let mut ray = Ray::new(cone.origin, cone.dir);
@@ -469,6 +473,7 @@ pub fn radiance(
                 let p = truth.accel.surface(&ray, &h).p;
                 if let Some(v) = lod.voxel(truth.level, truth.key_of(p)) {
                     let s = Shaded::new(v, truth, oracles, wo);
+                    wsum += s.view;
                     sum += s.radiance(lights, rng);
                 }
             }
@@ -479,7 +484,6 @@ pub fn radiance(
         }
     }
     let mut hits = lod.hits(cone, &settings);
-    let mut wsum = 0.0f32;
     if !oracles.coverage {
         while let Some((voxel, _t, g)) = hits.next_geometric() {
             if g > 0.0 {
@@ -523,6 +527,12 @@ pub struct BudgetSettings {
     /// level, as the quality study does, not a coarse level of a finer bake, which has more
     /// samples per voxel).
     pub bake: BakeSettings,
+    /// Every row normalised as the runtime renders by default ([`TraceSettings::normalize`]:
+    /// each cone's surfaces and background divided by the sum of their weights), so that a
+    /// term's share is that of the image a user gets; `false` (`--no-normalize`): the rows
+    /// as baked, with the normalisation as a candidate-fix row of its own. With the coverage
+    /// oracle the weights summed are the crossings' V̂(ω_o).
+    pub normalize: bool,
 }
 
 impl Default for BudgetSettings {
@@ -533,6 +543,7 @@ impl Default for BudgetSettings {
             reference_spp: 1024,
             samples: 32,
             bake: BakeSettings::default(),
+            normalize: true,
         }
     }
 }
@@ -567,6 +578,8 @@ pub struct BudgetResult {
     pub spp: u32,
     pub reference_spp: u32,
     pub samples: u32,
+    /// Whether the rows are normalised ([`BudgetSettings::normalize`]).
+    pub normalized: bool,
     /// The runtime's own render at `spp` (the "baked" row must agree with it).
     pub runtime_rmse: f64,
     /// The runtime's default render (reservoir shading) at `spp`: [as baked, normalised].
@@ -623,7 +636,7 @@ pub fn budget_scene(
         &TraceSettings {
             level: Some(level),
             shading: crate::runtime::Shading::Every,
-            normalize: false,
+            normalize: settings.normalize,
             ..Default::default()
         },
     )?;
@@ -652,13 +665,19 @@ pub fn budget_scene(
         .into_iter()
         .map(|(n, o)| (n.to_string(), o))
         .chain(Oracles::leave_one_out())
+        // Normalised rows: the candidate-fix row is the "baked" one.
+        .filter(|(_, o)| !(settings.normalize && o.normalize))
         .collect();
     for (term, oracles) in &all_rows {
         let (term, oracles) = (term.as_str(), *oracles);
         let t = Instant::now();
+        let rendered = Oracles {
+            normalize: oracles.normalize || settings.normalize,
+            ..oracles
+        };
         let render = |seed: u64| {
             crate::film::render_image(&camera, settings.spp, seed, term, progress, |s| {
-                radiance(&lod, &truth, oracles, &Cone::of_sample(&s), &lights, s.rng)
+                radiance(&lod, &truth, rendered, &Cone::of_sample(&s), &lights, s.rng)
             })
             .0
         };
@@ -704,6 +723,7 @@ pub fn budget_scene(
         spp: settings.spp,
         reference_spp: settings.reference_spp,
         samples: settings.samples,
+        normalized: settings.normalize,
         runtime_rmse: cmp(&runtime_img),
         runtime_default_rmse: runtime_default,
         reference_at_spp_rmse: cmp(&ref_spp),
@@ -751,8 +771,17 @@ pub fn budget_table(results: &[BudgetResult]) -> String {
     let mut s = String::new();
     for r in results {
         s += &format!(
-            "### {} ({}³, 2 × {} spp, {} oracle samples per voxel; reference {} spp)\n\n",
-            r.scene, r.res, r.spp, r.samples, r.reference_spp
+            "### {} ({}³, 2 × {} spp, {} oracle samples per voxel; reference {} spp; rows {})\n\n",
+            r.scene,
+            r.res,
+            r.spp,
+            r.samples,
+            r.reference_spp,
+            if r.normalized {
+                "normalised as the runtime renders"
+            } else {
+                "as baked"
+            }
         );
         s += &format!(
             "runtime's own render: RMSE {:.4}; reference renderer at {} spp (noise floor): {:.4}\n\n",
