@@ -12,7 +12,9 @@ use aggtool::lights::{Environment, Lights};
 use aggtool::math::numerics::{counting, non_finite_count};
 use aggtool::math::rng::Pcg32;
 use aggtool::render::View;
-use aggtool::runtime::{Cone, LodScene, PrimitiveKind, Shading, Stratified, TraceSettings};
+use aggtool::runtime::{
+    Cone, LodScene, PixelSamples, PrimitiveKind, Shading, Stratified, TraceSettings,
+};
 use aggtool::scene::Scene;
 use aggtool::util::no_progress;
 use glam::Vec3;
@@ -738,4 +740,79 @@ fn stratified_sampling_is_unbiased_and_less_noisy() {
         "pixel variance: stratified {vs:.4e}, random {vr:.4e} ({:.2}x)",
         vs / vr
     );
+}
+
+/// A host's batches (the C ABI's and Python's `trace` with pixel ids): one call a pass, the
+/// pixels' samples stratified across calls as the image loop's are. Unbiased against the
+/// unstratified batch, with less variance per pixel; and the same bytes on one thread as on
+/// many.
+#[test]
+fn stratified_host_batches_are_unbiased_less_noisy_and_deterministic() {
+    let scene = generated("foliage", 4000);
+    let lod = baked(&scene, &small(16));
+    let view = view_of(&scene, 8, 1);
+    let lights = view.lights().unwrap();
+    let cam = view.camera();
+    let settings = TraceSettings::default();
+    let cones: Vec<Cone> = (0..64u32)
+        .map(|p| {
+            let (o, d) = cam.ray(glam::Vec2::new((p % 8) as f32 + 0.5, (p / 8) as f32 + 0.5));
+            cone(o, d, cam.pixel_angle())
+        })
+        .collect();
+    let pixels: Vec<u64> = (0..64).map(|p| 1000 + 7 * p).collect();
+    let passes = 16u32;
+    // The 64 pixels' estimates over `passes` batches, stratified or one seed a pass.
+    let estimate = |seed: u64, stratified: bool| -> Vec<f64> {
+        let mut sum = vec![0.0f64; 64];
+        let mut out = vec![0f32; 4 * 64];
+        for sample in 0..passes {
+            if stratified {
+                let at = PixelSamples {
+                    pixels: &pixels,
+                    sample,
+                };
+                lod.trace_batch_stratified(&cones, at, &lights, &settings, seed, &mut out);
+            } else {
+                let pass_seed = seed * 1000 + sample as u64;
+                lod.trace_batch(&cones, &lights, &settings, pass_seed, &mut out);
+            }
+            for (s, o) in sum.iter_mut().zip(out.chunks(4)) {
+                *s += (o[0] + o[1] + o[2]) as f64;
+            }
+        }
+        sum.iter().map(|s| s / passes as f64).collect()
+    };
+    let seeds = 24u64;
+    let stats = |stratified: bool| {
+        let runs: Vec<Vec<f64>> = (0..seeds).map(|k| estimate(500 + k, stratified)).collect();
+        let (mut var, mut total) = (0.0f64, 0.0f64);
+        for p in 0..64 {
+            let m = runs.iter().map(|r| r[p]).sum::<f64>() / seeds as f64;
+            var += runs.iter().map(|r| (r[p] - m).powi(2)).sum::<f64>() / (seeds - 1) as f64;
+            total += m;
+        }
+        let n = (64 * seeds) as f64;
+        (total / 64.0, (var / 64.0 / n).sqrt(), var)
+    };
+    let (ms, es, vs) = stats(true);
+    let (mr, er, vr) = stats(false);
+    assert!(
+        (ms - mr).abs() < 4.0 * (es * es + er * er).sqrt(),
+        "stratified {ms} ± {es}, random {mr} ± {er}"
+    );
+    assert!(
+        vs < 0.8 * vr,
+        "pixel variance: stratified {vs}, random {vr}"
+    );
+    eprintln!(
+        "host batches, pixel variance: stratified {vs:.4e}, random {vr:.4e} ({:.2}x)",
+        vs / vr
+    );
+    let one_thread = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| estimate(3, true));
+    assert_eq!(one_thread, estimate(3, true));
 }

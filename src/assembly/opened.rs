@@ -7,7 +7,7 @@ use std::path::Path;
 use glam::Vec3;
 
 use super::{is_manifest, Assembly, AssemblyError};
-use crate::runtime::{Cone, Lights, LodScene, RuntimeError, TraceSettings};
+use crate::runtime::{Cone, Lights, LodScene, PixelSamples, RuntimeError, TraceSettings};
 
 /// Why a path could not be opened.
 #[derive(Debug, thiserror::Error)]
@@ -89,6 +89,29 @@ impl Opened {
             Opened::Assembly(a) => crate::runtime::trace_batch_with(cones, seed, rgba, |c, rng| {
                 a.trace(c, lights, settings, rng)
             }),
+        }
+    }
+
+    /// [`Opened::trace_batch`] with the cones' samples stratified over their pixels
+    /// ([`LodScene::trace_batch_stratified`]), for an aggregate or an assembly alike.
+    pub fn trace_batch_stratified(
+        &self,
+        cones: &[Cone],
+        at: PixelSamples<'_>,
+        lights: &Lights,
+        settings: &TraceSettings,
+        seed: u64,
+        rgba: &mut [f32],
+    ) {
+        match self {
+            Opened::Aggregate(s) => {
+                s.trace_batch_stratified(cones, at, lights, settings, seed, rgba)
+            }
+            Opened::Assembly(a) => {
+                crate::runtime::trace_batch_stratified_with(cones, at, seed, rgba, |c, sampler| {
+                    a.trace(c, lights, settings, sampler)
+                })
+            }
         }
     }
 

@@ -98,6 +98,15 @@ pub struct Sample<'a> {
     pub pixel_seed: u32,
 }
 
+/// The seed of pixel `pixel`'s own stratification under render seed `seed`
+/// ([`Sample::pixel_seed`]): one hash of both, independent of the pixel's random stream. The
+/// image loop and a host's stratified batch ([`crate::runtime::trace_batch_stratified_with`])
+/// seed a pixel alike.
+#[inline]
+pub fn pixel_seed(seed: u64, pixel: u64) -> u32 {
+    (mix64(seed ^ mix64(pixel)) >> 32) as u32
+}
+
 /// Renders `camera`'s image with `spp` samples per pixel: `radiance(sample)` for each, over
 /// 16×16 tiles in parallel. Pixel (x, y) draws from `Pcg32::new(seed, y·width + x)`, so the
 /// image is the same for every thread count. Non-finite sample values are left out and
@@ -132,7 +141,7 @@ pub fn render_image(
                 for x in tx * TILE..((tx + 1) * TILE).min(w) {
                     let pixel = (y as u64) * w as u64 + x as u64;
                     let mut rng = Pcg32::new(seed, pixel);
-                    let pixel_seed = (mix64(seed ^ mix64(pixel)) >> 32) as u32;
+                    let pixel_seed = pixel_seed(seed, pixel);
                     let mut sum = Vec3::ZERO;
                     for s in 0..spp {
                         let p = Vec2::new(x as f32, y as f32) + jitter(s, spp, &mut rng);

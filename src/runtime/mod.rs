@@ -498,6 +498,26 @@ impl LodScene {
         });
     }
 
+    /// [`LodScene::trace_batch`] for a host that draws several samples of each pixel, one
+    /// call a pass: cone `i` is sample `at.sample` of pixel `at.pixels[i]`, stratified over
+    /// the pixel's samples as the runtime's own image loop stratifies them ([`Stratified`],
+    /// [`trace_batch_stratified_with`]). The same pixel ids with samples 0, 1, 2, … across
+    /// calls give the pixel's estimate the image loop's lower variance; any one call is
+    /// still an unbiased sample of each cone.
+    pub fn trace_batch_stratified(
+        &self,
+        cones: &[Cone],
+        at: PixelSamples<'_>,
+        lights: &Lights,
+        settings: &TraceSettings,
+        seed: u64,
+        rgba: &mut [f32],
+    ) {
+        trace_batch_stratified_with(cones, at, seed, rgba, |c, sampler| {
+            self.trace(c, lights, settings, sampler)
+        });
+    }
+
     /// The background's weight along a cone, the ABV of the face it enters the aggregate by
     /// (1 when it meets no primitive): what the aggregate lets through, for a host's shadow
     /// rays.
@@ -594,6 +614,43 @@ pub fn render(
             .trace(&cone, lights, settings, &mut Stratified::of_sample(&mut s))
             .radiance
     })
+}
+
+/// Which sample of which pixel each cone of a host's batch is
+/// ([`LodScene::trace_batch_stratified`]).
+#[derive(Clone, Copy, Debug)]
+pub struct PixelSamples<'a> {
+    /// One id per cone: the host's pixel (any number, the same for the same pixel across
+    /// calls; several cones of a batch may share one only with different `sample`s, i.e. in
+    /// different calls).
+    pub pixels: &'a [u64],
+    /// The index of this call's sample in every pixel: 0, 1, 2, … over a host's passes.
+    pub sample: u32,
+}
+
+/// [`trace_batch_with`] with each cone's first [`STRATIFIED_DIMENSIONS`] numbers stratified
+/// over its pixel's samples ([`Stratified`], seeded by [`crate::film::pixel_seed`] as the image
+/// loop's); the numbers after them come from stream `pixels[i]` of a seed of `seed` and the
+/// sample, so that passes are independent. Cones beyond `at.pixels` (or `rgba`) are left
+/// alone; callers check the lengths. The result does not depend on the thread count.
+pub fn trace_batch_stratified_with(
+    cones: &[Cone],
+    at: PixelSamples<'_>,
+    seed: u64,
+    rgba: &mut [f32],
+    trace: impl Fn(&Cone, &mut Stratified<'_, Pcg32>) -> ConeResult + Sync,
+) {
+    use rayon::prelude::*;
+    let pass_seed = crate::math::rng::mix64(seed ^ crate::math::rng::mix64(at.sample as u64));
+    rgba.par_chunks_mut(4)
+        .zip(cones.par_iter().zip(at.pixels.par_iter()))
+        .for_each(|(o, (c, &pixel))| {
+            let mut rng = Pcg32::new(pass_seed, pixel);
+            let mut sampler =
+                Stratified::new(&mut rng, at.sample, crate::film::pixel_seed(seed, pixel));
+            let r = trace(c, &mut sampler);
+            o.copy_from_slice(&[r.radiance.x, r.radiance.y, r.radiance.z, r.transmittance]);
+        });
 }
 
 /// The one batched cone loop: traces `cones` in parallel with `trace`, cone i drawing stream

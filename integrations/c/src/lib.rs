@@ -380,31 +380,76 @@ pub unsafe extern "C" fn agg_trace_cones(
     rgba_out: *mut f32,
 ) -> c_int {
     guard(|| {
-        let s = scene_ref(scene)?;
-        let lights = match l.as_ref() {
-            Some(x) if x.magic == LIGHTS_MAGIC => &x.lights,
-            _ => return Err(arg("lights")),
-        };
-        if n == 0 {
-            return Ok(());
-        }
-        if cones.is_null() || rgba_out.is_null() {
-            return Err(arg("cones or rgba_out"));
-        }
-        let cones = std::slice::from_raw_parts(cones, n);
-        let out = std::slice::from_raw_parts_mut(rgba_out, 4 * n);
-        let cs: Vec<Cone> = cones
-            .iter()
-            .enumerate()
-            .map(|(i, c)| cone(c).map_err(|e| (AGG_ERR_VALUE, format!("cone {i}: {e}"))))
-            .collect::<Result<_, _>>()?;
-        s.scene
-            .trace_batch(&cs, lights, &TraceSettings::default(), seed, out);
-        if let Some(e) = s.scene.first_error() {
-            return Err((AGG_ERR_FILE, format!("damaged level: {e}")));
-        }
-        Ok(())
+        trace_cones(scene, l, cones, n, rgba_out, |s, lights, cs, out| {
+            s.trace_batch(cs, lights, &TraceSettings::default(), seed, out)
+        })
     })
+}
+
+/// [`agg_trace_cones`] for a host that draws several samples of each pixel, one call a pass:
+/// cone `i` is sample `sample` of the host's pixel `pixels[i]` (`n` ids, any numbers, the same
+/// pixel the same id in every pass), and its random numbers are stratified over the pixel's
+/// samples as the runtime's own image loop's are, so that a pixel's mean over passes
+/// `sample` = 0, 1, 2, … has less variance (about a quarter in the tests) than with a new
+/// `seed` a pass. Each cone stays an unbiased estimate; the result does not depend on the
+/// thread count.
+#[no_mangle]
+pub unsafe extern "C" fn agg_trace_cones_stratified(
+    scene: *const AggScene,
+    l: *const AggLights,
+    cones: *const AggCone,
+    pixels: *const u64,
+    n: usize,
+    sample: u32,
+    seed: u64,
+    rgba_out: *mut f32,
+) -> c_int {
+    guard(|| {
+        if n > 0 && pixels.is_null() {
+            return Err(arg("pixels"));
+        }
+        trace_cones(scene, l, cones, n, rgba_out, |s, lights, cs, out| {
+            let at = aggtool::runtime::PixelSamples {
+                pixels: std::slice::from_raw_parts(pixels, n),
+                sample,
+            };
+            s.trace_batch_stratified(cs, at, lights, &TraceSettings::default(), seed, out)
+        })
+    })
+}
+
+/// The checks and conversions of the cone-batch entry points, around `trace`.
+unsafe fn trace_cones(
+    scene: *const AggScene,
+    l: *const AggLights,
+    cones: *const AggCone,
+    n: usize,
+    rgba_out: *mut f32,
+    trace: impl FnOnce(&Opened, &Lights, &[Cone], &mut [f32]),
+) -> Result<(), (c_int, String)> {
+    let s = scene_ref(scene)?;
+    let lights = match l.as_ref() {
+        Some(x) if x.magic == LIGHTS_MAGIC => &x.lights,
+        _ => return Err(arg("lights")),
+    };
+    if n == 0 {
+        return Ok(());
+    }
+    if cones.is_null() || rgba_out.is_null() {
+        return Err(arg("cones or rgba_out"));
+    }
+    let cones = std::slice::from_raw_parts(cones, n);
+    let out = std::slice::from_raw_parts_mut(rgba_out, 4 * n);
+    let cs: Vec<Cone> = cones
+        .iter()
+        .enumerate()
+        .map(|(i, c)| cone(c).map_err(|e| (AGG_ERR_VALUE, format!("cone {i}: {e}"))))
+        .collect::<Result<_, _>>()?;
+    trace(&s.scene, lights, &cs, out);
+    if let Some(e) = s.scene.first_error() {
+        return Err((AGG_ERR_FILE, format!("damaged level: {e}")));
+    }
+    Ok(())
 }
 
 /// The primitives one cone meets, in order: the first `capacity` are written to `out`,

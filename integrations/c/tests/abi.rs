@@ -311,6 +311,50 @@ fn a_manifest_opens_and_traces_as_the_library_does() {
         );
         assert_eq!(out, want);
         assert!(out.chunks(4).any(|p| p[3] < 1.0), "some cone meets a tree");
+        // A host's pass of stratified samples: the library's batch, the same bytes; pixel
+        // ids are required.
+        let pixels: Vec<u64> = (0..cones.len() as u64).map(|p| 40 + p).collect();
+        assert_eq!(
+            agg_trace_cones_stratified(
+                s,
+                l,
+                cones.as_ptr(),
+                pixels.as_ptr(),
+                cones.len(),
+                3,
+                9,
+                out.as_mut_ptr()
+            ),
+            AGG_OK,
+            "{}",
+            last_error()
+        );
+        let at = aggtool::runtime::PixelSamples {
+            pixels: &pixels,
+            sample: 3,
+        };
+        lib.trace_batch_stratified(
+            &rc,
+            at,
+            &aggtool::runtime::Lights::constant(glam::Vec3::ONE),
+            &aggtool::runtime::TraceSettings::default(),
+            9,
+            &mut want,
+        );
+        assert_eq!(out, want);
+        assert_eq!(
+            agg_trace_cones_stratified(
+                s,
+                l,
+                cones.as_ptr(),
+                std::ptr::null(),
+                cones.len(),
+                3,
+                9,
+                out.as_mut_ptr()
+            ),
+            AGG_ERR_ARGUMENT
+        );
         let (mut n, mut t) = (0usize, 0f32);
         assert_eq!(
             agg_hits(s, &cones[0], std::ptr::null_mut(), 0, &mut n, &mut t),

@@ -215,6 +215,30 @@ impl Scene {
 
 /// Cones of a batch: `origins` and `directions` (N, 3), one full `aperture`, and optionally
 /// `tmax` (N,) (non-negative; inf for no limit).
+/// `trace`'s pixel ids: (n,) uint64, or int64 (numpy's default integers) without negatives.
+fn pixel_ids(p: &Bound<'_, PyAny>, n: usize) -> PyResult<Vec<u64>> {
+    let ids: Vec<u64> = if let Ok(a) = p.extract::<PyReadonlyArray1<'_, u64>>() {
+        a.as_array().to_vec()
+    } else if let Ok(a) = p.extract::<PyReadonlyArray1<'_, i64>>() {
+        let a = a.as_array();
+        if a.iter().any(|&x| x < 0) {
+            return Err(PyValueError::new_err("pixels must not be negative"));
+        }
+        a.iter().map(|&x| x as u64).collect()
+    } else {
+        return Err(PyTypeError::new_err(
+            "pixels must be a 1-D numpy array of int64 or uint64",
+        ));
+    };
+    if ids.len() != n {
+        return Err(PyValueError::new_err(format!(
+            "pixels must have shape ({n},), not ({},)",
+            ids.len()
+        )));
+    }
+    Ok(ids)
+}
+
 fn cones(
     origins: &PyReadonlyArray2<'_, f32>,
     directions: &PyReadonlyArray2<'_, f32>,
@@ -376,8 +400,12 @@ impl Scene {
     /// `tmax`, (N,) float32, clips each cone at that distance along its (unit) direction (a
     /// host's own surface; inf for none); `background=False` leaves the environment's
     /// radiance out of the RGB, so that a host composites: RGB + transmittance · (what lies
-    /// behind).
-    #[pyo3(signature = (origins, directions, aperture, lights = None, seed = 0, tmax = None, background = true))]
+    /// behind). `pixels`, (N,) int64 or uint64, makes cone i sample `sample` of the host's
+    /// pixel `pixels[i]`, its random numbers stratified over the pixel's samples as the
+    /// runtime's own image loop's (call once a pass with the same ids and `sample` = 0, 1,
+    /// 2, …: a pixel's mean over passes has about a quarter of the variance of a new `seed`
+    /// a pass; C ABI `agg_trace_cones_stratified`).
+    #[pyo3(signature = (origins, directions, aperture, lights = None, seed = 0, tmax = None, background = true, pixels = None, sample = 0))]
     #[allow(clippy::too_many_arguments)]
     fn trace<'py>(
         &self,
@@ -389,16 +417,26 @@ impl Scene {
         seed: u64,
         tmax: Option<PyReadonlyArray1<'py, f32>>,
         background: bool,
+        pixels: Option<Bound<'py, PyAny>>,
+        sample: u32,
     ) -> PyResult<Bound<'py, PyAny>> {
         let cones = cones(&origins, &directions, aperture, tmax.as_ref())?;
         let n = cones.len();
+        let pixels = pixels.map(|p| pixel_ids(&p, n)).transpose()?;
         let lights = lights
             .map(|l| l.lights.clone())
             .unwrap_or_else(|| RtLights::constant(Vec3::ONE));
         let scene = &self.scene;
         let out: Vec<f32> = py.detach(|| {
             let mut out = vec![0f32; 4 * n];
-            scene.trace_batch(&cones, &lights, &TraceSettings::default(), seed, &mut out);
+            let settings = TraceSettings::default();
+            match &pixels {
+                Some(p) => {
+                    let at = aggtool::runtime::PixelSamples { pixels: p, sample };
+                    scene.trace_batch_stratified(&cones, at, &lights, &settings, seed, &mut out)
+                }
+                None => scene.trace_batch(&cones, &lights, &settings, seed, &mut out),
+            }
             if !background {
                 // The runtime composes surfaces + environment · T; take the environment back
                 // out (relative rounding of f32, far below the estimate's noise).
