@@ -548,7 +548,7 @@ struct BakeArgs {
     /// draft 16].
     #[arg(long)]
     aiv_res: Option<u32>,
-    /// Interior-visibility rays per surface sample [default: 32; draft 4].
+    /// Interior-visibility rays per surface sample [default: 64; draft 4].
     #[arg(long)]
     aiv_rays: Option<u32>,
     /// Fewest rays an interior-visibility cell's estimate rests on (a cell pools the rays of

@@ -142,7 +142,7 @@ def test_bake_headless(session):
     assert info["bounds"][0] == pytest.approx(lo, abs=1e-4) and info["bounds"][1] == pytest.approx(hi, abs=1e-4), \
         (info["bounds"], b["expected_bounds"])
     # The panel's preset fills its settings with the preset's flags.
-    assert session["panel_preset"] == dict(max_res=512, min_res=4, samples=64, aiv_res=32, aiv_rays=32,
+    assert session["panel_preset"] == dict(max_res=512, min_res=4, samples=64, aiv_res=32, aiv_rays=64,
                                            abv_res=64, abv_rays=2, abv_full_res=64)
 
 
