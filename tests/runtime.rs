@@ -670,15 +670,22 @@ fn opening_is_lazy_and_damage_is_reported() {
     assert!(r.radiance.is_finite());
 }
 
+/// The stratification tests' scene: a foliage bake at 16³, its lights and an 8×8 camera.
+fn foliage_8x8() -> (LodScene, Lights, aggtool::film::Camera) {
+    let scene = generated("foliage", 4000);
+    let view = view_of(&scene, 8, 1);
+    (
+        baked(&scene, &small(16)),
+        view.lights().unwrap(),
+        view.camera(),
+    )
+}
+
 /// The image loop's stratified sampler ([`Stratified`]): over the same cones it agrees with a
 /// fresh random number per choice, and a pixel's estimate varies less from seed to seed.
 #[test]
 fn stratified_sampling_is_unbiased_and_less_noisy() {
-    let scene = generated("foliage", 4000);
-    let lod = baked(&scene, &small(16));
-    let view = view_of(&scene, 8, 1);
-    let lights = view.lights().unwrap();
-    let cam = view.camera();
+    let (lod, lights, cam) = foliage_8x8();
     let settings = TraceSettings::default();
     let spp = 16u32;
     // One pixel's estimate at `spp` samples: stratified or not.
@@ -726,33 +733,34 @@ fn stratified_sampling_is_unbiased_and_less_noisy() {
         let mean = all.iter().flatten().sum::<f64>() / n;
         (mean, (var / all.len() as f64 / n).sqrt(), var)
     };
-    let (ms, es, vs) = stats(true);
-    let (mr, er, vr) = stats(false);
-    assert!(
-        (ms - mr).abs() < 4.0 * (es * es + er * er).sqrt(),
-        "stratified {ms} ± {es}, random {mr} ± {er}"
-    );
-    assert!(
-        vs < 0.8 * vr,
-        "pixel variance: stratified {vs}, random {vr}"
-    );
-    eprintln!(
-        "pixel variance: stratified {vs:.4e}, random {vr:.4e} ({:.2}x)",
-        vs / vr
-    );
+    assert_stratified_gain("image loop", stats(true), stats(false));
 }
 
 /// A host's batches (the C ABI's and Python's `trace` with pixel ids): one call a pass, the
 /// pixels' samples stratified across calls as the image loop's are. Unbiased against the
 /// unstratified batch, with less variance per pixel; and the same bytes on one thread as on
 /// many.
+/// Stratified against random estimates (each: grand mean, its standard error, summed
+/// per-pixel variance over seeds): the same mean within 4σ, and under 0.8× the variance.
+fn assert_stratified_gain(what: &str, strat: (f64, f64, f64), random: (f64, f64, f64)) {
+    let ((ms, es, vs), (mr, er, vr)) = (strat, random);
+    assert!(
+        (ms - mr).abs() < 4.0 * (es * es + er * er).sqrt(),
+        "{what}: stratified {ms} ± {es}, random {mr} ± {er}"
+    );
+    assert!(
+        vs < 0.8 * vr,
+        "{what}: pixel variance: stratified {vs}, random {vr}"
+    );
+    eprintln!(
+        "{what}: pixel variance: stratified {vs:.4e}, random {vr:.4e} ({:.2}x)",
+        vs / vr
+    );
+}
+
 #[test]
 fn stratified_host_batches_are_unbiased_less_noisy_and_deterministic() {
-    let scene = generated("foliage", 4000);
-    let lod = baked(&scene, &small(16));
-    let view = view_of(&scene, 8, 1);
-    let lights = view.lights().unwrap();
-    let cam = view.camera();
+    let (lod, lights, cam) = foliage_8x8();
     let settings = TraceSettings::default();
     let cones: Vec<Cone> = (0..64u32)
         .map(|p| {
@@ -795,20 +803,7 @@ fn stratified_host_batches_are_unbiased_less_noisy_and_deterministic() {
         let n = (64 * seeds) as f64;
         (total / 64.0, (var / 64.0 / n).sqrt(), var)
     };
-    let (ms, es, vs) = stats(true);
-    let (mr, er, vr) = stats(false);
-    assert!(
-        (ms - mr).abs() < 4.0 * (es * es + er * er).sqrt(),
-        "stratified {ms} ± {es}, random {mr} ± {er}"
-    );
-    assert!(
-        vs < 0.8 * vr,
-        "pixel variance: stratified {vs}, random {vr}"
-    );
-    eprintln!(
-        "host batches, pixel variance: stratified {vs:.4e}, random {vr:.4e} ({:.2}x)",
-        vs / vr
-    );
+    assert_stratified_gain("host batches", stats(true), stats(false));
     let one_thread = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
