@@ -77,7 +77,7 @@ impl Default for BakeSettings {
             samples: 32,
             max_samples: 1024,
             aiv_res: 32,
-            aiv_rays: 64,
+            aiv_rays: 32,
             aiv_min_rays: 0,
             abv_res: 64,
             abv_rays: 1,
@@ -153,6 +153,7 @@ impl BakeSettings {
             Preset::Default => d,
             Preset::High => BakeSettings {
                 samples: 64,
+                aiv_rays: 64,
                 abv_rays: 2,
                 ..d
             },

@@ -525,9 +525,9 @@ fn absdf_plot(case: &str, output: &Path, samples: u32, slice: u32, exposure: f32
 #[derive(clap::Args, Debug, Clone)]
 struct BakeArgs {
     /// Starting point for every setting below: draft (64³, an eighth of the samples and rays,
-    /// coarser truncation), default, high (twice the samples, two ABV rays per cell), max (the
-    /// paper's ablation control: 4 lobes, no truncation, quantization or compression). Flags
-    /// given beside it override it.
+    /// coarser truncation), default, high (twice the samples and the AIV rays, two ABV rays
+    /// per cell), max (the paper's ablation control: 4 lobes, no truncation, quantization or
+    /// compression). Flags given beside it override it.
     #[arg(long, default_value = "default", value_parser = ["draft", "default", "high", "max"])]
     preset: String,
     /// Finest level resolution (a power of two); levels halve down to --min-res [preset
@@ -548,7 +548,7 @@ struct BakeArgs {
     /// draft 16].
     #[arg(long)]
     aiv_res: Option<u32>,
-    /// Interior-visibility rays per surface sample [default: 64; draft 4].
+    /// Interior-visibility rays per surface sample [default: 32; draft 4, high 64].
     #[arg(long)]
     aiv_rays: Option<u32>,
     /// Fewest rays an interior-visibility cell's estimate rests on (a cell pools the rays of

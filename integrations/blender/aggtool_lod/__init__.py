@@ -40,7 +40,7 @@ SETTINGS = ("max_res", "min_res", "samples", "aiv_res", "aiv_rays", "abv_res", "
 PRESETS = {
     "DRAFT": dict(max_res=32, min_res=4, samples=4, aiv_res=8, aiv_rays=4, abv_res=16,
                   abv_rays=1, abv_full_res=32),
-    "DEFAULT": dict(max_res=256, min_res=4, samples=32, aiv_res=32, aiv_rays=64, abv_res=64,
+    "DEFAULT": dict(max_res=256, min_res=4, samples=32, aiv_res=32, aiv_rays=32, abv_res=64,
                     abv_rays=1, abv_full_res=64),
     "HIGH": dict(max_res=512, min_res=4, samples=64, aiv_res=32, aiv_rays=64, abv_res=64,
                  abv_rays=2, abv_full_res=64),
