@@ -620,9 +620,10 @@ pub fn render(
 /// ([`LodScene::trace_batch_stratified`]).
 #[derive(Clone, Copy, Debug)]
 pub struct PixelSamples<'a> {
-    /// One id per cone: the host's pixel (any number, the same for the same pixel across
-    /// calls; several cones of a batch may share one only with different `sample`s, i.e. in
-    /// different calls).
+    /// One id per cone: the host's pixel (any number, the same for the same pixel in every
+    /// call). Ids should be distinct within a call: two cones with the same id and sample
+    /// draw the same random numbers (a host tracing several samples of a pixel in one batch
+    /// passes them in separate calls, or as separate ids).
     pub pixels: &'a [u64],
     /// The index of this call's sample in every pixel: 0, 1, 2, … over a host's passes.
     pub sample: u32,

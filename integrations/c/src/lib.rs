@@ -388,7 +388,8 @@ pub unsafe extern "C" fn agg_trace_cones(
 
 /// [`agg_trace_cones`] for a host that draws several samples of each pixel, one call a pass:
 /// cone `i` is sample `sample` of the host's pixel `pixels[i]` (`n` ids, any numbers, the same
-/// pixel the same id in every pass), and its random numbers are stratified over the pixel's
+/// pixel the same id in every pass, distinct within a call: two cones with the same id draw
+/// the same random numbers), and its random numbers are stratified over the pixel's
 /// samples as the runtime's own image loop's are, so that a pixel's mean over passes
 /// `sample` = 0, 1, 2, … has less variance (about a quarter in the tests) than with a new
 /// `seed` a pass. Each cone stays an unbiased estimate; the result does not depend on the

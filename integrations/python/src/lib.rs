@@ -400,8 +400,8 @@ impl Scene {
     /// `tmax`, (N,) float32, clips each cone at that distance along its (unit) direction (a
     /// host's own surface; inf for none); `background=False` leaves the environment's
     /// radiance out of the RGB, so that a host composites: RGB + transmittance · (what lies
-    /// behind). `pixels`, (N,) int64 or uint64, makes cone i sample `sample` of the host's
-    /// pixel `pixels[i]`, its random numbers stratified over the pixel's samples as the
+    /// behind). `pixels`, (N,) int64 or uint64, distinct within a call (cones with the same
+    /// id draw the same numbers), makes cone i sample `sample` of the host's pixel `pixels[i]`, its random numbers stratified over the pixel's samples as the
     /// runtime's own image loop's (call once a pass with the same ids and `sample` = 0, 1,
     /// 2, …: a pixel's mean over passes has about a quarter of the variance of a new `seed`
     /// a pass; C ABI `agg_trace_cones_stratified`).
