@@ -93,7 +93,7 @@ fn main() -> anyhow::Result<()> {
 /// The bake reports the same over every voxel (`stats:` lines, `--report`).
 fn chosen(scene: &aggtool::scene::Scene, accel: &Accel, lod: &LodScene, level: usize) {
     use aggtool::bake::sampling::{pieces_by_voxel, sample_voxel};
-    use aggtool::bake::visibility::{aiv_map, AIV_MIN_RAYS_CANDIDATES};
+    use aggtool::bake::visibility::{aiv_map, AIV_BANDWIDTHS};
     let grid = lod.grid(level);
     let settings = aggtool::bake::BakeSettings {
         max_res: lod.grid(0).res,
@@ -107,7 +107,7 @@ fn chosen(scene: &aggtool::scene::Scene, accel: &Accel, lod: &LodScene, level: u
         .into_iter()
         .step_by((pieces.len() / 1500).max(1))
         .collect();
-    let mut counts = vec![0usize; AIV_MIN_RAYS_CANDIDATES.len() + 1];
+    let mut counts = vec![0usize; AIV_BANDWIDTHS.len() + 1];
     let mut denoise = std::collections::BTreeMap::new();
     for &key in &keys {
         let seed = aggtool::bake::level::voxel_seed(key);
@@ -118,10 +118,10 @@ fn chosen(scene: &aggtool::scene::Scene, accel: &Accel, lod: &LodScene, level: u
         let (res, rays) = (settings.aiv_res, settings.aiv_rays);
         let est = aiv_map(accel, &samples, res, rays, 0, true, seed);
         *denoise.entry(format!("{}", est.denoise)).or_insert(0usize) += 1;
-        let k = AIV_MIN_RAYS_CANDIDATES
+        let k = AIV_BANDWIDTHS
             .iter()
-            .position(|&k| k == est.min_rays)
-            .unwrap_or(AIV_MIN_RAYS_CANDIDATES.len());
+            .position(|&b| b == est.bandwidth)
+            .unwrap_or(AIV_BANDWIDTHS.len());
         counts[k] += 1;
     }
     let total: usize = counts.iter().sum();
@@ -129,10 +129,10 @@ fn chosen(scene: &aggtool::scene::Scene, accel: &Accel, lod: &LodScene, level: u
         "chosen AIV bandwidth over {total} voxels of the {}³ level:",
         grid.res
     );
-    for (k, c) in AIV_MIN_RAYS_CANDIDATES.iter().zip(&counts) {
-        print!(" {k} rays {:.1}%,", 100.0 * *c as f64 / total.max(1) as f64);
+    for (b, c) in AIV_BANDWIDTHS.iter().zip(&counts) {
+        print!(" {b} {:.1}%,", 100.0 * *c as f64 / total.max(1) as f64);
     }
-    println!(" other {}", counts[AIV_MIN_RAYS_CANDIDATES.len()]);
+    println!(" other {}", counts[AIV_BANDWIDTHS.len()]);
     println!("chosen shrinkage (multiples of the noise σ): {denoise:?}");
 }
 

@@ -128,9 +128,9 @@ pub struct VoxelCost {
     pub rays: u64,
     /// CPU seconds spent on (sampling + statistics, AIV).
     pub cpu: [f64; 2],
-    /// The fewest rays an AIV cell rests on ([`super::visibility::AivEstimate::min_rays`]);
-    /// 0 where no voxel was kept.
-    pub aiv_min_rays: u32,
+    /// How the AIV cells gathered their rays ([`super::visibility::AivEstimate::bandwidth`]);
+    /// `None` where no voxel was kept.
+    pub aiv_bandwidth: Option<super::visibility::AivBandwidth>,
 }
 
 /// Bakes one voxel from the pieces of surface inside it: samples, the ellipsoid, the AIV tree,
@@ -187,7 +187,7 @@ pub fn bake_voxel(
             (t1 - t0).as_secs_f64() + t2.elapsed().as_secs_f64(),
             (t2 - t1).as_secs_f64(),
         ],
-        aiv_min_rays: est.min_rays,
+        aiv_bandwidth: Some(est.bandwidth),
     };
     (
         Some(VoxelData {

@@ -13,7 +13,7 @@ use super::level::{
     bake_face, bake_voxel, primitive_level, sorted_boundary_faces, voxel_primitive, VoxelCost,
 };
 use super::sampling::pieces_by_voxel;
-use super::visibility::AIV_MIN_RAYS_CANDIDATES;
+use super::visibility::AIV_BANDWIDTHS;
 use super::BakeSettings;
 use crate::format::effects::{effect_lines, EffectLine};
 use crate::format::encode::{self, ComponentBytes, Counts, IndexEntry, LevelEntry};
@@ -54,9 +54,9 @@ pub struct LevelReport {
     pub cpu_statistics: f64,
     pub cpu_aiv: f64,
     pub aiv_rays: u64,
-    /// Voxels per AIV bandwidth: `aiv_bandwidth[i]` voxels rest each cell on at least
-    /// [`AIV_MIN_RAYS_CANDIDATES`]`[i]` rays (chosen by cross-validation, or the setting).
-    pub aiv_bandwidth: [u64; AIV_MIN_RAYS_CANDIDATES.len()],
+    /// Voxels per AIV bandwidth: `aiv_bandwidth[i]` voxels gather each cell's rays as
+    /// [`AIV_BANDWIDTHS`]`[i]` does (chosen by cross-validation, or the setting).
+    pub aiv_bandwidth: [u64; AIV_BANDWIDTHS.len()],
     pub abv_rays: u64,
     /// Faces per ABV bandwidth: `abv_bandwidth[i]` faces rest each cell on at least
     /// [`ABV_MIN_RAYS_CANDIDATES`]`[i]` P⁺ rays (chosen by cross-validation).
@@ -69,26 +69,28 @@ impl LevelReport {
     /// "1 ray 23%, 2 rays 54%, …": the share of the level's voxels at each AIV bandwidth
     /// (those with none omitted).
     pub fn aiv_bandwidth_summary(&self) -> String {
-        bandwidth_summary(&AIV_MIN_RAYS_CANDIDATES, &self.aiv_bandwidth)
+        let names = AIV_BANDWIDTHS.map(|b| b.to_string());
+        bandwidth_summary(&names, &self.aiv_bandwidth)
     }
 
     /// The same for the faces' ABV bandwidths.
     pub fn abv_bandwidth_summary(&self) -> String {
-        bandwidth_summary(&ABV_MIN_RAYS_CANDIDATES, &self.abv_bandwidth)
+        let names = ABV_MIN_RAYS_CANDIDATES.map(|k| match k {
+            1 => "1 ray".to_string(),
+            k => format!("{k} rays"),
+        });
+        bandwidth_summary(&names, &self.abv_bandwidth)
     }
 }
 
 /// "1 ray 23%, 2 rays 54%, …" of `counts[i]` items at bandwidth `candidates[i]`.
-fn bandwidth_summary(candidates: &[u32], counts: &[u64]) -> String {
+fn bandwidth_summary(names: &[String], counts: &[u64]) -> String {
     let total: u64 = counts.iter().sum();
-    candidates
+    names
         .iter()
         .zip(counts)
         .filter(|(_, &n)| n > 0)
-        .map(|(k, &n)| {
-            let unit = if *k == 1 { "ray" } else { "rays" };
-            format!("{k} {unit} {:.0}%", 100.0 * n as f64 / total as f64)
-        })
+        .map(|(k, &n)| format!("{k} {:.0}%", 100.0 * n as f64 / total as f64))
         .collect::<Vec<_>>()
         .join(", ")
 }
@@ -215,7 +217,7 @@ fn bake_levels(
         // Voxels, block by block.
         let bar = StageCounter::new(progress, format!("{res}³ voxels"), pieces.len() as u64);
         let (mut cpu_stats, mut cpu_aiv) = (0f64, 0f64);
-        let mut aiv_bandwidth = [0u64; AIV_MIN_RAYS_CANDIDATES.len()];
+        let mut aiv_bandwidth = [0u64; AIV_BANDWIDTHS.len()];
         let mut aiv_rays = 0u64;
         let mut keys_prims: Vec<(u64, Ellipsoid)> = Vec::with_capacity(pieces.len());
         let mut voxel_blocks = Vec::new();
@@ -250,9 +252,9 @@ fn bake_levels(
                     aiv_rays += cost.rays;
                     cpu_stats += cost.cpu[0];
                     cpu_aiv += cost.cpu[1];
-                    if let Some(i) = AIV_MIN_RAYS_CANDIDATES
+                    if let Some(i) = AIV_BANDWIDTHS
                         .iter()
-                        .position(|&k| k == cost.aiv_min_rays)
+                        .position(|&b| Some(b) == cost.aiv_bandwidth)
                     {
                         aiv_bandwidth[i] += 1;
                     }

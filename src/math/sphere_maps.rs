@@ -196,9 +196,159 @@ impl BlockPyramid {
     }
 }
 
+/// For every cell of a `res × res` equal-area sphere map, the cells in order of the angle
+/// between their centres and its own (itself first; ties by index): the neighbourhoods of the
+/// spherical-cap estimator [`cap_averages`]. At most [`CAP_WIDTH`] a cell; built once per
+/// resolution (res ≤ [`CAP_MAX_RES`]) and shared.
+pub struct CapOrder {
+    width: usize,
+    order: Vec<u16>,
+}
+
+/// The most cells a cap of [`CapOrder`] may take in.
+pub const CAP_WIDTH: usize = 384;
+
+/// The largest map resolution [`CapOrder`] serves.
+pub const CAP_MAX_RES: u32 = 64;
+
+impl CapOrder {
+    /// The order of a `res × res` map (a power of two, at most [`CAP_MAX_RES`]), built on first
+    /// use.
+    pub fn get(res: u32) -> Option<&'static CapOrder> {
+        static ORDERS: [std::sync::OnceLock<CapOrder>; 7] =
+            [const { std::sync::OnceLock::new() }; 7];
+        if !res.is_power_of_two() || res > CAP_MAX_RES {
+            return None;
+        }
+        Some(ORDERS[res.trailing_zeros() as usize].get_or_init(|| CapOrder::build(res)))
+    }
+
+    fn build(res: u32) -> CapOrder {
+        let cells = (res * res) as usize;
+        let centre = |i: usize| {
+            let (x, y) = ((i as u32 % res) as f32, (i as u32 / res) as f32);
+            equal_area_square_to_sphere(Vec2::new((x + 0.5) / res as f32, (y + 0.5) / res as f32))
+        };
+        let dirs: Vec<Vec3> = (0..cells).map(centre).collect();
+        let width = cells.min(CAP_WIDTH);
+        let mut order = Vec::with_capacity(cells * width);
+        let mut idx: Vec<u16> = Vec::with_capacity(cells);
+        for d in &dirs {
+            idx.clear();
+            idx.extend(0..cells as u16);
+            // Descending cosine, ties by index: a total order, so the bake stays deterministic.
+            let key = |j: &u16| (std::cmp::Reverse(ordered(d.dot(dirs[*j as usize]))), *j);
+            if width < cells {
+                idx.select_nth_unstable_by_key(width - 1, key);
+                idx.truncate(width);
+            }
+            idx.sort_unstable_by_key(key);
+            order.extend_from_slice(&idx);
+        }
+        CapOrder { width, order }
+    }
+
+    /// The cells around cell `i`, nearest first.
+    #[inline]
+    pub fn around(&self, i: usize) -> &[u16] {
+        &self.order[i * self.width..(i + 1) * self.width]
+    }
+}
+
+/// An f32's bits in an order that sorts like the value (no NaN here: cosines of unit vectors).
+fn ordered(x: f32) -> i32 {
+    let b = x.to_bits() as i32;
+    b ^ (((b >> 31) as u32) >> 1) as i32
+}
+
+/// Per-cell averages of a `res × res` equal-area map of Monte Carlo sums over a *spherical cap*
+/// centred on the cell: the nearest cells ([`CapOrder`]) taken in until they hold at least
+/// `min_count` samples, one map per entry of `min_counts` (ascending). The cap is centred on
+/// the direction estimated, so a smooth visibility's bias is of second order in the cap's
+/// radius, where [`BlockPyramid`]'s enclosing block has the cell anywhere inside it (first
+/// order; worst at the block's corners and across the octahedral folds, where a block's cells
+/// are not neighbours on the sphere). A cap that runs out of cells keeps the average it has
+/// (the largest with weight), `default` where no cell within reach has weight. `None` for a
+/// resolution [`CapOrder`] does not serve.
+pub fn cap_averages(
+    sum: &[f64],
+    weight: &[f64],
+    count: &[u32],
+    min_counts: &[u32],
+    res: u32,
+    default: f32,
+) -> Option<Vec<Vec<f32>>> {
+    let order = CapOrder::get(res)?;
+    let cells = (res * res) as usize;
+    debug_assert!(sum.len() == cells && weight.len() == cells && count.len() == cells);
+    debug_assert!(min_counts.windows(2).all(|w| w[0] <= w[1]));
+    let mut maps = vec![vec![default; cells]; min_counts.len()];
+    for i in 0..cells {
+        let (mut s, mut w, mut n) = (0f64, 0f64, 0u32);
+        let mut k = 0;
+        for &j in order.around(i) {
+            let j = j as usize;
+            s += sum[j];
+            w += weight[j];
+            n += count[j];
+            while k < min_counts.len() && n >= min_counts[k] && w > 0.0 {
+                maps[k][i] = (s / w) as f32;
+                k += 1;
+            }
+            if k == min_counts.len() {
+                break;
+            }
+        }
+        if w > 0.0 {
+            for m in &mut maps[k..] {
+                m[i] = (s / w) as f32;
+            }
+        }
+    }
+    Some(maps)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every cap starts at its own cell and grows by angle; across the octahedral fold (the
+    /// square's edge, where the quadtree's blocks are not neighbours on the sphere) the nearest
+    /// cells are the mirrored ones.
+    #[test]
+    fn cap_order_grows_by_angle_across_the_folds() {
+        let res = 32;
+        let order = CapOrder::get(res).expect("served");
+        let centre = |i: u16| {
+            let (x, y) = ((i as u32 % res) as f32 + 0.5, (i as u32 / res) as f32 + 0.5);
+            equal_area_square_to_sphere(Vec2::new(x, y) / res as f32)
+        };
+        for i in 0..(res * res) as usize {
+            let a = order.around(i);
+            assert_eq!(a[0] as usize, i);
+            let c = centre(i as u16);
+            for w in a.windows(2) {
+                assert!(c.dot(centre(w[0])) >= c.dot(centre(w[1])), "cell {i}");
+            }
+        }
+        // Cell (0, 16) on the left edge: its mirror (0, 15) is a neighbour on the sphere.
+        let i = 16 * res as usize;
+        assert!(order.around(i)[..4].contains(&(15 * res as u16)));
+        assert!(CapOrder::get(128).is_none() && CapOrder::get(12).is_none());
+        // Caps of at least 1, 4 and 1000 rays over a map with one ray in cell 0.
+        let mut sum = vec![0.0; 1024];
+        let mut weight = vec![0.0; 1024];
+        let mut count = vec![0; 1024];
+        (sum[0], weight[0], count[0]) = (1.0, 1.0, 1);
+        let m = cap_averages(&sum, &weight, &count, &[1, 4, 1000], res, 0.5).expect("served");
+        assert!(m.iter().all(|m| m[0] == 1.0));
+        // A cap that runs out of cells before reaching its rays keeps what it has, and one
+        // that reaches no ray takes the default.
+        let far = (0..1024)
+            .find(|&j| !order.around(j).contains(&0))
+            .expect("a far cell");
+        assert!(m.iter().all(|m| m[far] == 0.5));
+    }
 
     #[test]
     fn atan_polynomial_is_accurate() {
