@@ -683,6 +683,19 @@ mod tests {
         let edge = synthetic(|x, y, _| x + y < 32);
         let b = cross_validated_bandwidth(&edge, 32, 0.5);
         assert!(b.min_rays <= 2, "{b}");
+        // ... and the horizon stays sharp: every cell more than three cells off the diagonal
+        // keeps its side's value exactly (a cap of 2 rays, at a quarter of a ray a cell in
+        // each fold, reaches across up to three), but near the square's corners (the −z pole,
+        // where the four corners meet on the sphere and this synthetic step is no horizon).
+        let map = estimate(&cell_sums(&edge, 32, None), &[b], 32, 0.5).remove(0);
+        for (i, v) in map.iter().enumerate() {
+            let (x, y) = (i as i32 % 32, i as i32 / 32);
+            let off = x + y - 31;
+            let corner = x.min(31 - x).max(y.min(31 - y)) < 4;
+            if off.abs() > 3 && !corner {
+                assert_eq!(*v, (off < 0) as u32 as f32, "cell ({x}, {y}) with {b}");
+            }
+        }
         // Everything visible: every candidate is exact, the first (one ray, a block) wins the
         // tie.
         assert_eq!(
