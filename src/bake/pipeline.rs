@@ -75,10 +75,7 @@ impl LevelReport {
 
     /// The same for the faces' ABV bandwidths.
     pub fn abv_bandwidth_summary(&self) -> String {
-        let names = ABV_MIN_RAYS_CANDIDATES.map(|k| match k {
-            1 => "1 ray".to_string(),
-            k => format!("{k} rays"),
-        });
+        let names = ABV_MIN_RAYS_CANDIDATES.map(super::visibility::ray_count);
         bandwidth_summary(&names, &self.abv_bandwidth)
     }
 }

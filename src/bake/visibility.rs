@@ -266,34 +266,27 @@ fn fitted_exposure(rays: &[AivRay], folds: &[(Vec<f32>, u64); 2]) -> f32 {
 /// [`CapOrder`]: crate::math::sphere_maps::CapOrder
 fn estimate(sums: &CellSums, bandwidths: &[AivBandwidth], res: u32, mean: f32) -> Vec<Vec<f32>> {
     let (vis, weight, count) = (&sums.vis, &sums.weight, &sums.count);
-    let mut caps: Vec<u32> = bandwidths
+    // The caps in the order given (ascending in every caller), walked once.
+    let caps: Vec<u32> = bandwidths
         .iter()
         .filter(|b| b.cap)
         .map(|b| b.min_rays)
         .collect();
-    caps.sort_unstable();
-    caps.dedup();
-    let cap_maps = if caps.is_empty() {
-        None
-    } else {
-        cap_averages(vis, weight, count, &caps, res, mean)
-    };
-    let pyramid = bandwidths
-        .iter()
-        .any(|b| !b.cap || cap_maps.is_none())
-        .then(|| BlockPyramid::new(vis, weight, count, res));
+    let mut cap_maps = (!caps.is_empty())
+        .then(|| cap_averages(vis, weight, count, &caps, res, mean))
+        .flatten()
+        .map(Vec::into_iter);
+    let pyramid = std::cell::OnceCell::new();
     bandwidths
         .iter()
-        .map(|b| match (&cap_maps, &pyramid) {
-            (Some(m), _) if b.cap => {
-                let i = caps
-                    .binary_search(&b.min_rays)
-                    .expect("every cap was walked");
-                m[i].clone()
-            }
-            (_, Some(p)) => p.map(b.min_rays, mean),
-            _ => unreachable!("a pyramid is built for every block"),
-        })
+        .map(
+            |b| match cap_maps.as_mut().filter(|_| b.cap).and_then(Iterator::next) {
+                Some(map) => map,
+                None => pyramid
+                    .get_or_init(|| BlockPyramid::new(vis, weight, count, res))
+                    .map(b.min_rays, mean),
+            },
+        )
         .collect()
 }
 
@@ -335,12 +328,21 @@ pub struct AivBandwidth {
 impl std::fmt::Display for AivBandwidth {
     /// "4 rays" (a block), "cap of 8 rays".
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let unit = if self.min_rays == 1 { "ray" } else { "rays" };
+        let rays = ray_count(self.min_rays);
         if self.cap {
-            write!(f, "cap of {} {unit}", self.min_rays)
+            write!(f, "cap of {rays}")
         } else {
-            write!(f, "{} {unit}", self.min_rays)
+            write!(f, "{rays}")
         }
+    }
+}
+
+/// "1 ray", "4 rays": how the bake's `stats:` lines name a bandwidth's ray count.
+pub fn ray_count(k: u32) -> String {
+    if k == 1 {
+        "1 ray".into()
+    } else {
+        format!("{k} rays")
     }
 }
 
