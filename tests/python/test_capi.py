@@ -75,6 +75,23 @@ def test_c_host_matches_aggtool_render():
         assert c["relmse"] < 0.01, c
 
 
+def valgrind_errors(stderr: str) -> list:
+    """The error records of a memcheck log (each a blank-line separated block of `==PID==`
+    lines), leak records of kinds other than definite left out: what made it fail."""
+    blocks, cur = [], []
+    for line in stderr.splitlines():
+        body = line.split("==", 2)[-1].strip() if line.startswith("==") else line.strip()
+        if not body:
+            if cur:
+                blocks.append("\n".join(cur))
+            cur = []
+        else:
+            cur.append(line)
+    if cur:
+        blocks.append("\n".join(cur))
+    return [b for b in blocks if "possibly lost" not in b and "still reachable" not in b]
+
+
 def test_c_host_under_valgrind():
     if shutil.which("valgrind") is None:
         pytest.skip("valgrind is not installed")
@@ -82,7 +99,17 @@ def test_c_host_under_valgrind():
         tmp = Path(d)
         host = build_host(tmp)
         agg = baked_tree(tmp)
-        p = subprocess.run(["valgrind", "--error-exitcode=99", "--errors-for-leak-kinds=definite",
-                            "--leak-check=full", "-q", str(host), str(agg), str(tmp / "v.pfm"),
-                            "8", "8", "1"], capture_output=True, text=True, env=host_env())
-        assert p.returncode == 0, p.stderr[-3000:]
+        cmd = ["valgrind", "--error-exitcode=99", "--errors-for-leak-kinds=definite",
+               "--show-leak-kinds=definite", "--leak-check=full", "--num-callers=40",
+               "--track-origins=yes", "-q", str(host), str(agg), str(tmp / "v.pfm"), "8", "8", "1"]
+        p = subprocess.run(cmd, capture_output=True, text=True, env=host_env())
+        if p.returncode != 0:
+            # Once seen on CI (stop 35) and never in 46 runs here: the report's first records
+            # were cut off. Show them, and whether the error comes back, so that the next
+            # failure says where it is; it fails either way.
+            again = [subprocess.run(cmd, capture_output=True, text=True, env=host_env())
+                     for _ in range(2)]
+            errors = valgrind_errors(p.stderr)
+            detail = "\n\n".join(errors[:4])[:6000] or p.stderr[:6000]
+            pytest.fail(f"valgrind exit {p.returncode}; reruns exit "
+                        f"{[a.returncode for a in again]}\n{detail}")
