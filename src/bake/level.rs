@@ -35,6 +35,8 @@ pub struct LevelSettings {
     /// Boundary-visibility rays per block of `abv_stride²` direction cells.
     pub abv_rays: u32,
     pub abv_stride: u32,
+    /// ABV cells may average a window of cells centred on them ([`super::BakeSettings::abv_windows`]).
+    pub abv_windows: bool,
     /// Fraction of wavelet coefficients kept at most, and detail energy to keep.
     pub keep: f32,
     pub energy: f32,
@@ -130,7 +132,7 @@ pub struct VoxelCost {
     pub cpu: [f64; 2],
     /// How the AIV cells gathered their rays ([`super::visibility::AivEstimate::bandwidth`]);
     /// `None` where no voxel was kept.
-    pub aiv_bandwidth: Option<super::visibility::AivBandwidth>,
+    pub aiv_bandwidth: Option<super::visibility::Bandwidth>,
 }
 
 /// Bakes one voxel from the pieces of surface inside it: samples, the ellipsoid, the AIV tree,
@@ -217,7 +219,7 @@ pub fn bake_face(
     accel: &Accel,
     face: Face,
     s: &LevelSettings,
-) -> (FaceData, u64, u32) {
+) -> (FaceData, u64, super::visibility::Bandwidth) {
     let key = morton3(glam::UVec3::new(face.voxel.0, face.voxel.1, face.voxel.2));
     let seed = (key as u32).wrapping_mul(6) ^ face.dir as u32 ^ ((key >> 32) as u32).rotate_left(7);
     let m = abv_map(
@@ -228,24 +230,27 @@ pub fn bake_face(
         s.abv_rays,
         s.abv_stride,
         seed,
+        s.abv_windows,
     );
     (
         FaceData {
             face,
-            // Pooled over blocks of cells, the map's noise is under control already.
+            // Pooled over blocks of cells (or centred windows of them), the map's noise is
+            // under control already. (Shrinking a window's map at the noise of its rays'
+            // average blurs its silhouettes: barrel 64³ RMSE 0.0076, 0.0055 unshrunk.)
             abv: compress(
                 &m.values,
                 s.abv_res,
                 m.rays_per_cell,
                 1.0,
                 &LevelSettings {
-                    denoise: s.denoise && m.min_rays == 1,
+                    denoise: s.denoise && m.bandwidth.min_rays == 1 && !m.bandwidth.cap,
                     ..*s
                 },
             ),
         },
         m.traced,
-        m.min_rays,
+        m.bandwidth,
     )
 }
 
@@ -287,7 +292,7 @@ pub fn bake_level(scene: &Scene, accel: &Accel, grid: Grid, s: &LevelSettings) -
     }
     let faces = sorted_boundary_faces(voxels.iter().map(|v| v.key), grid.res);
     let level = primitive_level(grid, voxels.iter().map(|v| (v.key, v.ellipsoid)));
-    let face_results: Vec<(FaceData, u64, u32)> = faces
+    let face_results: Vec<(FaceData, u64, super::visibility::Bandwidth)> = faces
         .par_iter()
         .map(|f| bake_face(&level, accel, *f, s))
         .collect();

@@ -47,6 +47,13 @@ pub struct BakeSettings {
     /// that every level from here on costs about the same number of ABV rays (four times the
     /// faces, a quarter of the rays per face), as the surface samples do (paper §7.1).
     pub abv_full_res: u32,
+    /// ABV map cells may also average a window of cells centred on them, where a face's
+    /// held-out rays say so, besides the enclosing blocks of cells they always may
+    /// ([`boundary_visibility::abv_map`]): less bias where the visibility is smooth, at about
+    /// twice the ABV's bytes (a smooth map keeps more wavelet coefficients). On in the `high`
+    /// preset; absent in files that predate it (false).
+    #[serde(default)]
+    pub abv_windows: bool,
     /// Most SGGX lobes per voxel.
     pub ndf_lobes: u32,
     /// Directional-moment grid resolution (Eq. 23).
@@ -82,6 +89,7 @@ impl Default for BakeSettings {
             abv_res: 64,
             abv_rays: 1,
             abv_full_res: 64,
+            abv_windows: false,
             ndf_lobes: 4,
             moment_res: 3,
             keep: 0.15,
@@ -155,6 +163,7 @@ impl BakeSettings {
                 samples: 64,
                 aiv_rays: 64,
                 abv_rays: 2,
+                abv_windows: true,
                 ..d
             },
             Preset::Max => BakeSettings {
@@ -253,6 +262,7 @@ impl BakeSettings {
             abv_res: self.abv_res,
             abv_rays: self.abv_rays,
             abv_full_res: self.abv_full_res,
+            abv_windows: self.abv_windows,
             ndf_lobes: self.ndf_lobes,
             moment_res: self.moment_res,
             keep: self.keep,
@@ -316,6 +326,7 @@ impl BakeSettings {
             abv_res: r.abv_res,
             abv_rays: r.abv_rays,
             abv_full_res: r.abv_full_res,
+            abv_windows: r.abv_windows,
             ndf_lobes: r.ndf_lobes,
             moment_res: r.moment_res,
             keep: r.keep,
@@ -337,6 +348,7 @@ impl BakeSettings {
             abv_res: self.abv_res,
             abv_rays: self.abv_rays,
             abv_stride: self.abv_stride_at(res),
+            abv_windows: self.abv_windows,
             keep: self.keep,
             energy: self.energy,
             denoise: self.denoise,
@@ -410,7 +422,7 @@ mod tests {
             .unwrap_err()
             .contains("--ndf-lobes"));
         assert!(d.with_field("keep", "many").is_err());
-        assert_eq!(BakeSettings::field_names().len(), 18);
+        assert_eq!(BakeSettings::field_names().len(), 19);
     }
 
     /// Every preset survives the trip through the file's record unchanged.

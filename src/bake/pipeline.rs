@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::boundary_visibility::ABV_MIN_RAYS_CANDIDATES;
+use super::boundary_visibility::ABV_BANDWIDTHS;
 use super::level::{
     bake_face, bake_voxel, primitive_level, sorted_boundary_faces, voxel_primitive, VoxelCost,
 };
@@ -58,9 +58,9 @@ pub struct LevelReport {
     /// [`AIV_BANDWIDTHS`]`[i]` does (chosen by cross-validation, or the setting).
     pub aiv_bandwidth: [u64; AIV_BANDWIDTHS.len()],
     pub abv_rays: u64,
-    /// Faces per ABV bandwidth: `abv_bandwidth[i]` faces rest each cell on at least
-    /// [`ABV_MIN_RAYS_CANDIDATES`]`[i]` P⁺ rays (chosen by cross-validation).
-    pub abv_bandwidth: [u64; ABV_MIN_RAYS_CANDIDATES.len()],
+    /// Faces per ABV bandwidth: `abv_bandwidth[i]` faces gather each cell's P⁺ rays as
+    /// [`ABV_BANDWIDTHS`]`[i]` does (chosen by cross-validation).
+    pub abv_bandwidth: [u64; ABV_BANDWIDTHS.len()],
     pub bytes: u64,
     pub counts: Counts,
 }
@@ -75,7 +75,7 @@ impl LevelReport {
 
     /// The same for the faces' ABV bandwidths.
     pub fn abv_bandwidth_summary(&self) -> String {
-        let names = ABV_MIN_RAYS_CANDIDATES.map(super::visibility::ray_count);
+        let names = ABV_BANDWIDTHS.map(|b| b.to_string());
         bandwidth_summary(&names, &self.abv_bandwidth)
     }
 }
@@ -301,7 +301,7 @@ fn bake_levels(
         let prims = primitive_level(grid, keys_prims.into_iter());
         let bar = StageCounter::new(progress, format!("{res}³ faces"), faces.len() as u64);
         let mut abv_rays = 0u64;
-        let mut abv_bandwidth = [0u64; ABV_MIN_RAYS_CANDIDATES.len()];
+        let mut abv_bandwidth = [0u64; ABV_BANDWIDTHS.len()];
         let mut face_blocks = Vec::new();
         g += voxel_chunks;
         let face_chunks = faces.len().div_ceil(BLOCK_FACES) as u64;
@@ -321,7 +321,7 @@ fn bake_levels(
                 .collect();
             for b in &baked {
                 abv_rays += b.1;
-                if let Some(i) = ABV_MIN_RAYS_CANDIDATES.iter().position(|&k| k == b.2) {
+                if let Some(i) = ABV_BANDWIDTHS.iter().position(|&k| k == b.2) {
                     abv_bandwidth[i] += 1;
                 }
             }

@@ -72,7 +72,7 @@ pub struct AivEstimate {
     pub exposure: f32,
     /// How a cell's estimate gathers its rays: a block of the `min_rays` asked for, or the
     /// bandwidth cross-validation chose among [`AIV_BANDWIDTHS`] when asked for 0.
-    pub bandwidth: AivBandwidth,
+    pub bandwidth: Bandwidth,
     /// The multiple of the noise σ ([`map_noise_sigma`]) the wavelet shrinkage should use:
     /// chosen by cross-validation among [`AIV_DENOISE_CANDIDATES`] when denoising, else 0.
     pub denoise: f32,
@@ -186,7 +186,7 @@ pub fn aiv_map(
     let bandwidth = if min_rays == 0 {
         cross_validated_bandwidth(&rays, res, mean)
     } else {
-        AivBandwidth {
+        Bandwidth {
             min_rays,
             cap: false,
         }
@@ -226,12 +226,7 @@ struct AivRay {
 
 /// Per fold of samples, its map at `bandwidth` and the rays it rests on: what the exposure fit
 /// and the shrinkage's cross-validation predict the other fold's rays with.
-fn fold_maps(
-    rays: &[AivRay],
-    res: u32,
-    bandwidth: AivBandwidth,
-    mean: f32,
-) -> [(Vec<f32>, u64); 2] {
+fn fold_maps(rays: &[AivRay], res: u32, bandwidth: Bandwidth, mean: f32) -> [(Vec<f32>, u64); 2] {
     [0u8, 1].map(|f| {
         let c = cell_sums(rays, res, Some(f));
         let map = estimate(&c, &[bandwidth], res, mean).remove(0);
@@ -264,7 +259,7 @@ fn fitted_exposure(rays: &[AivRay], folds: &[(Vec<f32>, u64); 2]) -> f32 {
 ///
 /// [`BlockPyramid`]: crate::math::sphere_maps::BlockPyramid
 /// [`CapOrder`]: crate::math::sphere_maps::CapOrder
-fn estimate(sums: &CellSums, bandwidths: &[AivBandwidth], res: u32, mean: f32) -> Vec<Vec<f32>> {
+fn estimate(sums: &CellSums, bandwidths: &[Bandwidth], res: u32, mean: f32) -> Vec<Vec<f32>> {
     let (vis, weight, count) = (&sums.vis, &sums.weight, &sums.count);
     // The caps in the order given (ascending in every caller), walked once.
     let caps: Vec<u32> = bandwidths
@@ -314,18 +309,21 @@ fn cell_sums(rays: &[AivRay], res: u32, fold: Option<u8>) -> CellSums {
     s
 }
 
-/// How an AIV cell's estimate gathers the rays it rests on: at least `min_rays` of them, from
+/// How a visibility map's cell gathers the rays it rests on: at least `min_rays` of them, from
 /// the smallest enclosing 2^k × 2^k block of the map's square ([`BlockPyramid`], `cap` false)
-/// or from the spherical cap of the nearest cells ([`cap_averages`], `cap` true).
+/// or from a neighbourhood centred on the cell (`cap` true): for the AIV's sphere map the
+/// spherical cap of the nearest cells ([`cap_averages`]), for the ABV's hemisphere map a
+/// centred window ([`CentredWindows`]).
 ///
 /// [`BlockPyramid`]: crate::math::sphere_maps::BlockPyramid
+/// [`CentredWindows`]: crate::math::sphere_maps::CentredWindows
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct AivBandwidth {
+pub struct Bandwidth {
     pub min_rays: u32,
     pub cap: bool,
 }
 
-impl std::fmt::Display for AivBandwidth {
+impl std::fmt::Display for Bandwidth {
     /// "4 rays" (a block), "cap of 8 rays".
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let rays = ray_count(self.min_rays);
@@ -358,9 +356,9 @@ pub fn ray_count(k: u32) -> String {
 /// → the choice among both): mill 0.0102 → 0.0092 → 0.0090, barrel 0.0070 → 0.0065 → 0.0064,
 /// spiral staircase 0.0155 → 0.0146 → 0.0143, grass-trees-tall 0.0160 → 0.0154 → 0.0149,
 /// fantasy_house_01 0.0075 → 0.0073 → 0.0074, building-small-b 0.0196 → 0.0201 → 0.0196.
-pub const AIV_BANDWIDTHS: [AivBandwidth; 11] = {
-    const fn b(min_rays: u32, cap: bool) -> AivBandwidth {
-        AivBandwidth { min_rays, cap }
+pub const AIV_BANDWIDTHS: [Bandwidth; 11] = {
+    const fn b(min_rays: u32, cap: bool) -> Bandwidth {
+        Bandwidth { min_rays, cap }
     }
     [
         b(1, false),
@@ -387,7 +385,7 @@ pub const AIV_BANDWIDTHS: [AivBandwidth; 11] = {
 /// the map should stay fine. Measured with `examples/aiv_probe` (RMS of baked − traced V̂ over
 /// 20,000 voxel-direction pairs at 64³, blocks only): lattice 0.238 (1 ray a cell) → 0.158
 /// (8 rays) / 0.165 (chosen), displaced sphere 0.217 → 0.271 / 0.222.
-fn cross_validated_bandwidth(rays: &[AivRay], res: u32, mean: f32) -> AivBandwidth {
+fn cross_validated_bandwidth(rays: &[AivRay], res: u32, mean: f32) -> Bandwidth {
     let folds = [cell_sums(rays, res, Some(0)), cell_sums(rays, res, Some(1))];
     let maps = folds
         .each_ref()
@@ -721,7 +719,7 @@ mod tests {
         for _ in 0..40 {
             let rays = synthetic(|x, y, _| rng.next_f32() < truth(y * 32 + x));
             let all = cell_sums(&rays, 32, None);
-            let bw = |cap| AivBandwidth { min_rays: 16, cap };
+            let bw = |cap| Bandwidth { min_rays: 16, cap };
             let maps = estimate(&all, &[bw(false), bw(true)], 32, 0.5);
             for c in 0..1024u32 {
                 err_block += ((maps[0][c as usize] - truth(c)) as f64).powi(2);

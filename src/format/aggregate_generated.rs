@@ -3390,6 +3390,7 @@ impl<'a> BakeSettings<'a> {
   pub const VT_LOSSLESS: ::flatbuffers::VOffsetT = 36;
   pub const VT_COMPRESSION: ::flatbuffers::VOffsetT = 38;
   pub const VT_AIV_MIN_RAYS: ::flatbuffers::VOffsetT = 40;
+  pub const VT_ABV_WINDOWS: ::flatbuffers::VOffsetT = 42;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3416,6 +3417,7 @@ impl<'a> BakeSettings<'a> {
     builder.add_max_samples(args.max_samples);
     builder.add_samples(args.samples);
     builder.add_max_res(args.max_res);
+    builder.add_abv_windows(args.abv_windows);
     builder.add_lossless(args.lossless);
     builder.add_aiv_weighting(args.aiv_weighting);
     builder.add_denoise(args.denoise);
@@ -3575,6 +3577,17 @@ impl<'a> BakeSettings<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u32>(BakeSettings::VT_AIV_MIN_RAYS, Some(1)).unwrap()}
   }
+  /// Recorded since aggtool's centred ABV windows (files of format 1.5; no layout change,
+  /// readers need not know it): true when a face's ABV cells could average a window of cells
+  /// centred on them as well as an enclosing block, chosen per face by cross-validation.
+  /// Absent in older files: false.
+  #[inline]
+  pub fn abv_windows(&self) -> bool {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<bool>(BakeSettings::VT_ABV_WINDOWS, Some(false)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for BakeSettings<'_> {
@@ -3602,6 +3615,7 @@ impl ::flatbuffers::Verifiable for BakeSettings<'_> {
      .visit_field::<bool>("lossless", Self::VT_LOSSLESS, false)?
      .visit_field::<i32>("compression", Self::VT_COMPRESSION, false)?
      .visit_field::<u32>("aiv_min_rays", Self::VT_AIV_MIN_RAYS, false)?
+     .visit_field::<bool>("abv_windows", Self::VT_ABV_WINDOWS, false)?
      .finish();
     Ok(())
   }
@@ -3626,6 +3640,7 @@ pub struct BakeSettingsArgs {
     pub lossless: bool,
     pub compression: i32,
     pub aiv_min_rays: u32,
+    pub abv_windows: bool,
 }
 impl<'a> Default for BakeSettingsArgs {
   #[inline]
@@ -3650,6 +3665,7 @@ impl<'a> Default for BakeSettingsArgs {
       lossless: false,
       compression: 0,
       aiv_min_rays: 1,
+      abv_windows: false,
     }
   }
 }
@@ -3736,6 +3752,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> BakeSettingsBuilder<'a, 'b, A
     self.fbb_.push_slot::<u32>(BakeSettings::VT_AIV_MIN_RAYS, aiv_min_rays, 1);
   }
   #[inline]
+  pub fn add_abv_windows(&mut self, abv_windows: bool) {
+    self.fbb_.push_slot::<bool>(BakeSettings::VT_ABV_WINDOWS, abv_windows, false);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> BakeSettingsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     BakeSettingsBuilder {
@@ -3772,6 +3792,7 @@ impl ::core::fmt::Debug for BakeSettings<'_> {
       ds.field("lossless", &self.lossless());
       ds.field("compression", &self.compression());
       ds.field("aiv_min_rays", &self.aiv_min_rays());
+      ds.field("abv_windows", &self.abv_windows());
       ds.finish()
   }
 }

@@ -44,6 +44,10 @@ pub struct RecordedSettings {
     pub abv_rays: u32,
     /// Levels finer than this share ABV rays among blocks of cells (0: none do).
     pub abv_full_res: u32,
+    /// ABV cells could average windows of cells centred on them besides enclosing blocks;
+    /// false in files that do not record it.
+    #[serde(default)]
+    pub abv_windows: bool,
     /// Most SGGX lobes per voxel.
     pub ndf_lobes: u32,
     /// Directional-moment grid resolution.
@@ -81,6 +85,7 @@ impl RecordedSettings {
             abv_res: s.abv_res(),
             abv_rays: s.abv_rays(),
             abv_full_res: s.abv_full_res(),
+            abv_windows: s.abv_windows(),
             ndf_lobes: s.ndf_lobes(),
             moment_res: s.moment_res(),
             keep: s.keep(),
@@ -122,6 +127,7 @@ impl RecordedSettings {
             abv_full_res: self.abv_full_res,
             lossless: self.lossless,
             compression: self.compression,
+            abv_windows: self.abv_windows,
         }
     }
 }

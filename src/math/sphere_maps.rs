@@ -308,6 +308,88 @@ pub fn cap_averages(
     Some(maps)
 }
 
+/// Summed-area tables of a `res × res` map's (Σ value, Σ weight, count): averages over square
+/// windows of cells *centred* on a cell, each in constant time. On Shirley and Chiu's
+/// concentric hemisphere map ([`concentric_square_to_hemisphere`], equal-area and continuous
+/// inside the square) a centred window is a neighbourhood centred on the cell's direction, as
+/// the spherical cap of [`cap_averages`] is on the sphere map, so a smooth visibility's bias is
+/// of second order in its size where [`BlockPyramid`]'s enclosing block's is of first; only
+/// at the square's edge (the horizon) is a window clipped to one side.
+pub struct CentredWindows {
+    res: u32,
+    max_radius: u32,
+    /// `(res + 1)²` prefix sums; entry (x, y) sums the cells below x and y.
+    table: Vec<(f64, f64, u32)>,
+}
+
+impl CentredWindows {
+    /// Windows up to `max_radius` cells either side of their centre (side `2r + 1`).
+    pub fn new(sum: &[f64], weight: &[f64], count: &[u32], res: u32, max_radius: u32) -> Self {
+        let n = res as usize;
+        debug_assert!(sum.len() == n * n && weight.len() == n * n && count.len() == n * n);
+        let mut table = vec![(0.0, 0.0, 0u32); (n + 1) * (n + 1)];
+        for y in 0..n {
+            let mut row = (0.0, 0.0, 0u32);
+            for x in 0..n {
+                let c = y * n + x;
+                row = (row.0 + sum[c], row.1 + weight[c], row.2 + count[c]);
+                let above = table[y * (n + 1) + x + 1];
+                table[(y + 1) * (n + 1) + x + 1] =
+                    (above.0 + row.0, above.1 + row.1, above.2 + row.2);
+            }
+        }
+        CentredWindows {
+            res,
+            max_radius,
+            table,
+        }
+    }
+
+    /// The sums over cells [x0, x1) × [y0, y1).
+    #[inline]
+    fn rect(&self, x0: u32, y0: u32, x1: u32, y1: u32) -> (f64, f64, u32) {
+        let w = self.res as usize + 1;
+        let at = |x: u32, y: u32| self.table[y as usize * w + x as usize];
+        let (a, b, c, d) = (at(x1, y1), at(x0, y1), at(x1, y0), at(x0, y0));
+        (
+            a.0 - b.0 - c.0 + d.0,
+            a.1 - b.1 - c.1 + d.1,
+            a.2 + d.2 - b.2 - c.2,
+        )
+    }
+
+    /// For each of `min_counts` (ascending), the average over the smallest window centred on
+    /// cell `i` holding at least that many samples and some weight, written to `out`; `None`
+    /// where no window up to the largest does (the caller falls back to a block).
+    pub fn values(&self, i: u32, min_counts: &[u32], out: &mut [Option<f32>]) {
+        debug_assert_eq!(min_counts.len(), out.len());
+        debug_assert!(min_counts.windows(2).all(|w| w[0] <= w[1]));
+        out.fill(None);
+        let (x, y) = (i % self.res, i / self.res);
+        let mut k = 0;
+        for r in 0..=self.max_radius {
+            let (x0, y0) = (x.saturating_sub(r), y.saturating_sub(r));
+            let (x1, y1) = ((x + r + 1).min(self.res), (y + r + 1).min(self.res));
+            let (s, w, n) = self.rect(x0, y0, x1, y1);
+            while k < min_counts.len() && n >= min_counts[k] && w > 0.0 {
+                out[k] = Some((s / w) as f32);
+                k += 1;
+            }
+            if k == min_counts.len() || (x0 == 0 && y0 == 0 && x1 == self.res && y1 == self.res) {
+                return;
+            }
+        }
+    }
+
+    /// [`CentredWindows::values`] for one `min_count`.
+    #[inline]
+    pub fn value(&self, i: u32, min_count: u32) -> Option<f32> {
+        let mut out = [None];
+        self.values(i, &[min_count], &mut out);
+        out[0]
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -445,5 +527,41 @@ mod tests {
         let (mut sum, mut w) = (vec![0.0; 9], vec![0.0; 9]);
         (sum[8], w[8]) = (0.25, 1.0);
         assert_eq!(average_with_coarser_fill(&sum, &w, 3, 0.7), vec![0.25; 9]);
+    }
+
+    /// A centred window's average equals a brute-force sum over the clipped square, grows
+    /// only until it holds the samples asked for, and gives up past its largest radius.
+    #[test]
+    fn centred_windows_match_brute_force() {
+        let res = 16u32;
+        let cells = (res * res) as usize;
+        let mut rng = crate::math::rng::Pcg32::new(3, 1);
+        let count: Vec<u32> = (0..cells).map(|_| (rng.next_f32() < 0.2) as u32).collect();
+        let weight: Vec<f64> = count.iter().map(|&c| c as f64).collect();
+        let sum: Vec<f64> = weight.iter().map(|&w| w * rng.next_f32() as f64).collect();
+        let win = CentredWindows::new(&sum, &weight, &count, res, 4);
+        for i in 0..res * res {
+            let (x, y) = ((i % res) as i64, (i / res) as i64);
+            let mut out = [None; 3];
+            win.values(i, &[1, 3, 12], &mut out);
+            for (k, &min) in [1u32, 3, 12].iter().enumerate() {
+                let brute = (0..=4).find_map(|r: i64| {
+                    let (mut s, mut w, mut n) = (0.0, 0.0, 0);
+                    for yy in (y - r).max(0)..=(y + r).min(res as i64 - 1) {
+                        for xx in (x - r).max(0)..=(x + r).min(res as i64 - 1) {
+                            let c = (yy * res as i64 + xx) as usize;
+                            (s, w, n) = (s + sum[c], w + weight[c], n + count[c]);
+                        }
+                    }
+                    (n >= min && w > 0.0).then(|| (s / w) as f32)
+                });
+                match (out[k], brute) {
+                    (Some(a), Some(b)) => assert!((a - b).abs() < 1e-5, "cell {i}: {a} {b}"),
+                    (a, b) => assert_eq!(a, b, "cell {i}"),
+                }
+                assert_eq!(win.value(i, min), out[k]);
+            }
+        }
+        assert_eq!(win.value(0, 1000), None);
     }
 }

@@ -688,7 +688,7 @@ fn open(path: PathBuf) -> PyResult<Scene> {
 /// Bakes `source` (.gltf, .glb or .obj) into an aggregate at `output` (default: the source's
 /// path with `.agg`) and returns the output path. Settings as keyword arguments, named as
 /// `aggtool convert`'s flags with underscores (max_res, min_res, samples, aiv_res, aiv_rays,
-/// abv_res, abv_rays, abv_full_res, ndf_lobes, keep, energy, lossless). `progress`, if given,
+/// abv_res, abv_rays, abv_full_res, abv_windows, ndf_lobes, keep, energy, lossless). `progress`, if given,
 /// is called as progress(stage, done, total).
 #[pyfunction]
 #[pyo3(signature = (source, output = None, progress = None, **settings))]
@@ -712,6 +712,7 @@ fn convert(
                 "abv_res" => s.abv_res = v.extract()?,
                 "abv_rays" => s.abv_rays = v.extract()?,
                 "abv_full_res" => s.abv_full_res = v.extract()?,
+                "abv_windows" => s.abv_windows = v.extract()?,
                 "ndf_lobes" => s.ndf_lobes = v.extract()?,
                 "keep" => s.keep = v.extract()?,
                 "energy" => s.energy = v.extract()?,

@@ -179,8 +179,19 @@ class BakeSettings(object):
             return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
         return 1
 
+    # Recorded since aggtool's centred ABV windows (files of format 1.5; no layout change,
+    # readers need not know it): true when a face's ABV cells could average a window of cells
+    # centred on them as well as an enclosing block, chosen per face by cross-validation.
+    # Absent in older files: false.
+    # BakeSettings
+    def AbvWindows(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(42))
+        if o != 0:
+            return bool(self._tab.Get(flatbuffers.number_types.BoolFlags, o + self._tab.Pos))
+        return False
+
 def BakeSettingsStart(builder):
-    builder.StartObject(19)
+    builder.StartObject(20)
 
 def Start(builder):
     BakeSettingsStart(builder)
@@ -298,6 +309,12 @@ def BakeSettingsAddAivMinRays(builder, aivMinRays):
 
 def AddAivMinRays(builder, aivMinRays):
     BakeSettingsAddAivMinRays(builder, aivMinRays)
+
+def BakeSettingsAddAbvWindows(builder, abvWindows):
+    builder.PrependBoolSlot(19, abvWindows, 0)
+
+def AddAbvWindows(builder, abvWindows):
+    BakeSettingsAddAbvWindows(builder, abvWindows)
 
 def BakeSettingsEnd(builder):
     return builder.EndObject()
