@@ -113,7 +113,8 @@ pub enum Preset {
     Draft,
     /// [`BakeSettings::default`].
     Default,
-    /// Twice the surface samples and two ABV rays per cell.
+    /// Twice the surface samples and the AIV rays, two ABV rays per cell, centred ABV windows
+    /// ([`BakeSettings::abv_windows`]).
     High,
     /// The paper's ablation control (Table 4 "Maximum"): up to 4 lobes, no truncation or
     /// denoising of the visibility wavelets, no quantization, no compression.

@@ -526,7 +526,7 @@ fn absdf_plot(case: &str, output: &Path, samples: u32, slice: u32, exposure: f32
 struct BakeArgs {
     /// Starting point for every setting below: draft (64³, an eighth of the samples and rays,
     /// coarser truncation), default, high (twice the samples and the AIV rays, two ABV rays
-    /// per cell), max (the paper's ablation control: 4 lobes, no truncation, quantization or
+    /// per cell, centred ABV windows), max (the paper's ablation control: 4 lobes, no truncation, quantization or
     /// compression). Flags given beside it override it.
     #[arg(long, default_value = "default", value_parser = ["draft", "default", "high", "max"])]
     preset: String,
