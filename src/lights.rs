@@ -41,8 +41,13 @@ pub enum Environment {
 /// An equirectangular environment map.
 #[derive(Clone, Debug)]
 pub struct EnvMap {
-    width: usize,
-    height: usize,
+    /// Texel columns and rows. u32, not usize: the compiler hoists `width as f32` out of the
+    /// shading loops above the [`Environment`] tag check, so it also runs on the unused (and
+    /// uninitialised) payload of [`Environment::Constant`]; usize → f32 branches on the sign
+    /// bit on x86-64, which valgrind reports as a jump on uninitialised memory (CI, C host),
+    /// while u32 → f32 converts without a branch.
+    width: u32,
+    height: u32,
     /// `height × width` texels, already scaled by the intensity.
     texels: Vec<Vec3>,
     /// World to map rotation.
@@ -118,8 +123,8 @@ impl EnvMap {
             Mat3::IDENTITY
         };
         EnvMap {
-            width,
-            height,
+            width: width as u32,
+            height: height as u32,
             texels,
             world_to_map: rot.transpose(),
             map_to_world: rot,
@@ -151,14 +156,15 @@ impl EnvMap {
     /// Bilinear lookup at grid coordinates (x in [0,1) of the width, y = v).
     #[inline]
     fn lookup(&self, g: Vec2) -> Vec3 {
+        let (w, h) = (self.width as usize, self.height as usize);
         let x = (g.x * self.width as f32).clamp(0.0, self.width as f32);
         let y = (g.y * (self.height - 1) as f32).clamp(0.0, (self.height - 1) as f32);
-        let x0 = (x as usize).min(self.width - 1);
-        let y0 = (y as usize).min(self.height - 2);
+        let x0 = (x as usize).min(w - 1);
+        let y0 = (y as usize).min(h - 2);
         let fx = x - x0 as f32;
         let fy = y - y0 as f32;
-        let x1 = (x0 + 1) % self.width;
-        let t = |xx: usize, yy: usize| self.texels[yy * self.width + xx];
+        let x1 = (x0 + 1) % w;
+        let t = |xx: usize, yy: usize| self.texels[yy * w + xx];
         (t(x0, y0) * (1.0 - fx) + t(x1, y0) * fx) * (1.0 - fy)
             + (t(x0, y0 + 1) * (1.0 - fx) + t(x1, y0 + 1) * fx) * fy
     }

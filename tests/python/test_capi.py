@@ -104,9 +104,11 @@ def test_c_host_under_valgrind():
                "--track-origins=yes", "-q", str(host), str(agg), str(tmp / "v.pfm"), "8", "8", "1"]
         p = subprocess.run(cmd, capture_output=True, text=True, env=host_env())
         if p.returncode != 0:
-            # Once seen on CI (stop 35) and never in 46 runs here: the report's first records
-            # were cut off. Show them, and whether the error comes back, so that the next
-            # failure says where it is; it fails either way.
+            # Show the first error records (the leak list's tail cut them off once) and whether
+            # a rerun repeats them; it fails either way. Code generation matters here: the jump
+            # on uninitialised memory CI found in EnvMap's hoisted usize -> f32 conversion (see
+            # lights::EnvMap) came only from a build with CARGO_INCREMENTAL=0, as .ci/run
+            # builds, never from an incremental one.
             again = [subprocess.run(cmd, capture_output=True, text=True, env=host_env())
                      for _ in range(2)]
             errors = valgrind_errors(p.stderr)
