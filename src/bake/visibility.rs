@@ -323,6 +323,34 @@ pub struct Bandwidth {
     pub cap: bool,
 }
 
+impl Bandwidth {
+    /// Blocks of at least each of `blocks` rays, then caps (windows) of each of `caps` rays:
+    /// the candidate lists of [`AIV_BANDWIDTHS`] and the ABV's.
+    pub const fn list<const N: usize>(blocks: &[u32], caps: &[u32]) -> [Bandwidth; N] {
+        assert!(blocks.len() + caps.len() == N, "candidate count");
+        let mut out = [Bandwidth {
+            min_rays: 0,
+            cap: false,
+        }; N];
+        let mut i = 0;
+        while i < N {
+            out[i] = if i < blocks.len() {
+                Bandwidth {
+                    min_rays: blocks[i],
+                    cap: false,
+                }
+            } else {
+                Bandwidth {
+                    min_rays: caps[i - blocks.len()],
+                    cap: true,
+                }
+            };
+            i += 1;
+        }
+        out
+    }
+}
+
 impl std::fmt::Display for Bandwidth {
     /// "4 rays" (a block), "cap of 8 rays".
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -356,24 +384,8 @@ pub fn ray_count(k: u32) -> String {
 /// → the choice among both): mill 0.0102 → 0.0092 → 0.0090, barrel 0.0070 → 0.0065 → 0.0064,
 /// spiral staircase 0.0155 → 0.0146 → 0.0143, grass-trees-tall 0.0160 → 0.0154 → 0.0149,
 /// fantasy_house_01 0.0075 → 0.0073 → 0.0074, building-small-b 0.0196 → 0.0201 → 0.0196.
-pub const AIV_BANDWIDTHS: [Bandwidth; 11] = {
-    const fn b(min_rays: u32, cap: bool) -> Bandwidth {
-        Bandwidth { min_rays, cap }
-    }
-    [
-        b(1, false),
-        b(2, false),
-        b(4, false),
-        b(8, false),
-        b(16, false),
-        b(1, true),
-        b(2, true),
-        b(4, true),
-        b(8, true),
-        b(16, true),
-        b(32, true),
-    ]
-};
+pub const AIV_BANDWIDTHS: [Bandwidth; 11] =
+    Bandwidth::list(&[1, 2, 4, 8, 16], &[1, 2, 4, 8, 16, 32]);
 
 /// The bandwidth of a voxel's AIV estimate, chosen by two-fold cross-validation over its
 /// surface samples: for each candidate of [`AIV_BANDWIDTHS`], the map built from one fold's
