@@ -260,13 +260,12 @@ fn window_radius(res: u32) -> u32 {
 /// (second order); blocks win along a horizon that runs on their edges.
 ///
 /// Measured with `examples/shading_noise` on 64³ bakes (default preset, RMSE of the default
-/// render and file, blocks → blocks and windows): fantasy_sawmill 0.0072 / 6.45 MiB → 0.0065
-/// / 11.5, mill 0.0090 / 6.11 → 0.0084 / 10.6,
-/// barrel 0.0064 / 7.52 → 0.0055 / 13.1, fence 0.0080 / 1.04 → 0.0073 / 2.40, spiral
-/// staircase 0.0143 / 2.70 → 0.0139 / 7.35, road-split 0.0080 → 0.0079, building-small-b
-/// 0.0196 → 0.0195. A window's map is smooth, so truncation keeps more of its Haar details:
-/// shrinking them at the noise of the window's rays brought the sawmill back to 6.36 MiB but the
-/// barrel to 0.0076 (its silhouettes blurred), and pooling the map into 2×2 or 4×4 blocks
+/// render and file, blocks → blocks and windows): fantasy_sawmill 0.0072 / 6.45 MiB →
+/// 0.0065 / 11.5, mill 0.0090 / 6.11 → 0.0084 / 10.6, barrel 0.0064 / 7.52 → 0.0055 / 13.1,
+/// fence 0.0080 / 1.04 → 0.0073 / 2.40, spiral staircase 0.0143 / 2.70 → 0.0139 / 7.35,
+/// road-split 0.0080 → 0.0079, building-small-b 0.0196 → 0.0195. A window's map is smooth,
+/// so truncation keeps more of its Haar details: shrinking them at the noise of the window's
+/// rays brought the sawmill back to 6.36 MiB but the barrel to 0.0076 (its silhouettes blurred), and pooling the map into 2×2 or 4×4 blocks
 /// before the windows lost most of the gain (barrel 0.0061 / 0.0064). Hence a setting, off by
 /// default and on in `high`.
 pub const ABV_BANDWIDTHS: [Bandwidth; 13] =

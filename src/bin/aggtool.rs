@@ -526,8 +526,8 @@ fn absdf_plot(case: &str, output: &Path, samples: u32, slice: u32, exposure: f32
 struct BakeArgs {
     /// Starting point for every setting below: draft (64³, an eighth of the samples and rays,
     /// coarser truncation), default, high (twice the samples and the AIV rays, two ABV rays
-    /// per cell, centred ABV windows), max (the paper's ablation control: 4 lobes, no truncation, quantization or
-    /// compression). Flags given beside it override it.
+    /// per cell, centred ABV windows), max (the paper's ablation control: 4 lobes, no
+    /// truncation, quantization or compression). Flags given beside it override it.
     #[arg(long, default_value = "default", value_parser = ["draft", "default", "high", "max"])]
     preset: String,
     /// Finest level resolution (a power of two); levels halve down to --min-res [preset
