@@ -4,7 +4,7 @@
 use aggtool::absdf::cases::{case_samples, compare_case, sphere_grid, CASES};
 use aggtool::absdf::estimate::{estimate, EstimateSettings, SurfaceSample};
 use aggtool::absdf::{Absdf, MaterialMoments, Moments, NdfLobe, VoxelAppearance};
-use aggtool::bsdf::Bsdf;
+use aggtool::bsdf::{BaseBsdf, Bsdf};
 use aggtool::math::rng::Pcg32;
 use aggtool::math::sampling::square_to_uniform_sphere;
 use aggtool::math::unit_or_zero;
@@ -23,17 +23,18 @@ fn appearance(name: &str) -> VoxelAppearance {
 
 /// Relative RMSE (RMSE over direction pairs / RMS of the ground truth) per case, on a 6×6
 /// equal-area grid of both directions with 2048 samples. The bounds are regression guards 25%
-/// above the values measured (flat 0.022, curved 0.644, foliage 0.094, anisotropic 0.106,
-/// orientation-color 0.186, mixed-roughness 0.371, metal-dielectric 0.149; with Eq. 14's SG
-/// diffuse term foliage was 0.174, orientation-color 0.248 and metal-dielectric 0.212); they
-/// are not goals. The curved voxel (normals uniform over a 60° cap) is the known
+/// above the values measured (flat 0.003, curved 0.644, foliage 0.096, anisotropic 0.095,
+/// orientation-color 0.187, mixed-roughness 0.389, metal-dielectric 0.146; with Eq. 21's S read
+/// at the microfacet roughness alone flat was 0.022, anisotropic 0.106, mixed-roughness 0.371
+/// and metal-dielectric 0.149; with Eq. 14's SG diffuse term foliage was 0.174,
+/// orientation-color 0.248 and metal-dielectric 0.212); they are not goals. The curved voxel (normals uniform over a 60° cap) is the known
 /// weak case: a mixture of GGX-shaped lobes cannot take a flat-topped, sharp-edged normal
 /// distribution. `cargo test --release --test absdf -- --ignored --nocapture` prints the
 /// full-size figures.
 #[test]
 fn factored_absdf_tracks_ground_truth() {
     let t = Tables::embedded();
-    let guard = [0.03, 0.81, 0.12, 0.14, 0.24, 0.47, 0.19];
+    let guard = [0.01, 0.81, 0.12, 0.12, 0.24, 0.49, 0.19];
     for (&name, &g) in CASES.iter().zip(&guard) {
         let (r, _) = compare_case(name, t, 2048, 6).unwrap();
         let rel = r.rmse / r.gt_rms;
@@ -176,6 +177,54 @@ fn flat_lambertian_voxel_reflects_its_albedo() {
                 assert!(
                     down < 1e-3 * albedo as f64,
                     "{name} at {deg}°: {down} through the sheet"
+                );
+            }
+        }
+    }
+}
+
+/// A flat voxel of one material is its base BSDF: f̂(ω_i, ω_o) = f(ω_i, ω_o)·cos θ_i over the
+/// upper hemisphere (a 64² equal-area grid), for dielectrics with the glTF default specular
+/// (F0 0.04, F90 1) and metals, from mirror-like to α = 1, at views from 0° to 85°: relative
+/// RMSE (over the base BSDF's RMS) below 1%. Reading Eq. 21's S at the microfacet roughness
+/// alone failed this at grazing views: α = 1 at 72° reached 0.51 of the base BSDF towards an
+/// ω_i at 80° on the far side (relative RMSE 0.1 and more); see `lune_alpha`.
+#[test]
+fn flat_voxel_is_its_base_bsdf() {
+    let t = Tables::embedded();
+    let dirs: Vec<Vec3> = sphere_grid(64).into_iter().filter(|w| w.z > 0.0).collect();
+    for metallic in [0.0f32, 1.0] {
+        for alpha in [0.05f32, 0.2, 0.5, 1.0] {
+            let params = SurfaceParams {
+                base_color: Vec3::splat(0.5),
+                metallic,
+                alpha,
+                specular: 0.04,
+                f90: 1.0,
+            };
+            let flat: Vec<SurfaceSample> = (0..256)
+                .map(|_| SurfaceSample {
+                    normal: Vec3::Z,
+                    params,
+                    weight: 1.0,
+                })
+                .collect();
+            let a = Absdf::new(&estimate(&flat, &EstimateSettings::default()).unwrap(), t);
+            let base = BaseBsdf::new(params);
+            for deg in [0.0f32, 45.0, 72.0, 85.0] {
+                let th = deg.to_radians();
+                let wo = Vec3::new(th.sin(), 0.0, th.cos());
+                let (mut se, mut ss) = (0f64, 0f64);
+                for &wi in &dirs {
+                    let f = a.eval(wi, wo).x as f64;
+                    let g = (base.eval(wi, wo).x * wi.z) as f64;
+                    se += (f - g).powi(2);
+                    ss += g * g;
+                }
+                let rel = (se / ss).sqrt();
+                assert!(
+                    rel < 0.01,
+                    "metallic {metallic}, α {alpha}, view at {deg}°: relative RMSE {rel}"
                 );
             }
         }
