@@ -20,9 +20,9 @@
 //! with (c, μ, κ) the product of the two clamped-cosine SGs (Eq. 14), R = β^mβ^c + (1−β^m)β^s
 //! and W90 = β^m + (1−β^m)·F90 (the KHR_materials_specular weight of F_c), (m_j, α_j) the two
 //! microfacet lobes of the roughness beta (M2, Eq. 19), (α⁺, s) from M1/M3, S from the LTC lune
-//! integral (M4, Eq. 21) read at the narrower of the pair's widths (`lune_alpha`), G the height-correlated Smith term at the dominant normal (see
-//! `pair_g2` for why not Eq. 22's convolved lobe), and the
-//! moments looked up at ω_h (Eq. 23).
+//! integral (M4, Eq. 21) read at the narrower of the pair's widths (`lune_alpha`), G the
+//! height-correlated Smith term at the dominant normal (see `pair_g2` for why not Eq. 22's
+//! convolved lobe), and the moments looked up at ω_h (Eq. 23).
 
 pub mod cases;
 pub mod estimate;
