@@ -119,10 +119,28 @@ impl LuneTable {
     /// S for directions with ω_i·ω_o = `cos_io` and microfacet roughness `alpha`.
     #[inline]
     pub fn lookup(&self, cos_io: f32, alpha: f32) -> f32 {
-        let amin = crate::math::microfacet::ALPHA_MIN;
+        self.at(Self::io_coord(cos_io), Self::alpha_coord(alpha))
+    }
+
+    /// The table's coordinate along the angle between ω_i and ω_o (`cos_io` = ω_i·ω_o): one per
+    /// evaluation, shared by every lobe.
+    #[inline]
+    pub fn io_coord(cos_io: f32) -> f32 {
         let c = (0.5 * (1.0 + cos_io)).max(0.0).sqrt(); // cos(θ/2)
-        let t = c.sqrt().clamp(0.0, 1.0) * (LUNE_T - 1) as f32;
-        let ua = ((alpha - amin) / (1.0 - amin)).clamp(0.0, 1.0).sqrt() * (LUNE_A - 1) as f32;
+        c.sqrt().clamp(0.0, 1.0) * (LUNE_T - 1) as f32
+    }
+
+    /// The table's coordinate along the roughness: fixed per lobe, so it can be kept with it.
+    #[inline]
+    pub fn alpha_coord(alpha: f32) -> f32 {
+        let amin = crate::math::microfacet::ALPHA_MIN;
+        ((alpha - amin) / (1.0 - amin)).clamp(0.0, 1.0).sqrt() * (LUNE_A - 1) as f32
+    }
+
+    /// S at the coordinates of [`LuneTable::io_coord`] and [`LuneTable::alpha_coord`], read
+    /// bilinearly.
+    #[inline]
+    pub fn at(&self, t: f32, ua: f32) -> f32 {
         if !(t.is_finite() && ua.is_finite()) {
             return 0.0;
         }

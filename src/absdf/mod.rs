@@ -39,6 +39,7 @@ use crate::math::sggx::{Sggx, SggxDensity};
 use crate::math::sphere_maps::{equal_area_sphere_to_square, grid_cell};
 use crate::math::{finite_or_zero, finite_vec_or_zero, unit_or_zero};
 use crate::tables::Tables;
+use ltc::LuneTable;
 
 /// One lobe of the surface normal distribution.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -182,8 +183,8 @@ struct SpecLobe {
     /// Roughness of the macro lobe and of the microfacet lobe (for G).
     macro_alpha: Vec2,
     micro_alpha: f32,
-    /// The roughness at which S of Eq. 21 is read ([`lune_alpha`]).
-    lune_alpha: f32,
+    /// The lune table's roughness coordinate for S of Eq. 21, read at [`lune_alpha`].
+    lune_coord: f32,
 }
 
 /// The roughness at which to read S (Eq. 21) for a (macro lobe, microfacet lobe) pair: per
@@ -343,7 +344,7 @@ impl<'t> Absdf<'t> {
                     frame: l.frame,
                     macro_alpha: l.alpha,
                     micro_alpha: a,
-                    lune_alpha: lune_alpha(l.alpha, a),
+                    lune_coord: LuneTable::alpha_coord(lune_alpha(l.alpha, a)),
                 });
             }
         }
@@ -495,13 +496,14 @@ impl Bsdf for Absdf<'_> {
             let fc = schlick_weight(wh.dot(wo));
             let fres = (1.0 - fc) * sm.reflectance() + Vec3::splat(fc * sm.grazing());
             let mut acc = 0.0f32;
-            let cos_io = wi.dot(wo);
+            // S's coordinate along the angle between ω_i and ω_o, shared by every lobe.
+            let t = LuneTable::io_coord(wi.dot(wo));
             for l in &self.spec {
                 let d = l.density.d(wh);
                 if d <= 0.0 {
                     continue;
                 }
-                let s = self.tables.lune.lookup(cos_io, l.lune_alpha);
+                let s = self.tables.lune.at(t, l.lune_coord);
                 if s <= 0.0 {
                     continue;
                 }
