@@ -33,7 +33,9 @@
 //!   multiplied by J / S, S the split product of the same traced quantities, with η off;
 //! - **normalised** rows (the default, as the runtime renders; `--no-normalize` for the rows
 //!   as baked): each ray's sum divided by the sum of its weights, g_k·V̂(ω_o) over the hits
-//!   (V̂(ω_o) over the crossings with the coverage oracle) plus the background's;
+//!   (V̂(ω_o) over the crossings with the coverage oracle) plus the background's, after the
+//!   runtime's front-to-back occlusion ([`crate::runtime::Occlusion`]) where V̂(ω_o) is the
+//!   baked one (the traced V̂ already holds the occlusion);
 //! - **all** of them at once: F = J per crossing and the background 1[miss]: what remains
 //!   against the reference is the LoD's own spatial averaging (a voxel's surfaces averaged over
 //!   the voxel where the pixel sees part of it) and Monte Carlo noise: if it were large, the
@@ -64,7 +66,7 @@ use crate::math::rng::Pcg32;
 use crate::math::sampling::power_heuristic;
 use crate::render::compare::compare;
 use crate::render::view::View;
-use crate::runtime::{Cone, LodScene, Sampler, TraceSettings, VoxelHandle};
+use crate::runtime::{Cone, LodScene, Occlusion, Sampler, TraceSettings, VoxelHandle};
 use crate::scene::Scene;
 use crate::spatial::{morton3, Grid};
 use crate::trace::{offset_origin, Accel, Ray};
@@ -451,9 +453,23 @@ pub fn radiance(
     lights: &Lights,
     rng: &mut Pcg32,
 ) -> Vec3 {
+    // The walk's own weights and ABV as baked. Normalised rows apply the runtime's occlusion
+    // here, to whichever weights the row uses, where V̂(ω_o) is the baked one: the occlusion
+    // stands in for the baked V̂'s floor behind solids, which the traced V̂ does not have (it
+    // already holds the occlusion, and attenuating it again would count it twice).
     let settings = TraceSettings {
         level: Some(truth.level),
+        normalize: false,
         ..Default::default()
+    };
+    let occlude = oracles.normalize && !oracles.aiv_view;
+    let mut occlusion = Occlusion::default();
+    let mut attenuate = |w: f32| {
+        if occlude {
+            occlusion.attenuate(w)
+        } else {
+            w
+        }
     };
     let wo = -cone.dir;
     let background = lights.environment.eval(cone.dir);
@@ -473,8 +489,11 @@ pub fn radiance(
                 let p = truth.accel.surface(&ray, &h).p;
                 if let Some(v) = lod.voxel(truth.level, truth.key_of(p)) {
                     let s = Shaded::new(v, truth, oracles, wo);
-                    wsum += s.view;
-                    sum += s.radiance(lights, rng);
+                    let w = attenuate(s.view);
+                    if w > 0.0 {
+                        wsum += w;
+                        sum += s.radiance(lights, rng) * (w / s.view);
+                    }
                 }
             }
             ray.tmin = h.t + eps;
@@ -488,8 +507,11 @@ pub fn radiance(
         while let Some((voxel, _t, g)) = hits.next_geometric() {
             if g > 0.0 {
                 let s = Shaded::new(voxel, truth, oracles, wo);
-                wsum += g * s.view;
-                sum += s.radiance(lights, rng) * g;
+                let w = attenuate(g * s.view);
+                if w > 0.0 {
+                    wsum += w;
+                    sum += s.radiance(lights, rng) * (w / s.view);
+                }
             }
         }
     } else {
@@ -506,6 +528,7 @@ pub fn radiance(
             }
         }
     };
+    let tb = if occlude { tb * occlusion.open() } else { tb };
     if oracles.normalize && wsum + tb > 0.0 {
         return (sum + background * tb) / (wsum + tb);
     }

@@ -40,7 +40,7 @@ use crate::math::rng::Pcg32;
 use crate::spatial::Grid;
 
 pub use crate::lights::{EnvMap, Environment, LightSample, Lights, Sun};
-pub use hits::{Hit, Hits};
+pub use hits::{Hit, Hits, Occlusion, OCCLUSION_ONSET};
 pub use shade::{shade, Placement};
 
 /// A cone: a centre ray and the full angle of its aperture (Algorithm 1's r and θ).
@@ -232,7 +232,10 @@ pub struct TraceSettings {
     /// consistent: where the AIV's and the ABV's Monte Carlo and truncation errors make it
     /// more or less than 1, the pixel is too bright or too dark by that much. The error budget
     /// (`aggtool eval --budget`, issue 17) measured it removing 48% of the chandelier's bias at
-    /// 64³ and 17% of the maple's (see the README's "Quality and speed studies").
+    /// 64³ and 17% of the maple's (see the README's "Quality and speed studies"). Before the
+    /// division, the hits behind surfaces that already cover most of the cone are attenuated
+    /// ([`Occlusion`]: the hidden voxels' small baked V̂(ω_o) would otherwise mix their unlit
+    /// surfaces in). Off: Eq. 30's weights as baked.
     pub normalize: bool,
 }
 
@@ -526,7 +529,7 @@ impl LodScene {
         // final there, so the walk stops (the rest of it cannot change the value).
         let mut h = self.hits(cone, settings);
         if h.next_primitive().is_some() {
-            h.transmittance()
+            h.abv()
         } else {
             1.0
         }

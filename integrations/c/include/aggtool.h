@@ -79,7 +79,9 @@ typedef struct AggCone {
 /*
  A primitive a cone met (see [`agg_hits`]): the voxel, as level (0 = finest) and Morton
  key, the ray parameter at which the centre ray enters its truncated ellipsoid, and its
- coverage weight V̂(ω_o)·|A|_ω/|B|_ω (Eq. 30).
+ coverage weight V̂(ω_o)·|A|_ω/|B|_ω (Eq. 30), attenuated by the surfaces in front of it as
+ the runtime's own shading does (`Occlusion`); divide a cone's weights and transmittance by
+ their sum for the runtime's normalisation.
  */
 typedef struct AggHit {
   /*
@@ -210,7 +212,8 @@ int agg_trace_cones_stratified(const struct AggScene *scene,
 /*
  The primitives one cone meets, in order: the first `capacity` are written to `out`,
  `*count` receives how many there are (call again with more room to get them all), and
- `*transmittance` the background's weight through the ABV of the entry face (Eq. 30).
+ `*transmittance` the background's weight through the ABV of the entry face (Eq. 30),
+ attenuated as the hits are.
  */
 int agg_hits(const struct AggScene *scene,
              const struct AggCone *c,

@@ -86,7 +86,9 @@ pub struct AggCone {
 
 /// A primitive a cone met (see [`agg_hits`]): the voxel, as level (0 = finest) and Morton
 /// key, the ray parameter at which the centre ray enters its truncated ellipsoid, and its
-/// coverage weight V̂(ω_o)·|A|_ω/|B|_ω (Eq. 30).
+/// coverage weight V̂(ω_o)·|A|_ω/|B|_ω (Eq. 30), attenuated by the surfaces in front of it as
+/// the runtime's own shading does (`Occlusion`); divide a cone's weights and transmittance by
+/// their sum for the runtime's normalisation.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default)]
 pub struct AggHit {
@@ -455,7 +457,8 @@ unsafe fn trace_cones(
 
 /// The primitives one cone meets, in order: the first `capacity` are written to `out`,
 /// `*count` receives how many there are (call again with more room to get them all), and
-/// `*transmittance` the background's weight through the ABV of the entry face (Eq. 30).
+/// `*transmittance` the background's weight through the ABV of the entry face (Eq. 30),
+/// attenuated as the hits are.
 #[no_mangle]
 pub unsafe extern "C" fn agg_hits(
     scene: *const AggScene,

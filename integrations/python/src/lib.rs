@@ -459,9 +459,11 @@ impl Scene {
     /// `trace` (`tmax` clips them). Returns a dict of numpy arrays: `offsets` (N + 1,) int64
     /// (cone i's hits are rows offsets[i]:offsets[i+1]), per hit `level` uint32 (0 = finest),
     /// `key` uint64 (Morton key in the level), `t` float32 (where the centre ray enters the
-    /// primitive), `weight` float32 (the coverage V̂(ω_o)·|A|_ω/|B|_ω of Eq. 30), and per cone
-    /// `transmittance` float32 (the background's weight: the ABV of the entry face, 1 when
-    /// the cone met nothing). Releases the GIL.
+    /// primitive), `weight` float32 (the coverage V̂(ω_o)·|A|_ω/|B|_ω of Eq. 30, attenuated
+    /// by the surfaces in front as the runtime's shading does), and per cone `transmittance`
+    /// float32 (the background's weight: the ABV of the entry face, attenuated likewise; 1
+    /// when the cone met nothing). Divided by their sum they are the runtime's normalised
+    /// weights. Releases the GIL.
     #[pyo3(signature = (origins, directions, aperture, tmax = None))]
     fn hits<'py>(
         &self,
