@@ -29,6 +29,9 @@ pub struct Hit<'s> {
     /// under [`TraceSettings::normalize`] (the default) attenuated by the surfaces in front
     /// ([`Occlusion`]).
     pub weight: f32,
+    /// The exact |B|_ω of a primitive crossing its voxel where the walk computed it for
+    /// [`Occlusion`] under [`Weights::Bound`], else 0: [`Hits::exact_factor`] reuses it.
+    pub(crate) exact_area: f32,
 }
 
 /// The share of a cone the surfaces met so far may cover before the ones behind them are
@@ -228,7 +231,11 @@ impl<'s> Hits<'s> {
             return 0.0;
         };
         let d = self.cone.dir;
-        let exact = p.projected_area(d);
+        let exact = if hit.exact_area > 0.0 {
+            hit.exact_area
+        } else {
+            p.projected_area(d)
+        };
         if exact > 0.0 {
             p.projected_area_bound(d) / exact
         } else {
@@ -458,10 +465,10 @@ impl<'s> Hits<'s> {
     /// [`Weights`]), and the exact one where `exact` asks for it ([`Occlusion`] counts it),
     /// else the same.
     #[inline]
-    fn weight(&self, level: &Level, idx: u32, exact: bool) -> (f32, f32) {
+    fn weight(&self, level: &Level, idx: u32, exact: bool) -> (f32, f32, f32) {
         let vo = level.weight[idx as usize].vref.aiv(-self.cone.dir);
-        let (g, g_exact) = self.geometric_weight(level, idx, exact);
-        (vo * g, vo * g_exact)
+        let (g, g_exact, area) = self.geometric_weight(level, idx, exact);
+        (vo * g, vo * g_exact, area)
     }
 
     /// The next primitive met, with its geometric weight |A|·E|n·ω|/|B|_ω (Eq. 24's primitive
@@ -482,12 +489,14 @@ impl<'s> Hits<'s> {
     }
 
     /// [`Hits::weight`] without V̂(ω_o): with the walk's |B|_ω ([`Weights`]), and with the
-    /// exact |B|_ω where `exact` asks for it under [`Weights::Bound`] (else the same value).
+    /// exact |B|_ω where `exact` asks for it under [`Weights::Bound`] (else the same value);
+    /// and that exact |B|_ω where it was computed for a bound (else 0).
     #[inline]
-    fn geometric_weight(&self, level: &Level, idx: u32, exact: bool) -> (f32, f32) {
+    fn geometric_weight(&self, level: &Level, idx: u32, exact: bool) -> (f32, f32, f32) {
         let rec = &level.hit[idx as usize];
         let w = &level.weight[idx as usize];
         let d = self.cone.dir;
+        let mut computed = 0.0;
         let (area_b, exact_b) = match (self.settings.primitive, rec.area_case) {
             (PrimitiveKind::TruncatedEllipsoid, Some(case)) => {
                 let ellipsoid = std::f32::consts::PI * w.det * (rec.inv * d).length();
@@ -498,7 +507,12 @@ impl<'s> Hits<'s> {
                     (AreaCase::VoxelInside, _) => (cube, cube),
                     (AreaCase::Crossing, Weights::Bound) => {
                         let b = ellipsoid.min(cube);
-                        (b, if exact { projected() } else { b })
+                        if exact {
+                            computed = projected();
+                            (b, computed)
+                        } else {
+                            (b, b)
+                        }
                     }
                     (AreaCase::Crossing, Weights::Exact) => {
                         let e = projected();
@@ -514,7 +528,7 @@ impl<'s> Hits<'s> {
         };
         let a = rec.area * w.mean_cosine(d);
         let of = |b: f32| if b > 0.0 { a / b } else { 0.0 };
-        (of(area_b), of(exact_b))
+        (of(area_b), of(exact_b), computed)
     }
 }
 
@@ -525,7 +539,7 @@ impl<'s> Iterator for Hits<'s> {
         loop {
             let (level, li, idx, t) = self.next_primitive()?;
             let occlude = self.settings.normalize;
-            let (w, exact) = self.weight(level, idx, occlude);
+            let (w, exact, exact_area) = self.weight(level, idx, occlude);
             let mut weight = crate::math::finite_or_zero(w);
             if occlude && weight > 0.0 {
                 weight *= self.occlusion.pass(crate::math::finite_or_zero(exact));
@@ -543,6 +557,7 @@ impl<'s> Iterator for Hits<'s> {
                     },
                     t,
                     weight,
+                    exact_area,
                 });
             }
         }
