@@ -281,7 +281,30 @@ fn pair_g2(frame: Mat3, macro_alpha: Vec2, micro_alpha: f32, wi: Vec3, wo: Vec3,
     }
 }
 
+
 impl<'t> Absdf<'t> {
+    /// Bytes this ABSDF holds, itself and on the heap (what the runtime's block cache counts
+    /// for a voxel shaded).
+    pub fn memory_bytes(&self) -> usize {
+        fn vec<T>(v: &Vec<T>) -> usize {
+            v.capacity() * std::mem::size_of::<T>()
+        }
+        let moments = match &self.moments {
+            Moments::Constant(_) => 0,
+            Moments::Directional {
+                diffuse, specular, ..
+            } => vec(diffuse) + vec(specular),
+        };
+        std::mem::size_of::<Self>()
+            + vec(&self.lobes)
+            + vec(&self.unit)
+            + vec(&self.diffuse_terms)
+            + vec(&self.spec)
+            + vec(&self.spec_sampling)
+            + vec(&self.diffuse_sampling)
+            + moments
+    }
+
     pub fn new(v: &VoxelAppearance, tables: &'t Tables) -> Self {
         let mut lobes: Vec<NdfLobe> = v
             .lobes

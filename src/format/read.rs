@@ -57,6 +57,9 @@ struct Blob {
     /// Verified: `Some(bytes)` for a compressed blob (format 1.5), the FlatBuffer it inflated
     /// to, kept for the aggregate's life; `None` for a blob read in place from the file.
     checked: OnceLock<Result<Option<Box<[u8]>>, String>>,
+    /// The verdict of [`Aggregate::load_block`]'s verification, which keeps no bytes: a block
+    /// loaded again after a cache evicted it is inflated again but not verified again.
+    verdict: OnceLock<Result<(), String>>,
 }
 
 /// A level's grid, counts and blobs.
@@ -587,6 +590,98 @@ impl Aggregate {
         })
     }
 
+    /// Voxel block `i` of level `l`, verified, with bytes the caller owns: for a cache that
+    /// frees what it evicts ([`crate::runtime::BlockCache`]). A block stored uncompressed is
+    /// read in place from the file; a compressed one (format 1.5) is inflated afresh each
+    /// call and kept by nobody but the caller. Verification runs on the first call only (its
+    /// verdict is kept, a few bytes); a block [`Aggregate::open`] already verified and
+    /// inflated is lent from there.
+    pub fn load_voxel_block(&self, l: usize, i: usize) -> Result<LoadedBlock<'_>, FormatError> {
+        let lv = &self.levels[l];
+        let bi = lv.voxel_blobs.start + i;
+        if bi >= lv.voxel_blobs.end {
+            return Err(corrupt(format!("level {l} has no voxel block {i}")));
+        }
+        self.load_block(bi)
+    }
+
+    /// Face block `i` of level `l` as [`Aggregate::load_voxel_block`] loads voxel blocks.
+    pub fn load_face_block(&self, l: usize, i: usize) -> Result<LoadedBlock<'_>, FormatError> {
+        let lv = &self.levels[l];
+        let bi = lv.face_blobs.start + i;
+        if bi >= lv.face_blobs.end {
+            return Err(corrupt(format!("level {l} has no face block {i}")));
+        }
+        self.load_block(bi)
+    }
+
+    /// The first and last voxel keys of level `l`'s voxel blocks and their voxel counts, as
+    /// the index gives them (nothing is read from the blocks).
+    pub fn voxel_block_ranges(&self, l: usize) -> Vec<(u64, u64, u32)> {
+        self.blobs[self.levels[l].voxel_blobs.clone()]
+            .iter()
+            .map(|b| (b.first_key, b.last_key, b.count))
+            .collect()
+    }
+
+    /// The first and last voxel keys of level `l`'s face blocks and their face counts.
+    pub fn face_block_ranges(&self, l: usize) -> Vec<(u64, u64, u32)> {
+        self.blobs[self.levels[l].face_blobs.clone()]
+            .iter()
+            .map(|b| (b.first_key, b.last_key, b.count))
+            .collect()
+    }
+
+    /// Blob `bi`, verified once, its bytes lent from the file or from `open`'s kept copy, or
+    /// inflated for the caller.
+    fn load_block(&self, bi: usize) -> Result<LoadedBlock<'_>, FormatError> {
+        let b = &self.blobs[bi];
+        let (aiv_res, abv_res) = (self.settings.aiv_res, self.settings.abv_res);
+        let loaded = |bytes| LoadedBlock {
+            bytes,
+            voxels: matches!(b.kind, BlobKind::Voxels(_)),
+            aiv_res,
+            abv_res,
+        };
+        match b.checked.get() {
+            Some(Ok(Some(kept))) => return Ok(loaded(LoadedBytes::InFile(kept))),
+            Some(Ok(None)) => return Ok(loaded(LoadedBytes::InFile(self.stored(b)))),
+            Some(Err(e)) => return Err(corrupt(e.clone())),
+            None => {}
+        }
+        let mut fresh = None;
+        let verdict = b.verdict.get_or_init(|| {
+            check_blob(
+                self.bytes(),
+                b,
+                &self.settings,
+                self.levels.as_slice(),
+                self.checksums,
+                self.trees,
+                self.header.minor,
+            )
+            .map(|inflated| fresh = inflated)
+        });
+        if let Err(e) = verdict {
+            return Err(corrupt(e.clone()));
+        }
+        let stored = self.stored(b);
+        let bytes = match fresh {
+            Some(inflated) => LoadedBytes::Inflated(inflated),
+            None if stored.starts_with(&super::ZSTD_MAGIC) => LoadedBytes::Inflated(
+                super::inflate_block(stored)
+                    .map_err(|e| corrupt(format!("block at {}: {e}", b.offset)))?
+                    .into_boxed_slice(),
+            ),
+            None => LoadedBytes::InFile(stored),
+        };
+        Ok(loaded(bytes))
+    }
+
+    fn stored(&self, b: &Blob) -> &[u8] {
+        &self.bytes()[b.offset as usize..(b.offset + b.size) as usize]
+    }
+
     /// The voxel with Morton key `key` at level `l`, found by binary search over the blocks'
     /// key ranges and then over the block's keys. `None` also when its block fails to verify.
     pub fn find_voxel(&self, l: usize, key: u64) -> Option<VoxelRef<'_>> {
@@ -654,6 +749,71 @@ impl Aggregate {
             faces,
             rays: 0,
         }
+    }
+}
+
+/// The bytes of a verified block: in the file, or inflated and owned.
+enum LoadedBytes<'a> {
+    InFile(&'a [u8]),
+    Inflated(Box<[u8]>),
+}
+
+/// A verified block whose bytes its holder owns ([`Aggregate::load_voxel_block`],
+/// [`Aggregate::load_face_block`]): read with [`LoadedBlock::voxels`] or
+/// [`LoadedBlock::faces`], zero-copy.
+pub struct LoadedBlock<'a> {
+    bytes: LoadedBytes<'a>,
+    voxels: bool,
+    aiv_res: u32,
+    abv_res: u32,
+}
+
+impl LoadedBlock<'_> {
+    fn block(&self) -> fb::Block<'_> {
+        let bytes: &[u8] = match &self.bytes {
+            LoadedBytes::InFile(b) => b,
+            LoadedBytes::Inflated(b) => b,
+        };
+        // SAFETY: a `LoadedBlock` is only made of bytes that passed `check_blob` (the
+        // FlatBuffers verifier and the invariants the accessors rely on), and they are
+        // immutable.
+        unsafe { flatbuffers::root_unchecked::<fb::Block>(bytes) }
+    }
+
+    /// The bytes held in memory for the block (0 for a block read in place from the file or
+    /// lent by the aggregate).
+    pub fn owned_bytes(&self) -> usize {
+        match &self.bytes {
+            LoadedBytes::InFile(_) => 0,
+            LoadedBytes::Inflated(b) => b.len(),
+        }
+    }
+
+    /// The block's voxels; `None` for a face block.
+    pub fn voxels(&self) -> Option<VoxelBlock<'_>> {
+        if !self.voxels {
+            return None;
+        }
+        let block = self.block();
+        Some(VoxelBlock {
+            block,
+            keys: block.keys()?,
+            recs: block.voxels()?,
+            aiv_res: self.aiv_res,
+        })
+    }
+
+    /// The block's faces; `None` for a voxel block.
+    pub fn faces(&self) -> Option<FaceBlock<'_>> {
+        if self.voxels {
+            return None;
+        }
+        let block = self.block();
+        Some(FaceBlock {
+            faces: block.faces()?,
+            nodes: Nodes::abv(&block),
+            abv_res: self.abv_res,
+        })
     }
 }
 
@@ -947,6 +1107,7 @@ fn verify_index(
             kind,
             gap_end: 0,
             checked: OnceLock::new(),
+            verdict: OnceLock::new(),
         })
     };
     for (li, lv) in levels.iter().enumerate() {

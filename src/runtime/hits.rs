@@ -9,9 +9,11 @@
 //! coarser LoD only at the boundary of the coarser voxels"). The face through which the ray
 //! entered the first occupied voxel gives the ABV (lines 9–10).
 
+use std::sync::Arc;
+
 use glam::{IVec3, Vec3};
 
-use super::level::{Brick, Level, BRICK, MAX_GRANULARITY};
+use super::level::{Brick, Level, Voxels, BRICK, MAX_GRANULARITY};
 use super::{Cone, LodScene, PrimitiveKind, TraceSettings, VoxelHandle};
 use crate::spatial::dda::entry_axis;
 use crate::spatial::ellipsoid::AreaCase;
@@ -19,7 +21,7 @@ use crate::spatial::face::entry_face;
 use crate::spatial::{box_interval, box_projected_area, truncated_entry, Dda};
 
 /// A primitive the cone met.
-#[derive(Clone, Copy)]
+#[derive(Clone)]
 pub struct Hit<'s> {
     /// The voxel: its ABSDF and AIV.
     pub voxel: VoxelHandle<'s>,
@@ -131,6 +133,8 @@ pub struct Hits<'s> {
     g: usize,
     /// The brick being walked when `g` is 0.
     brick: Option<Brick>,
+    /// The prepared block of the last voxel tested (a cone's voxels are mostly in one).
+    block: Option<Arc<Voxels>>,
     t: f32,
     entry_axis: usize,
     /// The ABV at the first occupied voxel, once met.
@@ -177,6 +181,7 @@ impl LodScene {
             ddas: [Dda::IDLE; MAX_GRANULARITY],
             g: 0,
             brick: None,
+            block: None,
             t: 0.0,
             entry_axis: 0,
             vb: None,
@@ -221,13 +226,13 @@ impl<'s> Hits<'s> {
     /// exact weight / bound weight of a hit yielded under [`Weights::Bound`].
     #[inline]
     pub(crate) fn exact_factor(&self, hit: &Hit) -> f32 {
-        let (level, idx) = (hit.voxel.data, hit.voxel.idx);
+        let (level, block, i) = (hit.voxel.data, &hit.voxel.block, hit.voxel.i);
         if self.settings.primitive != PrimitiveKind::TruncatedEllipsoid
-            || level.hit[idx as usize].area_case != Some(AreaCase::Crossing)
+            || block.hit[i as usize].area_case != Some(AreaCase::Crossing)
         {
             return 1.0;
         }
-        let Some(p) = level.primitive(idx) else {
+        let Some(p) = block.primitive(level, i) else {
             return 0.0;
         };
         let d = self.cone.dir;
@@ -260,6 +265,7 @@ impl<'s> Hits<'s> {
             return false;
         };
         self.level = Some(level);
+        self.block = None;
         // Algorithm 1's line 7 asks for level li + 1 once tan(θ/2)·t/s ≥ 2^(li+1).
         self.t_switch = if self.settings.level.is_some() || self.li + 1 >= self.scene.grids.len() {
             f32::INFINITY
@@ -319,9 +325,11 @@ impl<'s> Hits<'s> {
         }
     }
 
-    /// The next primitive met (its level's data, level index, voxel index and entry
-    /// parameter), without its weight.
-    pub(crate) fn next_primitive(&mut self) -> Option<(&'s Level<'s>, usize, u32, f32)> {
+    /// The next primitive met (its level's data, level index, prepared block, index in the
+    /// block and entry parameter), without its weight.
+    pub(crate) fn next_primitive(
+        &mut self,
+    ) -> Option<(&'s Level<'s>, usize, Arc<Voxels>, u32, f32)> {
         while !self.done {
             if self.steps_left == 0 {
                 self.done = true;
@@ -335,16 +343,19 @@ impl<'s> Hits<'s> {
                 // A voxel of the current brick: test its primitive, then move on.
                 let t_exit = self.ddas[0].t_exit().min(self.t_end);
                 let mut found = None;
-                if let Some(idx) = self.brick.and_then(|b| Level::in_brick(&b, c)) {
-                    let rec = &level.hit[idx as usize];
+                let idx = self.brick.and_then(|b| Level::in_brick(&b, c));
+                if let Some(idx) = idx {
+                    if !self.block.as_ref().is_some_and(|b| b.holds(idx)) {
+                        self.block = level.voxels(idx);
+                    }
+                }
+                if let (Some(idx), Some(block)) = (idx, self.block.as_ref()) {
+                    let i = idx - block.first;
+                    let rec = &block.hit[i as usize];
                     if self.vb.is_none() {
                         let a = self.entry_axis;
                         let dir = entry_face(a, self.ddas[0].step[a]);
-                        self.vb = Some(
-                            level
-                                .face(c.as_uvec3(), dir)
-                                .map_or(1.0, |f| f.abv(self.cone.dir)),
-                        );
+                        self.vb = Some(level.abv(c.as_uvec3(), dir, self.cone.dir));
                     }
                     let hit = match self.settings.primitive {
                         PrimitiveKind::TruncatedEllipsoid if rec.area_case.is_some() => {
@@ -363,12 +374,12 @@ impl<'s> Hits<'s> {
                     };
                     if let Some(th) = hit {
                         self.primitives += 1;
-                        found = Some((idx, th));
+                        found = Some((block.clone(), i, th));
                     }
                 }
                 self.advance(t_exit);
-                if let Some((idx, th)) = found {
-                    return Some((level, li, idx, th));
+                if let Some((block, i, th)) = found {
+                    return Some((level, li, block, i, th));
                 }
                 continue;
             }
@@ -465,9 +476,9 @@ impl<'s> Hits<'s> {
     /// [`Weights`]), and the exact one where `exact` asks for it ([`Occlusion`] counts it),
     /// else the same.
     #[inline]
-    fn weight(&self, level: &Level, idx: u32, exact: bool) -> (f32, f32, f32) {
-        let vo = level.weight[idx as usize].vref.aiv(-self.cone.dir);
-        let (g, g_exact, area) = self.geometric_weight(level, idx, exact);
+    fn weight(&self, level: &Level, block: &Voxels, i: u32, exact: bool) -> (f32, f32, f32) {
+        let vo = block.weight[i as usize].vref.aiv(-self.cone.dir);
+        let (g, g_exact, area) = self.geometric_weight(level, block, i, exact);
         (vo * g, vo * g_exact, area)
     }
 
@@ -475,12 +486,13 @@ impl<'s> Hits<'s> {
     /// coverage, without the V̂(ω_o) of the full weight), zero or not: the error budget
     /// ([`crate::eval::budget`]) replaces the factors of the weight one at a time.
     pub(crate) fn next_geometric(&mut self) -> Option<(VoxelHandle<'s>, f32, f32)> {
-        let (level, li, idx, t) = self.next_primitive()?;
-        let g = crate::math::finite_or_zero(self.geometric_weight(level, idx, false).0);
+        let (level, li, block, i, t) = self.next_primitive()?;
+        let g = crate::math::finite_or_zero(self.geometric_weight(level, &block, i, false).0);
         Some((
             VoxelHandle {
                 data: level,
-                idx,
+                block,
+                i,
                 level: li,
             },
             t,
@@ -492,16 +504,22 @@ impl<'s> Hits<'s> {
     /// exact |B|_ω where `exact` asks for it under [`Weights::Bound`] (else the same value);
     /// and that exact |B|_ω where it was computed for a bound (else 0).
     #[inline]
-    fn geometric_weight(&self, level: &Level, idx: u32, exact: bool) -> (f32, f32, f32) {
-        let rec = &level.hit[idx as usize];
-        let w = &level.weight[idx as usize];
+    fn geometric_weight(
+        &self,
+        level: &Level,
+        block: &Voxels,
+        i: u32,
+        exact: bool,
+    ) -> (f32, f32, f32) {
+        let rec = &block.hit[i as usize];
+        let w = &block.weight[i as usize];
         let d = self.cone.dir;
         let mut computed = 0.0;
         let (area_b, exact_b) = match (self.settings.primitive, rec.area_case) {
             (PrimitiveKind::TruncatedEllipsoid, Some(case)) => {
                 let ellipsoid = std::f32::consts::PI * w.det * (rec.inv * d).length();
                 let cube = box_projected_area(Vec3::splat(level.voxel_size + 2.0 * level.pad), d);
-                let projected = || level.primitive(idx).map_or(0.0, |p| p.projected_area(d));
+                let projected = || block.primitive(level, i).map_or(0.0, |p| p.projected_area(d));
                 match (case, self.weights) {
                     (AreaCase::EllipsoidInside, _) => (ellipsoid, ellipsoid),
                     (AreaCase::VoxelInside, _) => (cube, cube),
@@ -537,9 +555,9 @@ impl<'s> Iterator for Hits<'s> {
 
     fn next(&mut self) -> Option<Hit<'s>> {
         loop {
-            let (level, li, idx, t) = self.next_primitive()?;
+            let (level, li, block, i, t) = self.next_primitive()?;
             let occlude = self.settings.normalize;
-            let (w, exact, exact_area) = self.weight(level, idx, occlude);
+            let (w, exact, exact_area) = self.weight(level, &block, i, occlude);
             let mut weight = crate::math::finite_or_zero(w);
             if occlude && weight > 0.0 {
                 weight *= self.occlusion.pass(crate::math::finite_or_zero(exact));
@@ -552,7 +570,8 @@ impl<'s> Iterator for Hits<'s> {
                 return Some(Hit {
                     voxel: VoxelHandle {
                         data: level,
-                        idx,
+                        block,
+                        i,
                         level: li,
                     },
                     t,

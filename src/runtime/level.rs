@@ -1,25 +1,32 @@
-//! A level prepared for cone tracing, laid out for the traversal's cache:
+//! A level prepared for cone tracing: a resident skeleton, and blocks prepared on demand into
+//! the block cache ([`super::cache`]).
 //!
-//! - per voxel, in Morton order, one 64-byte record with what the hit test needs (the
-//!   ellipsoid's centre and inverse axes; the voxel box comes from the DDA) and a few bytes the
-//!   weight needs; a second record, read only for primitives actually hit, with the normal
-//!   lobes for E|n·ω|, the exposure and the zero-copy AIV handle; and the voxel's ABSDF, built
-//!   the first time the voxel is shaded (once, thread-safely);
+//! The skeleton, built the first time a cone needs the level (every voxel block verified and
+//! its keys read, nothing else kept):
 //! - occupancy as a hierarchy of bits, one per cell of 4^g voxels for g = 1 (bricks) up to
 //!   the coarsest granularity with at most 4 cells per axis, and per occupied brick a 64-bit
 //!   mask of its voxels with the index of its first voxel, so that the traversal crosses empty
 //!   space in large steps and finds a voxel without hashing;
-//! - the boundary faces by (voxel key, direction).
+//! - the level's voxel and face blocks: where each starts, and a cache slot each.
+//!
+//! A prepared voxel block ([`Voxels`]) holds, per voxel in Morton order, one 64-byte record
+//! with what the hit test needs (the ellipsoid's centre and inverse axes; the voxel box comes
+//! from the DDA) and a few bytes the weight needs; a second record, read only for primitives
+//! actually hit, with the normal lobes for E|n·ω|, the exposure and the zero-copy AIV handle;
+//! and the voxel's ABSDF, built the first time the voxel is shaded (once, thread-safely). A
+//! prepared face block ([`Faces`]) holds its faces by (voxel key, direction).
 
 use std::collections::HashMap;
 use std::hash::BuildHasherDefault;
-use std::sync::OnceLock;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, OnceLock};
 
 use glam::{IVec3, Mat3, UVec3, Vec3};
 
 use crate::absdf::Absdf;
+use super::cache::{BlockCache, Slot};
 use crate::format::read::FaceRef;
-use crate::format::{Aggregate, VoxelRef};
+use crate::format::{Aggregate, LoadedBlock, VoxelRef};
 use crate::math::microfacet::m5_exact;
 use crate::math::sggx::Sggx;
 use crate::spatial::ellipsoid::AreaCase;
@@ -107,7 +114,210 @@ enum BrickIndex {
 /// 4096; a finer level just has more cells at its top).
 pub const MAX_GRANULARITY: usize = 8;
 
-/// A prepared level.
+/// A prepared voxel block: its records, and its voxels' ABSDFs as they are built.
+pub struct Voxels {
+    /// The level index of the block's first voxel.
+    pub first: u32,
+    pub hit: Box<[HitRecord]>,
+    pub weight: Box<[WeightRecord<'static>]>,
+    absdf: Box<[OnceLock<Box<Absdf<'static>>>]>,
+    /// Bytes counted for the block in its cache (grows as ABSDFs are built).
+    bytes: AtomicU64,
+    cache: Arc<BlockCache>,
+    /// The block's bytes, which `weight` borrows: declared last, dropped last.
+    _loaded: LoadedBlock<'static>,
+}
+
+impl Voxels {
+    /// Prepares `loaded`, voxel block of `grid` whose first voxel is `first` in its level.
+    fn prepare(
+        loaded: LoadedBlock<'static>,
+        grid: &Grid,
+        first: u32,
+        cache: Arc<BlockCache>,
+    ) -> Result<Voxels, String> {
+        let block = loaded.voxels().ok_or("not a voxel block")?;
+        // SAFETY: the records borrow the block's bytes, which live in the file's map (held by
+        // the scene, which outlives every block: `Level` empties its slots when dropped, and
+        // handles borrow the scene) or in `_loaded`'s heap buffer, which does not move when
+        // `Voxels` does and is dropped after the records (field order).
+        let block: crate::format::read::VoxelBlock<'static> = unsafe { std::mem::transmute(block) };
+        let n = block.len();
+        let mut hit = Vec::with_capacity(n);
+        let mut weight = Vec::with_capacity(n);
+        for i in 0..n {
+            let v = block.voxel(i);
+            let (h, w) = records(grid, v);
+            hit.push(h);
+            weight.push(w);
+        }
+        let absdf: Box<[OnceLock<Box<Absdf<'static>>>]> = (0..n).map(|_| OnceLock::new()).collect();
+        let bytes = (std::mem::size_of::<Voxels>()
+            + n * (std::mem::size_of::<HitRecord>()
+                + std::mem::size_of::<WeightRecord>()
+                + std::mem::size_of::<OnceLock<Box<Absdf>>>())
+            + loaded.owned_bytes()) as u64;
+        cache.grow(bytes);
+        Ok(Voxels {
+            first,
+            hit: hit.into_boxed_slice(),
+            weight: weight.into_boxed_slice(),
+            absdf,
+            bytes: AtomicU64::new(bytes),
+            cache,
+            _loaded: loaded,
+        })
+    }
+
+    /// Voxels in the block.
+    #[inline]
+    pub fn len(&self) -> usize {
+        self.hit.len()
+    }
+
+    /// Whether the level index `idx` falls in this block.
+    #[inline]
+    pub fn holds(&self, idx: u32) -> bool {
+        idx.wrapping_sub(self.first) < self.hit.len() as u32
+    }
+
+    /// The ABSDF of voxel `i` of the block, built on first use (and counted in the cache,
+    /// which may evict other blocks to make room).
+    #[inline]
+    pub fn absdf(&self, i: u32) -> &Absdf<'static> {
+        let slot = &self.absdf[i as usize];
+        if let Some(a) = slot.get() {
+            return a;
+        }
+        let mut built = 0;
+        let a = slot.get_or_init(|| {
+            let a = Box::new(Absdf::new(
+                &self.weight[i as usize].vref.appearance(),
+                crate::tables::Tables::embedded(),
+            ));
+            built = a.memory_bytes() as u64;
+            a
+        });
+        if built > 0 {
+            self.bytes.fetch_add(built, Relaxed);
+            self.cache.grow(built);
+            self.cache.evict_over_budget();
+        }
+        a
+    }
+
+    /// The primitive of voxel `i` of the block, rebuilt (for |B|_ω in the crossing case).
+    pub fn primitive(&self, level: &Level, i: u32) -> Option<TruncatedEllipsoid> {
+        let (h, w) = (&self.hit[i as usize], &self.weight[i as usize]);
+        let area_case = h.area_case?;
+        let (lo, hi) = level.grid.voxel_bounds(w.vref.coords());
+        let pad = Vec3::splat(level.pad);
+        Some(TruncatedEllipsoid {
+            center: h.center,
+            axes: w.axes,
+            inv: h.inv,
+            det: w.det,
+            lo: lo - pad,
+            hi: hi + pad,
+            area_case,
+        })
+    }
+}
+
+impl Drop for Voxels {
+    fn drop(&mut self) {
+        self.cache.shrink(self.bytes.load(Relaxed));
+    }
+}
+
+/// The hit and weight records of voxel `v` of a level of grid `grid`.
+fn records<'a>(grid: &Grid, v: VoxelRef<'a>) -> (HitRecord, WeightRecord<'a>) {
+    let (lo, hi) = grid.voxel_bounds(v.coords());
+    let e: Ellipsoid = v.ellipsoid();
+    let prim = TruncatedEllipsoid::new(&e, lo, hi);
+    let hit = HitRecord {
+        center: e.center,
+        inv: prim.map_or(Mat3::ZERO, |p| p.inv),
+        area: v.area() * v.coverage(),
+        area_case: prim.map(|p| p.area_case),
+    };
+    let mut lobes = [Sggx::from_frame_roughness(Mat3::IDENTITY, glam::Vec2::ONE); 4];
+    let mut lobe_count = 0;
+    for lb in v.lobes().take(4) {
+        let mass = m5_exact((lb.alpha.x * lb.alpha.y).sqrt()).max(1e-6);
+        let k = (lb.weight / mass).max(0.0);
+        let s = Sggx::from_frame_roughness(lb.frame, lb.alpha);
+        let k2 = k * k;
+        lobes[lobe_count] = Sggx {
+            xx: s.xx * k2,
+            yy: s.yy * k2,
+            zz: s.zz * k2,
+            xy: s.xy * k2,
+            xz: s.xz * k2,
+            yz: s.yz * k2,
+        };
+        lobe_count += 1;
+    }
+    let weight = WeightRecord {
+        lobes,
+        lobe_count: lobe_count as u8,
+        inv_exposure: 1.0 / v.exposure().clamp(1.0 / 16.0, 1.0),
+        axes: e.axes,
+        det: prim.map_or(0.0, |p| p.det),
+        vref: v,
+    };
+    (hit, weight)
+}
+
+/// A prepared face block: its faces by key · 8 + direction, sorted.
+pub struct Faces {
+    keys: Box<[u64]>,
+    faces: Box<[FaceRef<'static>]>,
+    bytes: u64,
+    cache: Arc<BlockCache>,
+    /// The block's bytes, which `faces` borrows: declared last, dropped last.
+    _loaded: LoadedBlock<'static>,
+}
+
+impl Faces {
+    fn prepare(loaded: LoadedBlock<'static>, cache: Arc<BlockCache>) -> Result<Faces, String> {
+        let block = loaded.faces().ok_or("not a face block")?;
+        // SAFETY: as for `Voxels::prepare`.
+        let block: crate::format::read::FaceBlock<'static> = unsafe { std::mem::transmute(block) };
+        let mut pairs: Vec<(u64, FaceRef<'static>)> = (0..block.len())
+            .map(|i| {
+                let f = block.face(i);
+                (f.key() * 8 + f.face().dir as u64, f)
+            })
+            .collect();
+        pairs.sort_by_key(|p| p.0);
+        let keys: Box<[u64]> = pairs.iter().map(|p| p.0).collect();
+        let faces: Box<[FaceRef<'static>]> = pairs.into_iter().map(|p| p.1).collect();
+        let bytes = (std::mem::size_of::<Faces>()
+            + keys.len() * (8 + std::mem::size_of::<FaceRef>())
+            + loaded.owned_bytes()) as u64;
+        cache.grow(bytes);
+        Ok(Faces {
+            keys,
+            faces,
+            bytes,
+            cache,
+            _loaded: loaded,
+        })
+    }
+
+    fn get(&self, key8: u64) -> Option<&FaceRef<'static>> {
+        self.keys.binary_search(&key8).ok().map(|i| &self.faces[i])
+    }
+}
+
+impl Drop for Faces {
+    fn drop(&mut self) {
+        self.cache.shrink(self.bytes);
+    }
+}
+
+/// A prepared level: the skeleton, and the slots of its blocks.
 pub struct Level<'a> {
     pub grid: Grid,
     /// Voxel size, and the padding of a voxel's interval (spatial::VOXEL_PAD of it).
@@ -121,69 +331,72 @@ pub struct Level<'a> {
     pub top: usize,
     pub grids: [Grid; MAX_GRANULARITY],
     occ: Vec<Vec<u64>>,
-    pub hit: Vec<HitRecord>,
-    pub weight: Vec<WeightRecord<'a>>,
-    absdf: Vec<OnceLock<Box<Absdf<'static>>>>,
     bricks: Vec<Brick>,
     index: BrickIndex,
-    /// Boundary faces: key · 8 + direction.
-    faces: FastMap<FaceRef<'a>>,
+    /// Per voxel block b, the level index of its first voxel (and one past the last at the
+    /// end), and its block number in the file (blocks that failed to verify are left out).
+    block_first: Vec<u32>,
+    block_number: Vec<u32>,
+    voxel_slots: Vec<Arc<Slot<Voxels>>>,
+    /// Per face block, its first and last voxel keys, and its slot.
+    face_ranges: Vec<(u64, u64)>,
+    face_slots: Vec<Arc<Slot<Faces>>>,
+    agg: &'a Aggregate,
+    l: usize,
+    cache: Arc<BlockCache>,
+    /// The first block that failed to verify or to load, if any.
+    error: OnceLock<String>,
+}
+
+impl Drop for Level<'_> {
+    fn drop(&mut self) {
+        for s in &self.voxel_slots {
+            s.clear();
+        }
+        for s in &self.face_slots {
+            s.clear();
+        }
+        self.cache.forget_empty();
+    }
 }
 
 impl<'a> Level<'a> {
-    /// Prepares level `l` of `agg`, verifying its blocks.
-    pub fn prepare(agg: &'a Aggregate, l: usize) -> Result<Level<'a>, String> {
+    /// Builds the skeleton of level `l` of `agg` (verifying every voxel block and reading its
+    /// keys; no block is kept), its blocks to be prepared into `cache` on demand. A voxel
+    /// block that fails to verify is left out (its voxels are empty space) and reported by
+    /// [`Level::error`]; a level none of whose blocks verify fails.
+    pub fn prepare(agg: &'a Aggregate, l: usize, cache: Arc<BlockCache>) -> Result<Level<'a>, String> {
         let grid = agg.grid(l);
-        let (nv, nf) = agg.block_counts(l);
-        let mut refs: Vec<VoxelRef<'a>> = Vec::with_capacity(agg.counts(l).voxels as usize);
+        let (nv, _) = agg.block_counts(l);
+        let error = OnceLock::new();
+        let mut keys: Vec<u64> = Vec::new();
+        let mut block_first = Vec::with_capacity(nv + 1);
+        let mut block_number = Vec::with_capacity(nv);
         for b in 0..nv {
-            let block = agg.voxel_block(l, b).map_err(|e| e.to_string())?;
-            refs.extend((0..block.len()).map(|i| block.voxel(i)));
+            let loaded = match agg.load_voxel_block(l, b) {
+                Ok(x) => x,
+                Err(e) => {
+                    let _ = error.set(format!("level {l}, voxel block {b}: {e}"));
+                    continue;
+                }
+            };
+            let Some(block) = loaded.voxels() else {
+                continue;
+            };
+            block_first.push(keys.len() as u32);
+            block_number.push(b as u32);
+            keys.extend((0..block.len()).map(|i| block.key(i)));
         }
-        let mut hit = Vec::with_capacity(refs.len());
-        let mut weight = Vec::with_capacity(refs.len());
-        for v in &refs {
-            let (lo, hi) = grid.voxel_bounds(v.coords());
-            let e: Ellipsoid = v.ellipsoid();
-            let prim = TruncatedEllipsoid::new(&e, lo, hi);
-            hit.push(HitRecord {
-                center: e.center,
-                inv: prim.map_or(Mat3::ZERO, |p| p.inv),
-                area: v.area() * v.coverage(),
-                area_case: prim.map(|p| p.area_case),
-            });
-            let mut lobes = [Sggx::from_frame_roughness(Mat3::IDENTITY, glam::Vec2::ONE); 4];
-            let mut lobe_count = 0;
-            for lb in v.lobes().take(4) {
-                let mass = m5_exact((lb.alpha.x * lb.alpha.y).sqrt()).max(1e-6);
-                let k = (lb.weight / mass).max(0.0);
-                let s = Sggx::from_frame_roughness(lb.frame, lb.alpha);
-                let k2 = k * k;
-                lobes[lobe_count] = Sggx {
-                    xx: s.xx * k2,
-                    yy: s.yy * k2,
-                    zz: s.zz * k2,
-                    xy: s.xy * k2,
-                    xz: s.xz * k2,
-                    yz: s.yz * k2,
-                };
-                lobe_count += 1;
-            }
-            weight.push(WeightRecord {
-                lobes,
-                lobe_count: lobe_count as u8,
-                inv_exposure: 1.0 / v.exposure().clamp(1.0 / 16.0, 1.0),
-                axes: e.axes,
-                det: prim.map_or(0.0, |p| p.det),
-                vref: *v,
-            });
+        block_first.push(keys.len() as u32);
+        if nv > 0 && block_number.is_empty() {
+            return Err(error.get().cloned().unwrap_or_else(|| "no voxel block".into()));
         }
         // Bricks: voxels are sorted by Morton key, so each brick is a run of keys >> 6.
         let brick_res = (grid.res as i32 + BRICK - 1) / BRICK;
         let mut bricks: Vec<Brick> = Vec::new();
         let mut brick_keys: Vec<u64> = Vec::new();
-        for (i, v) in refs.iter().enumerate() {
-            let bk = v.key >> 6;
+        for (i, &key) in keys.iter().enumerate() {
+            let bk = key >> 6;
             if brick_keys.last() != Some(&bk) {
                 brick_keys.push(bk);
                 bricks.push(Brick {
@@ -191,8 +404,11 @@ impl<'a> Level<'a> {
                     first: i as u32,
                 });
             }
-            bricks.last_mut().expect("pushed").mask |= 1u64 << (v.key & 63);
+            if let Some(b) = bricks.last_mut() {
+                b.mask |= 1u64 << (key & 63);
+            }
         }
+        drop(keys);
         let cells = (brick_res as u64).pow(3);
         let mut occupied = vec![0u64; cells.div_ceil(64) as usize];
         let index = if brick_res <= 128 {
@@ -247,15 +463,8 @@ impl<'a> Level<'a> {
             }
             occ.push(bits);
         }
-        let mut faces =
-            FastMap::with_capacity_and_hasher(agg.counts(l).faces as usize, Default::default());
-        for b in 0..nf {
-            let block = agg.face_block(l, b).map_err(|e| e.to_string())?;
-            for i in 0..block.len() {
-                let f = block.face(i);
-                faces.insert(f.key() * 8 + f.face().dir as u64, f);
-            }
-        }
+        let face_ranges: Vec<(u64, u64)> =
+            agg.face_block_ranges(l).iter().map(|r| (r.0, r.1)).collect();
         let voxel_size = grid.voxel_size();
         Ok(Level {
             grid,
@@ -265,18 +474,43 @@ impl<'a> Level<'a> {
             top,
             grids,
             occ,
-            absdf: (0..hit.len()).map(|_| OnceLock::new()).collect(),
-            hit,
-            weight,
             bricks,
             index,
-            faces,
+            voxel_slots: (0..block_number.len()).map(|_| Arc::default()).collect(),
+            block_first,
+            block_number,
+            face_slots: (0..face_ranges.len()).map(|_| Arc::default()).collect(),
+            face_ranges,
+            agg,
+            l,
+            cache,
+            error,
         })
     }
 
     #[inline]
     fn linear(brick_res: i32, c: IVec3) -> usize {
         ((c.z * brick_res + c.y) * brick_res + c.x) as usize
+    }
+
+    /// The first block of the level that failed to verify or to load, if any (its voxels or
+    /// faces were treated as absent).
+    pub fn error(&self) -> Option<&String> {
+        self.error.get()
+    }
+
+    /// Bytes the skeleton holds (resident while the scene is open, outside the cache).
+    pub fn skeleton_bytes(&self) -> usize {
+        let index = match &self.index {
+            BrickIndex::Dense(d) => d.len() * 4,
+            BrickIndex::Sparse(m) => m.capacity() * 16,
+        };
+        self.occ.iter().map(|o| o.len() * 8).sum::<usize>()
+            + self.bricks.len() * std::mem::size_of::<Brick>()
+            + index
+            + self.block_first.len() * 8
+            + self.face_ranges.len() * 16
+            + (self.voxel_slots.len() + self.face_slots.len()) * 64
     }
 
     /// Whether cell `c` of granularity `g` ≥ 1 holds any voxel.
@@ -313,37 +547,66 @@ impl<'a> Level<'a> {
         (b.mask >> bit & 1 != 0).then(|| b.first + (b.mask & ((1u64 << bit) - 1)).count_ones())
     }
 
-    /// The boundary face of voxel `v` in direction `dir`.
-    #[inline]
-    pub fn face(&self, v: UVec3, dir: u8) -> Option<&FaceRef<'a>> {
-        self.faces.get(&(morton3(v) * 8 + dir as u64))
+    /// The prepared block holding voxel `idx` of the level, prepared now if it is not in the
+    /// cache; `None` when it fails to load (recorded in [`Level::error`]).
+    #[inline(never)]
+    pub fn voxels(&self, idx: u32) -> Option<Arc<Voxels>> {
+        let b = self.block_first.partition_point(|&f| f <= idx).checked_sub(1)?;
+        if b >= self.voxel_slots.len() {
+            return None;
+        }
+        let first = self.block_first[b];
+        let r = self.voxel_slots[b].get_or_load(&self.cache, || {
+            let loaded = self
+                .agg
+                .load_voxel_block(self.l, self.block_number[b] as usize)
+                .map_err(|e| e.to_string())?;
+            // SAFETY: see `Voxels::prepare`: the block lives in this level's slot or in a
+            // cone's hands, never past the scene that owns `agg`.
+            let loaded: LoadedBlock<'static> = unsafe { std::mem::transmute(loaded) };
+            let v = Voxels::prepare(loaded, &self.grid, first, self.cache.clone())?;
+            if v.len() as u32 != self.block_first[b + 1] - first {
+                return Err("block changed since the level was indexed".to_string());
+            }
+            Ok(v)
+        });
+        match r {
+            Ok(v) => Some(v),
+            Err(e) => {
+                let _ = self.error.set(format!("level {}: voxel block {b}: {e}", self.l));
+                None
+            }
+        }
     }
 
-    /// The primitive of voxel `idx`, rebuilt (for |B|_ω in the crossing case).
-    pub fn primitive(&self, idx: u32) -> Option<TruncatedEllipsoid> {
-        let (h, w) = (&self.hit[idx as usize], &self.weight[idx as usize]);
-        let area_case = h.area_case?;
-        let (lo, hi) = self.grid.voxel_bounds(w.vref.coords());
-        let pad = Vec3::splat(self.pad);
-        Some(TruncatedEllipsoid {
-            center: h.center,
-            axes: w.axes,
-            inv: h.inv,
-            det: w.det,
-            lo: lo - pad,
-            hi: hi + pad,
-            area_case,
-        })
-    }
-
-    /// The ABSDF of voxel `idx`, built on first use.
-    #[inline]
-    pub fn absdf(&self, idx: u32) -> &Absdf<'static> {
-        self.absdf[idx as usize].get_or_init(|| {
-            Box::new(Absdf::new(
-                &self.weight[idx as usize].vref.appearance(),
-                crate::tables::Tables::embedded(),
-            ))
-        })
+    /// The boundary visibility of the face of voxel `v` in direction `dir` towards `d`
+    /// (1 where the level has no such face, or its block fails to load).
+    pub fn abv(&self, v: UVec3, dir: u8, d: Vec3) -> f32 {
+        let key = morton3(v);
+        let key8 = key * 8 + dir as u64;
+        let mut b = self.face_ranges.partition_point(|r| r.1 < key);
+        while b < self.face_ranges.len() && self.face_ranges[b].0 <= key {
+            let r = self.face_slots[b].get_or_load(&self.cache, || {
+                let loaded = self
+                    .agg
+                    .load_face_block(self.l, b)
+                    .map_err(|e| e.to_string())?;
+                // SAFETY: as for voxel blocks (`Level::voxels`).
+                let loaded: LoadedBlock<'static> = unsafe { std::mem::transmute(loaded) };
+                Faces::prepare(loaded, self.cache.clone())
+            });
+            match r {
+                Ok(faces) => {
+                    if let Some(f) = faces.get(key8) {
+                        return f.abv(d);
+                    }
+                }
+                Err(e) => {
+                    let _ = self.error.set(format!("level {}: face block {b}: {e}", self.l));
+                }
+            }
+            b += 1;
+        }
+        1.0
     }
 }

@@ -18,18 +18,23 @@
 //! Per cone a 3D DDA walks the level whose voxel matches the cone's footprint (Algorithm 1,
 //! line 7), switching to a coarser level only where the ray crosses a plane of the coarser
 //! grid, and skipping empty 4³ bricks whole (a bit per brick, a 64-bit mask per occupied
-//! brick). Opening is lazy: [`LodScene::open`] maps the file and reads its index; a level is
-//! prepared (and its blocks verified) the first time a cone needs it, once, thread-safely.
-//! Tracing allocates nothing. No NaN or infinity leaves the runtime: where one would, it is
+//! brick). Opening is lazy: [`LodScene::open`] maps the file and reads its index; a level's
+//! skeleton (occupancy and block ranges) is built the first time a cone needs the level, once,
+//! thread-safely, and each block of voxels or faces is inflated, verified and prepared the first
+//! time a cone needs it, into a [`BlockCache`] shared by every aggregate opened with it (by
+//! default the process's, [`BlockCache::global`]), bounded by a byte budget: what stays in
+//! memory follows the picture, not the aggregate. Tracing allocates nothing but the blocks it
+//! prepares. No NaN or infinity leaves the runtime: where one would, it is
 //! counted ([`crate::math::numerics`]) and replaced by zero.
 
+mod cache;
 mod hits;
 mod level;
 mod shade;
 mod volume;
 
 use std::path::Path;
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 
 use glam::{Vec2, Vec3};
 
@@ -40,6 +45,7 @@ use crate::math::rng::Pcg32;
 use crate::spatial::Grid;
 
 pub use crate::lights::{EnvMap, Environment, LightSample, Lights, Sun};
+pub use cache::{default_budget, BlockCache, CacheStats};
 pub use hits::{Hit, Hits, Occlusion, OCCLUSION_ONSET};
 pub use shade::{shade, Placement};
 
@@ -309,25 +315,54 @@ pub struct LodScene {
     grids: Vec<Grid>,
     /// Finest voxel size.
     base: f32,
+    cache: Arc<BlockCache>,
     agg: Aggregate,
 }
 
 impl LodScene {
     /// Opens an aggregate lazily: maps the file and verifies its header and index (milliseconds
     /// for a file of any size); levels are read and verified when cones first need them.
+    /// Its blocks go to the process's shared cache ([`BlockCache::global`]).
     pub fn open(path: &Path) -> Result<LodScene, RuntimeError> {
         Ok(Self::new(Aggregate::open_lazy(path)?))
     }
 
-    /// A scene over an opened aggregate.
+    /// [`LodScene::open`] with the blocks prepared into `cache` (shared with whatever else
+    /// was opened with it).
+    pub fn open_with_cache(path: &Path, cache: Arc<BlockCache>) -> Result<LodScene, RuntimeError> {
+        Ok(Self::with_cache(Aggregate::open_lazy(path)?, cache))
+    }
+
+    /// A scene over an opened aggregate, its blocks in the process's shared cache.
     pub fn new(agg: Aggregate) -> LodScene {
+        Self::with_cache(agg, BlockCache::global().clone())
+    }
+
+    /// A scene over an opened aggregate, its blocks in `cache`.
+    pub fn with_cache(agg: Aggregate, cache: Arc<BlockCache>) -> LodScene {
         let grids: Vec<Grid> = (0..agg.level_count()).map(|l| agg.grid(l)).collect();
         LodScene {
             levels: (0..grids.len()).map(|_| OnceLock::new()).collect(),
             base: grids.first().map_or(1.0, |g| g.voxel_size()),
             grids,
+            cache,
             agg,
         }
+    }
+
+    /// The cache this scene's blocks are prepared into.
+    pub fn cache(&self) -> &Arc<BlockCache> {
+        &self.cache
+    }
+
+    /// Bytes of the skeletons of the levels prepared so far (resident while the scene is
+    /// open, outside the cache's budget: occupancy bits, bricks, block ranges).
+    pub fn skeleton_bytes(&self) -> usize {
+        self.levels
+            .iter()
+            .filter_map(|l| l.get().and_then(|r| r.as_ref().ok()))
+            .map(|l| l.skeleton_bytes())
+            .sum()
     }
 
     /// The aggregate.
@@ -397,8 +432,9 @@ impl LodScene {
             .collect()
     }
 
-    /// The first level that failed to prepare (a damaged block), if any: a render that met it
-    /// treated that level as empty.
+    /// The first damaged block met so far, if any: a level none of whose blocks could be read
+    /// was treated as empty, a block that could not be read as empty space (its voxels) or as
+    /// no face (its faces); the rest of the scene rendered.
     pub fn first_error(&self) -> Option<RuntimeError> {
         self.levels
             .iter()
@@ -408,7 +444,11 @@ impl LodScene {
                     level: l,
                     message: e.clone(),
                 }),
-                _ => None,
+                Some(Ok(lv)) => lv.error().map(|e| RuntimeError::Level {
+                    level: l,
+                    message: e.clone(),
+                }),
+                None => None,
             })
     }
 
@@ -417,7 +457,7 @@ impl LodScene {
     fn level(&self, l: usize) -> Option<&level::Level<'_>> {
         let slot = self.levels.get(l)?;
         let r = slot.get_or_init(|| {
-            let lv = level::Level::prepare(&self.agg, l)?;
+            let lv = level::Level::prepare(&self.agg, l, self.cache.clone())?;
             // SAFETY: the level borrows the bytes of `self.agg`, which this scene owns and
             // never mutates or drops before `self.levels` (field order); the bytes live in a
             // memory map or a heap buffer, so moving the scene does not move them. The
@@ -437,9 +477,11 @@ impl LodScene {
             return None;
         }
         let idx = data.find(c.as_ivec3())?;
+        let block = data.voxels(idx)?;
         Some(VoxelHandle {
             data,
-            idx,
+            i: idx - block.first,
+            block,
             level: l,
         })
     }
@@ -536,11 +578,15 @@ impl LodScene {
     }
 }
 
-/// A voxel met by a cone: its ABSDF and its interior visibility.
-#[derive(Clone, Copy)]
+/// A voxel met by a cone: its ABSDF and its interior visibility. It holds the voxel's
+/// prepared block (a reference count): the cache does not free a block while a handle to one
+/// of its voxels lives.
+#[derive(Clone)]
 pub struct VoxelHandle<'s> {
     data: &'s level::Level<'s>,
-    idx: u32,
+    block: Arc<level::Voxels>,
+    /// The voxel's index in its block.
+    i: u32,
     level: usize,
 }
 
@@ -552,25 +598,25 @@ impl<'s> VoxelHandle<'s> {
 
     /// The voxel's Morton key in its level.
     pub fn key(&self) -> u64 {
-        self.data.weight[self.idx as usize].vref.key
+        self.block.weight[self.i as usize].vref.key
     }
 
     /// The voxel's ABSDF (Eq. 7–23), built the first time it is asked for.
     #[inline]
-    pub fn absdf(&self) -> &'s Absdf<'static> {
-        self.data.absdf(self.idx)
+    pub fn absdf(&self) -> &Absdf<'static> {
+        self.block.absdf(self.i)
     }
 
     /// The interior visibility V̂(ω) of the voxel's surfaces towards unit `d` (Eq. 25).
     #[inline]
     pub fn aiv(&self, d: Vec3) -> f32 {
-        self.data.weight[self.idx as usize].vref.aiv(d)
+        self.block.weight[self.i as usize].vref.aiv(d)
     }
 
     /// The voxel's exposure η in [1/16, 1] (see [`VoxelHandle::incident_visibility`]).
     #[inline]
     pub fn exposure(&self) -> f32 {
-        1.0 / self.data.weight[self.idx as usize].inv_exposure
+        1.0 / self.block.weight[self.i as usize].inv_exposure
     }
 
     /// The visibility to use for light arriving from `wi`: min(1, V̂(ω_i)/η), the AIV corrected
@@ -578,7 +624,7 @@ impl<'s> VoxelHandle<'s> {
     /// the bake's interior visibility).
     #[inline]
     pub fn incident_visibility(&self, wi: Vec3) -> f32 {
-        let w = &self.data.weight[self.idx as usize];
+        let w = &self.block.weight[self.i as usize];
         (w.vref.aiv(wi) * w.inv_exposure).min(1.0)
     }
 }

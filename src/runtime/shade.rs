@@ -213,7 +213,8 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
             let mut reservoir = Picks::new(n, sampler.next_1d());
             for h in &mut hits {
                 first = first.min(h.t);
-                reservoir.push(h, h.weight);
+                let w = h.weight;
+                reservoir.push(h, w);
             }
             let (kept, wsum) = reservoir.finish();
             // Coverage roulette: shade with probability min(1, Σŵ).
@@ -264,7 +265,7 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
 /// and is an increasing function of u: numbers stratified over a pixel's samples
 /// ([`super::Stratified`]) make stratified picks, and the n picks of one cone are spread over
 /// the candidates instead of drawn independently. Nothing is allocated.
-pub(crate) struct Picks<T: Copy> {
+pub(crate) struct Picks<T: Clone> {
     n: usize,
     u: [f64; MAX_PICKS],
     held: [Option<T>; HELD_HITS],
@@ -275,7 +276,7 @@ pub(crate) struct Picks<T: Copy> {
     sum: f32,
 }
 
-impl<T: Copy> Picks<T> {
+impl<T: Clone> Picks<T> {
     /// `n` picks (1 to [`MAX_PICKS`]) driven by `u` in [0, 1) (anything else counts as 0).
     #[inline]
     pub(crate) fn new(n: usize, u: f32) -> Self {
@@ -292,11 +293,11 @@ impl<T: Copy> Picks<T> {
         Picks {
             n,
             u: us,
-            held: [None; HELD_HITS],
+            held: std::array::from_fn(|_| None),
             cumulative: [0.0; HELD_HITS],
             nheld: 0,
             held_sum: 0.0,
-            kept: [None; MAX_PICKS],
+            kept: std::array::from_fn(|_| None),
             sum: 0.0,
         }
     }
@@ -317,7 +318,7 @@ impl<T: Copy> Picks<T> {
             let p = (weight / self.sum) as f64;
             for (slot, uj) in self.kept.iter_mut().zip(self.u.iter_mut()).take(self.n) {
                 if reservoir_step(uj, p) {
-                    *slot = Some(item);
+                    *slot = Some(item.clone());
                 }
             }
         }
@@ -332,7 +333,7 @@ impl<T: Copy> Picks<T> {
                 if slot.is_none() {
                     let target = *uj * self.held_sum;
                     let i = self.cumulative[..self.nheld].partition_point(|&c| c <= target);
-                    *slot = self.held[i.min(self.nheld - 1)];
+                    *slot = self.held[i.min(self.nheld - 1)].clone();
                 }
             }
         }

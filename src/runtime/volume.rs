@@ -63,8 +63,11 @@ fn march(
 #[inline]
 fn extinction(level: &Level, idx: u32, w: Vec3) -> f32 {
     let s = level.voxel_size;
-    let area = level.hit[idx as usize].area;
-    (area * level.weight[idx as usize].mean_cosine(w) / (s * s * s)).max(0.0)
+    let Some(b) = level.voxels(idx) else {
+        return 0.0;
+    };
+    let i = (idx - b.first) as usize;
+    (b.hit[i].area * b.weight[i].mean_cosine(w) / (s * s * s)).max(0.0)
 }
 
 /// Beer–Lambert transmittance from `p` along `w` to the end of the level's grid.
@@ -125,9 +128,17 @@ impl LodScene {
                     let u = sampler.next_1d();
                     let dt = (-(1.0 - u * absorbed).ln() / sigma).clamp(0.0, len);
                     let p = cone.origin + cone.dir * (t0 + dt);
-                    let ls = shade_with(level.absdf(v), wo, lights, settings.nee, sampler, |w| {
-                        volume_transmittance(level, p, w)
-                    });
+                    let ls = match level.voxels(v) {
+                        Some(b) => shade_with(
+                            b.absdf(v - b.first),
+                            wo,
+                            lights,
+                            settings.nee,
+                            sampler,
+                            |w| volume_transmittance(level, p, w),
+                        ),
+                        None => Vec3::ZERO,
+                    };
                     sum += ls * (tr * absorbed);
                     tr *= 1.0 - absorbed;
                 }
