@@ -58,6 +58,32 @@ typedef struct AggLights AggLights;
 typedef struct AggScene AggScene;
 
 /*
+ What the block cache has done ([`agg_cache_stats`]): the budget and the bytes in bytes.
+ */
+typedef struct AggCacheStats {
+  /*
+   The budget.
+   */
+  uint64_t budget;
+  /*
+   Blocks prepared (a block evicted and needed again counts again).
+   */
+  uint64_t loaded;
+  /*
+   Blocks evicted.
+   */
+  uint64_t evicted;
+  /*
+   Bytes of the prepared blocks alive now.
+   */
+  uint64_t bytes;
+  /*
+   The most bytes alive at once.
+   */
+  uint64_t peak;
+} AggCacheStats;
+
+/*
  A cone: the centre ray's origin and unit direction, and the full aperture angle in
  radians (a pixel's cone: the angle the pixel subtends).
  */
@@ -142,6 +168,19 @@ int agg_bounds(const struct AggScene *scene, float *lo, float *hi);
  resolutions over its aggregates.
  */
 uint32_t agg_level_count(const struct AggScene *scene);
+
+/*
+ Sets the memory budget of the block cache every scene of the process shares, in MiB
+ (the CLI's `render --cache-mib`): the prepared blocks of every aggregate stay within it,
+ the least recently used evicted. A smaller budget gives the same results, only slower.
+ The default is a quarter of the machine's memory. [`AGG_ERR_VALUE`] for 0.
+ */
+int agg_set_cache_mib(uint64_t mib);
+
+/*
+ The block cache's statistics into `*out`.
+ */
+int agg_cache_stats(struct AggCacheStats *out);
 
 /*
  New lights: a constant white environment and no sun. Free with [`agg_lights_free`].

@@ -266,6 +266,54 @@ pub unsafe extern "C" fn agg_level_count(scene: *const AggScene) -> u32 {
     n
 }
 
+/// What the block cache has done ([`agg_cache_stats`]): the budget and the bytes in bytes.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default)]
+pub struct AggCacheStats {
+    /// The budget.
+    pub budget: u64,
+    /// Blocks prepared (a block evicted and needed again counts again).
+    pub loaded: u64,
+    /// Blocks evicted.
+    pub evicted: u64,
+    /// Bytes of the prepared blocks alive now.
+    pub bytes: u64,
+    /// The most bytes alive at once.
+    pub peak: u64,
+}
+
+/// Sets the memory budget of the block cache every scene of the process shares, in MiB
+/// (the CLI's `render --cache-mib`): the prepared blocks of every aggregate stay within it,
+/// the least recently used evicted. A smaller budget gives the same results, only slower.
+/// The default is a quarter of the machine's memory. [`AGG_ERR_VALUE`] for 0.
+#[no_mangle]
+pub extern "C" fn agg_set_cache_mib(mib: u64) -> c_int {
+    guard(|| {
+        if mib == 0 {
+            return Err((AGG_ERR_VALUE, "the cache budget must be at least 1 MiB".into()));
+        }
+        aggtool::runtime::BlockCache::global().set_budget(mib.saturating_mul(1 << 20));
+        Ok(())
+    })
+}
+
+/// The block cache's statistics into `*out`.
+#[no_mangle]
+pub unsafe extern "C" fn agg_cache_stats(out: *mut AggCacheStats) -> c_int {
+    guard(|| {
+        let out = out.as_mut().ok_or_else(|| arg("out"))?;
+        let c = aggtool::runtime::BlockCache::global().stats();
+        *out = AggCacheStats {
+            budget: c.budget,
+            loaded: c.loaded,
+            evicted: c.evicted,
+            bytes: c.bytes,
+            peak: c.peak,
+        };
+        Ok(())
+    })
+}
+
 /// New lights: a constant white environment and no sun. Free with [`agg_lights_free`].
 #[no_mangle]
 pub extern "C" fn agg_lights_new() -> *mut AggLights {
