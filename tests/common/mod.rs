@@ -35,6 +35,25 @@ pub fn shared_assets() -> Option<PathBuf> {
     }
 }
 
+/// Asserts that a render is sound: every pixel finite, and no sample dropped as non-finite nor
+/// value replaced on the way. The image loop leaves non-finite samples out of their pixels and
+/// counts them, so finite pixels alone cannot show a NaN: the counters can.
+pub fn assert_clean_render(
+    img: &aggtool::film::Image,
+    stats: &aggtool::film::ImageStats,
+    what: &str,
+) {
+    assert_eq!(
+        (stats.invalid_samples, stats.non_finite),
+        (0, 0),
+        "{what}: (invalid samples, non-finite values)"
+    );
+    assert!(
+        img.pixels.iter().all(|p| p.is_finite()),
+        "{what}: a non-finite pixel"
+    );
+}
+
 /// Generates a scene into a temporary folder and imports it.
 pub fn generated(
     name: &str,
