@@ -636,9 +636,9 @@ mod tests {
             ));
         }
         s.push_str("]}");
-        let t = std::time::Instant::now();
+        // How fast is measured by `cargo bench --bench manifest`, not asserted here: a time
+        // limit fails on a loaded machine and passes a slow parser on a fast one.
         let m = parse(&s).unwrap();
-        let secs = t.elapsed().as_secs_f64();
         assert_eq!(m.instance_count(), 100_000);
         assert_eq!(m.instances_per_asset(), vec![33_334, 66_666]);
         assert_eq!(m.instance_bytes(), 100_000 * 52);
@@ -646,8 +646,5 @@ mod tests {
             m.transform(99_999).transform_point3(Vec3::ZERO),
             Vec3::new((99_999 % 317) as f32, 0.0, (99_999 / 317) as f32)
         );
-        // A million must parse "in seconds": a tenth of that in well under one even in a
-        // debug-ish test build on a loaded 2-core machine.
-        assert!(secs < 2.0, "100k instances took {secs:.2} s");
     }
 }
