@@ -763,11 +763,9 @@ fn gen_city_lays_out_a_kit() {
     std::fs::create_dir_all(&empty).unwrap();
     let e = assembly::city::write(&d.path().join("t2"), &[empty], 4, 1).unwrap_err();
     assert!(e.contains("no building"), "{e}");
-    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/assets");
-    if !shared.exists() {
-        eprintln!("skipped the shared kits: {} is absent", shared.display());
+    let Some(shared) = common::shared_assets("gen_city_lays_out_a_kit (the shared kits)") else {
         return;
-    }
+    };
     let kits = [
         shared.join("kenney_city_kit"),
         shared.join("quaternius_medieval_village"),
