@@ -303,8 +303,8 @@ enum Command {
         /// Cones per pixel (overrides the view file).
         #[arg(long)]
         spp: Option<u32>,
-        /// Light samples (and ABSDF samples) per primitive hit, combined by MIS.
-        #[arg(long, default_value_t = 1)]
+        /// Light samples (and ABSDF samples) per primitive hit, combined by MIS (at least 1).
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
         nee: u32,
         /// Random seed (overrides the view file).
         #[arg(long)]

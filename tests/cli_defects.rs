@@ -1,0 +1,35 @@
+//! Small defects of the command line (issue 40), each as its user met it: a flag value that
+//! was accepted or explained wrongly, an input that was silently misread, an error said twice,
+//! and work done before a refusal that could have come first. Most tests run the built binary.
+
+mod common;
+
+use std::process::Output;
+
+use common::aggtool;
+
+/// stderr of a run that must have failed with exit status `code`, without a panic.
+fn failed(o: &Output, code: i32) -> String {
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert_eq!(o.status.code(), Some(code), "stderr: {err}");
+    assert!(!err.contains("panicked"), "{err}");
+    err
+}
+
+/// Exit status of usage errors (clap's).
+const USAGE: i32 = 2;
+
+/// `render --nee 0` was accepted and rendered as `--nee 1`: now a usage error naming the flag.
+#[test]
+fn render_nee_zero_is_a_usage_error() {
+    let d = tempfile::tempdir().unwrap();
+    let o = aggtool(
+        &[
+            "render", "x.agg", "--view", "v.json", "-o", "x.exr", "--nee", "0",
+        ],
+        d.path(),
+    );
+    let err = failed(&o, USAGE);
+    assert!(err.contains("--nee") && err.contains("'0'"), "{err}");
+    assert!(!d.path().join("x.exr").exists());
+}
