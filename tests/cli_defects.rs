@@ -33,3 +33,31 @@ fn render_nee_zero_is_a_usage_error() {
     assert!(err.contains("--nee") && err.contains("'0'"), "{err}");
     assert!(!d.path().join("x.exr").exists());
 }
+
+/// `reference --auto-view --width 0` said "camera eye, target and up must be finite" (the
+/// framing of a zero-wide image puts the eye at infinity): now a usage error naming the flag,
+/// and a view of that size says what is wrong with it, its size.
+#[test]
+fn reference_zero_size_names_the_size() {
+    let d = tempfile::tempdir().unwrap();
+    for flag in ["--width", "--height"] {
+        let o = aggtool(
+            &[
+                "reference",
+                "a.glb",
+                "--auto-view",
+                flag,
+                "0",
+                "-o",
+                "a.exr",
+            ],
+            d.path(),
+        );
+        let err = failed(&o, USAGE);
+        assert!(err.contains(flag) && err.contains("'0'"), "{err}");
+        assert!(!err.contains("finite"), "{err}");
+    }
+    let view = aggtool::render::View::framing(glam::Vec3::ZERO, 1.0, 0, 256, 16);
+    let e = view.validate().unwrap_err();
+    assert!(e.contains("image size 0x256"), "{e}");
+}

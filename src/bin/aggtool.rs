@@ -132,11 +132,11 @@ enum Command {
         /// Frame the asset's bounding sphere instead of reading a view file.
         #[arg(long)]
         auto_view: bool,
-        /// Image width for --auto-view.
-        #[arg(long, default_value_t = 256)]
+        /// Image width for --auto-view (1 to 16384).
+        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=16384))]
         width: u32,
-        /// Image height for --auto-view.
-        #[arg(long, default_value_t = 256)]
+        /// Image height for --auto-view (1 to 16384).
+        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=16384))]
         height: u32,
         /// Samples per pixel (overrides the view file).
         #[arg(long)]
