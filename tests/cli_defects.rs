@@ -18,6 +18,8 @@ fn failed(o: &Output, code: i32) -> String {
 
 /// Exit status of usage errors (clap's).
 const USAGE: i32 = 2;
+/// Exit status of every other error.
+const ERROR: i32 = 1;
 
 /// `render --nee 0` was accepted and rendered as `--nee 1`: now a usage error naming the flag.
 #[test]
@@ -60,4 +62,20 @@ fn reference_zero_size_names_the_size() {
     let view = aggtool::render::View::framing(glam::Vec3::ZERO, 1.0, 0, 256, 16);
     let e = view.validate().unwrap_err();
     assert!(e.contains("image size 0x256"), "{e}");
+}
+
+/// `--keep 2` reported "--keep must be in (0, 1] and --energy in [0, 1]": now only what is
+/// wrong, with the value given. Settings are checked before the asset is read (which is
+/// missing here).
+#[test]
+fn bad_keep_or_energy_names_only_itself() {
+    let d = tempfile::tempdir().unwrap();
+    let o = aggtool(&["convert", "missing.glb", "--keep", "2"], d.path());
+    let err = failed(&o, ERROR);
+    assert!(err.contains("--keep must be in (0, 1], got 2"), "{err}");
+    assert!(!err.contains("--energy"), "{err}");
+    let o = aggtool(&["convert", "missing.glb", "--energy", "1.5"], d.path());
+    let err = failed(&o, ERROR);
+    assert!(err.contains("--energy must be in [0, 1], got 1.5"), "{err}");
+    assert!(!err.contains("--keep"), "{err}");
 }
