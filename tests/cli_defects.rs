@@ -79,3 +79,30 @@ fn bad_keep_or_energy_names_only_itself() {
     assert!(err.contains("--energy must be in [0, 1], got 1.5"), "{err}");
     assert!(!err.contains("--keep"), "{err}");
 }
+
+/// A manifest without `"instances"` was read as an empty assembly: now an error naming the
+/// missing field (an empty one says `"instances": []`).
+#[test]
+fn manifest_without_instances_is_an_error() {
+    let d = tempfile::tempdir().unwrap();
+    let m = d.path().join("m.json");
+    std::fs::write(
+        &m,
+        r#"{"version": 1, "assets": {"a": {"source": "a.glb"}}}"#,
+    )
+    .unwrap();
+    let err = failed(&aggtool(&["inspect", "m.json"], d.path()), ERROR);
+    assert!(err.contains("missing field `instances`"), "{err}");
+    let e = aggtool::assembly::Manifest::load(&m).unwrap_err();
+    assert!(
+        matches!(e, aggtool::assembly::ManifestError::Malformed { .. }),
+        "{e}"
+    );
+    std::fs::write(
+        &m,
+        r#"{"version": 1, "assets": {"a": {"source": "a.glb"}}, "instances": []}"#,
+    )
+    .unwrap();
+    let m = aggtool::assembly::Manifest::load(&m).unwrap();
+    assert_eq!(m.instance_count(), 0);
+}

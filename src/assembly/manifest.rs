@@ -206,7 +206,9 @@ struct RawManifest {
     /// 1 (checked after the parse).
     version: serde_json::Value,
     assets: BTreeMap<String, RawAsset>,
-    #[serde(default)]
+    /// Required: a manifest without it is more likely a mistake (a misspelt key is refused as
+    /// unknown, a missing one would otherwise be an empty scene) than an empty assembly, which
+    /// says `"instances": []`.
     instances: RawInstances,
 }
 
@@ -608,6 +610,14 @@ mod tests {
         );
         let e = parse(r#"{"assets":{}}"#).unwrap_err();
         assert!(e.to_string().contains("version"), "{e}");
+        // No "instances" is an error naming it, not an empty assembly; `[]` is one.
+        let e = parse(&format!(r#"{{"version":1,{assets}}}"#)).unwrap_err();
+        assert!(
+            matches!(&e, ManifestError::Malformed { .. }) && e.to_string().contains("`instances`"),
+            "{e}"
+        );
+        let m = parse(&format!(r#"{{"version":1,{assets},"instances":[]}}"#)).unwrap();
+        assert_eq!(m.instance_count(), 0);
         let m = parse(&format!(
             r#"{{"version":1,{assets},"instances":[{{"asset":"a"}}]}}"#
         ))
