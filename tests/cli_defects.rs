@@ -6,7 +6,7 @@ mod common;
 
 use std::process::Output;
 
-use common::aggtool;
+use common::{aggtool, ok};
 
 /// stderr of a run that must have failed with exit status `code`, without a panic.
 fn failed(o: &Output, code: i32) -> String {
@@ -105,4 +105,31 @@ fn manifest_without_instances_is_an_error() {
     .unwrap();
     let m = aggtool::assembly::Manifest::load(&m).unwrap();
     assert_eq!(m.instance_count(), 0);
+}
+
+/// `compare` read a PNG (tonemapped, clamped, sRGB) as if it held radiance: now refused with
+/// the formats it takes; the EXR beside it compares.
+#[test]
+fn compare_refuses_non_linear_images() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let mut img = aggtool::film::Image::new(4, 3);
+    img.pixels[5] = glam::Vec3::new(2.0, 0.5, 0.25);
+    img.write_exr(&p.join("a.exr")).unwrap();
+    img.write_png(&p.join("a.png"), 0.0).unwrap();
+    std::fs::copy(p.join("a.png"), p.join("a.jpg")).unwrap();
+    for (a, b, bad) in [
+        ("a.png", "a.exr", "a.png"),
+        ("a.exr", "a.png", "a.png"),
+        ("a.jpg", "a.exr", "a.jpg"),
+    ] {
+        let err = failed(&aggtool(&["compare", a, b], p), ERROR);
+        assert!(
+            err.contains(bad) && err.contains("not linear") && err.contains("EXR, PFM or HDR"),
+            "{err}"
+        );
+    }
+    let out = ok(&aggtool(&["compare", "a.exr", "a.exr", "--json"], p));
+    let c: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(c["rmse"], 0.0);
 }

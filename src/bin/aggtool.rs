@@ -157,7 +157,8 @@ enum Command {
         #[arg(long)]
         save_view: Option<PathBuf>,
     },
-    /// Compare two images (EXR, PFM, HDR): RMSE and relative MSE on linear values.
+    /// Compare two linear images (EXR, PFM, HDR; PNG and other 8-bit formats are refused):
+    /// RMSE and relative MSE.
     Compare {
         a: PathBuf,
         /// The reference.
@@ -1335,8 +1336,8 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Compare { a, b, diff, json } => {
-            let ia = Image::read_any(&a)?;
-            let ib = Image::read_any(&b)?;
+            let ia = Image::read_linear(&a)?;
+            let ib = Image::read_linear(&b)?;
             let c = compare(&ia, &ib).map_err(anyhow::Error::msg)?;
             if let Some(d) = diff {
                 let (img, scale) = difference_image(&ia, &ib, None);
