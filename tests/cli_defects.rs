@@ -133,3 +133,39 @@ fn compare_refuses_non_linear_images() {
     let c: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert_eq!(c["rmse"], 0.0);
 }
+
+/// A missing file printed its cause twice: in the message ("cannot read F: No such file or
+/// directory") and again as "caused by: No such file or directory". Now once, whichever
+/// command meets it.
+#[test]
+fn a_missing_file_says_its_cause_once() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let view = r#"{"version": 1, "camera": {"eye": [0, 0, 2], "target": [0, 0, 0], "fov_y_deg": 40, "width": 8, "height": 8}, "spp": 1}"#;
+    std::fs::write(p.join("view.json"), view).unwrap();
+    let runs: &[&[&str]] = &[
+        &["info", "missing.glb"],
+        &["convert", "missing.obj"],
+        &["inspect", "missing.agg"],
+        &["inspect", "missing.json"],
+        &["compare", "missing.exr", "other.exr"],
+        &[
+            "render",
+            "missing.agg",
+            "--view",
+            "view.json",
+            "-o",
+            "x.exr",
+        ],
+        &["render", "x.agg", "--view", "missing.json", "-o", "x.exr"],
+        &["reference", "missing.glb", "--auto-view", "-o", "x.exr"],
+        &["assemble", "missing.json"],
+    ];
+    for args in runs {
+        let err = failed(&aggtool(args, p), ERROR);
+        let missing = args.iter().find(|a| a.starts_with("missing")).unwrap();
+        assert!(err.contains(missing), "{args:?}: {err}");
+        // The OS's words for a missing file, once ("(os error 2)" on every platform).
+        assert_eq!(err.matches("(os error 2)").count(), 1, "{args:?}: {err}");
+    }
+}

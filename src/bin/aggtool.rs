@@ -1970,8 +1970,16 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e}");
+            // Many errors put their source in their own message ("cannot read F: {source}"):
+            // a cause already said is not said again.
+            let mut said = e.to_string();
             for cause in e.chain().skip(1) {
-                eprintln!("  caused by: {cause}");
+                let cause = cause.to_string();
+                if !said.contains(&cause) {
+                    eprintln!("  caused by: {cause}");
+                }
+                said.push('\n');
+                said.push_str(&cause);
             }
             ExitCode::FAILURE
         }
