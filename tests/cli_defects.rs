@@ -169,3 +169,59 @@ fn a_missing_file_says_its_cause_once() {
         assert_eq!(err.matches("(os error 2)").count(), 1, "{args:?}: {err}");
     }
 }
+
+/// `convert -o DIR` (an existing folder) imported and baked, then failed to write: now it
+/// fails first. The asset here does not even exist: the output is checked before it is read.
+/// The same for `--report`, and for a folder above the output that is a file.
+#[test]
+fn convert_checks_its_output_before_baking() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    std::fs::create_dir(p.join("out")).unwrap();
+    std::fs::write(p.join("file"), b"x").unwrap();
+    let cases: &[(&[&str], &str)] = &[
+        (&["-o", "out"], "is a folder"),
+        (&["-o", "out/", "--shard", "0/2"], "is a folder"),
+        (&["-o", "x.agg", "--report", "out"], "is a folder"),
+        (&["-o", "file/x.agg"], "is a file, not a folder"),
+    ];
+    for (extra, needle) in cases {
+        let mut args = vec!["convert", "missing.glb"];
+        args.extend_from_slice(extra);
+        let err = failed(&aggtool(&args, p), ERROR);
+        assert!(err.contains(needle), "{args:?}: {err}");
+        assert!(
+            !err.contains("missing.glb"),
+            "{args:?}: the asset was read before the output was checked: {err}"
+        );
+    }
+    assert_eq!(std::fs::read_dir(p.join("out")).unwrap().count(), 0);
+}
+
+/// The library refuses the folder too, before baking: `bake_to_file` is what the Python
+/// module and `assemble` call.
+#[test]
+fn bake_to_a_folder_fails_before_baking() {
+    let d = tempfile::tempdir().unwrap();
+    let scene = common::gen_scene("foliage", 500);
+    let settings = aggtool::bake::BakeSettings {
+        max_res: 8,
+        min_res: 4,
+        ..Default::default()
+    };
+    // A bake reports progress as soon as it starts: none may be reported.
+    let no_work = |stage: &str, _: u64, _: u64| panic!("the bake started ({stage})");
+    for shard in [
+        None,
+        Some(aggtool::format::part::Shard { index: 0, count: 2 }),
+    ] {
+        let e = match shard {
+            None => aggtool::bake::bake_to_file(&scene, "f.glb", &settings, d.path(), &no_work),
+            Some(s) => {
+                aggtool::bake::bake_shard_to_file(&scene, "f.glb", &settings, s, d.path(), &no_work)
+            }
+        }
+        .unwrap_err();
+        assert!(e.to_string().contains("is a folder"), "{shard:?}: {e}");
+    }
+}

@@ -1740,6 +1740,11 @@ fn convert(
         Some(s) => asset.with_extension(format!("{}-of-{}.aggpart", s.index, s.count)),
         None => asset.with_extension("agg"),
     });
+    // Where the files go is checked before the import and the bake (minutes), not after them.
+    for p in std::iter::once(out.as_path()).chain(report) {
+        aggtool::util::atomic::check_destination(p)
+            .with_context(|| format!("cannot write {}", p.display()))?;
+    }
     let t0 = std::time::Instant::now();
     let scene = load_scene(asset, strict)?;
     let t_import = t0.elapsed().as_secs_f64();
