@@ -225,3 +225,59 @@ fn bake_to_a_folder_fails_before_baking() {
         assert!(e.to_string().contains("is a folder"), "{shard:?}: {e}");
     }
 }
+
+/// `assemble --require-reuse` baked every stale asset, then refused: now it refuses first,
+/// naming the assets and why, and bakes nothing.
+#[test]
+fn assemble_require_reuse_refuses_before_baking() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    ok(&aggtool(
+        &[
+            "gen",
+            "forest",
+            "-o",
+            "f",
+            "--species",
+            "2",
+            "--instances",
+            "4",
+            "--triangles",
+            "400",
+        ],
+        p,
+    ));
+    let tiny = [
+        "--max-res",
+        "8",
+        "--min-res",
+        "4",
+        "--samples",
+        "4",
+        "--aiv-res",
+        "4",
+        "--abv-res",
+        "4",
+    ];
+    let mut args = vec!["assemble", "f/forest.json", "--require-reuse"];
+    args.extend(tiny);
+    let err = failed(&aggtool(&args, p), ERROR);
+    assert!(
+        err.contains("would have had to be baked, so nothing was baked"),
+        "{err}"
+    );
+    assert!(err.contains("(missing)"), "{err}");
+    let m = aggtool::assembly::Manifest::load(&p.join("f/forest.json")).unwrap();
+    for a in &m.assets {
+        assert!(err.contains(&format!("asset '{}'", a.id)), "{err}");
+        assert!(!a.aggregate.exists(), "{} was baked", a.aggregate.display());
+    }
+    // Baked, then reused: --require-reuse passes.
+    let mut args = vec!["assemble", "f/forest.json"];
+    args.extend(tiny);
+    ok(&aggtool(&args, p));
+    let mut args = vec!["assemble", "f/forest.json", "--require-reuse"];
+    args.extend(tiny);
+    let out = ok(&aggtool(&args, p));
+    assert!(out.contains("0 baked, 3 reused"), "{out}");
+}

@@ -1570,6 +1570,23 @@ fn run(cli: Cli) -> Result<()> {
                 }
                 m.assets.retain(|a| assets.contains(&a.id));
             }
+            if require_reuse {
+                // Refused before anything is baked, not after the bakes.
+                let stale = aggtool::assembly::bake::stale_assets(&m, &settings)?;
+                if !stale.is_empty() {
+                    let list: Vec<String> = stale
+                        .iter()
+                        .map(|(id, why)| format!("asset '{id}' ({why})"))
+                        .collect();
+                    anyhow::bail!(
+                        "{}: {} aggregate(s) would have had to be baked, so nothing was baked \
+                         (--require-reuse: every asset's bake task should have written them): {}",
+                        manifest.display(),
+                        stale.len(),
+                        list.join(", ")
+                    );
+                }
+            }
             let t0 = std::time::Instant::now();
             let outcomes =
                 aggtool::assembly::bake::assemble(&m, &settings, ImportOptions { strict }, &|o| {
