@@ -4,7 +4,8 @@
 
 mod common;
 
-use std::process::Output;
+use std::path::Path;
+use std::process::{Command, Output};
 
 use common::{aggtool, ok};
 
@@ -280,4 +281,85 @@ fn assemble_require_reuse_refuses_before_baking() {
     args.extend(tiny);
     let out = ok(&aggtool(&args, p));
     assert!(out.contains("0 baked, 3 reused"), "{out}");
+}
+
+/// `gen city` without `--kit` in `cwd`, with `AGGTOOL_ASSETS` set to `assets` or unset.
+fn gen_city(cwd: &Path, assets: Option<&Path>) -> Output {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_aggtool"));
+    c.args(["gen", "city", "-o", "town", "--instances", "4"])
+        .current_dir(cwd);
+    match assets {
+        Some(a) => c.env("AGGTOOL_ASSETS", a),
+        None => c.env_remove("AGGTOOL_ASSETS"),
+    };
+    c.output().expect("run aggtool")
+}
+
+/// Writes the two default kits, one small generated asset each, under `root`.
+fn fake_kits(root: &Path) {
+    for (kit, name) in [
+        ("kenney_city_kit", "buildings"),
+        ("quaternius_medieval_village", "foliage"),
+    ] {
+        let dir = root.join(kit);
+        std::fs::create_dir_all(&dir).unwrap();
+        ok(&aggtool(
+            &[
+                "gen",
+                name,
+                "-o",
+                dir.to_str().unwrap(),
+                "--triangles",
+                "300",
+            ],
+            root,
+        ));
+    }
+}
+
+/// The asset sources of `town/city.json` under `cwd`, resolved and canonical.
+fn city_sources(cwd: &Path) -> Vec<std::path::PathBuf> {
+    let m = aggtool::assembly::Manifest::load(&cwd.join("town/city.json")).unwrap();
+    m.assets
+        .iter()
+        .map(|a| std::fs::canonicalize(&a.source).unwrap())
+        .collect()
+}
+
+/// `gen city`'s default kits came from `env!("CARGO_MANIFEST_DIR")`, the build machine's
+/// checkout compiled into the binary: now from `$AGGTOOL_ASSETS`, else `../shared/assets`
+/// from the current folder, with an error saying so when neither has them.
+#[test]
+fn gen_city_finds_its_default_kits_at_run_time() {
+    let d = tempfile::tempdir().unwrap();
+    let root = std::fs::canonicalize(d.path()).unwrap();
+    let work = root.join("work");
+    std::fs::create_dir_all(&work).unwrap();
+    // Neither: an error naming both ways out (the build's own ../shared/assets is not used).
+    let err = failed(&gen_city(&work, None), ERROR);
+    assert!(
+        err.contains("--kit") && err.contains("AGGTOOL_ASSETS") && err.contains("kenney_city_kit"),
+        "{err}"
+    );
+    assert!(!work.join("town/city.json").exists());
+    // ../shared/assets from the current folder.
+    let shared = root.join("shared/assets");
+    fake_kits(&shared);
+    ok(&gen_city(&work, None));
+    let sources = city_sources(&work);
+    assert!(!sources.is_empty());
+    assert!(
+        sources.iter().all(|s| s.starts_with(&shared)),
+        "{sources:?}"
+    );
+    // $AGGTOOL_ASSETS first.
+    let other = root.join("other");
+    fake_kits(&other);
+    std::fs::remove_dir_all(work.join("town")).unwrap();
+    ok(&gen_city(&work, Some(&other)));
+    let sources = city_sources(&work);
+    assert!(sources.iter().all(|s| s.starts_with(&other)), "{sources:?}");
+    // A variable naming a folder without the kits is an error, not a fallback.
+    let err = failed(&gen_city(&work, Some(&root.join("nothing"))), ERROR);
+    assert!(err.contains("nothing"), "{err}");
 }

@@ -174,7 +174,8 @@ enum Command {
     /// trees of --triangles each and a manifest (forest.json) placing --instances of them; or,
     /// with `city`, a manifest (city.json) laying out --instances pieces of existing kits
     /// (--kit, repeatable; default: the Kenney city kit and the Quaternius village of
-    /// ../shared/assets) as a town, referenced by relative path, not copied.
+    /// $AGGTOOL_ASSETS, else of ../shared/assets from the current folder) as a town, referenced
+    /// by relative path, not copied.
     Gen {
         /// One of: plane45, lattice, foliage, displaced-sphere, rings, buildings, all, forest
         /// or city.
@@ -1369,16 +1370,23 @@ fn run(cli: Cli) -> Result<()> {
         } => {
             if name == "city" {
                 let kits = if kits.is_empty() {
-                    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/assets");
-                    let shared = if shared.exists() {
-                        shared
-                    } else {
-                        PathBuf::from("../shared/assets")
-                    };
-                    vec![
+                    // Looked for at run time (a path compiled in would be the build machine's).
+                    let shared = std::env::var_os("AGGTOOL_ASSETS")
+                        .map_or_else(|| PathBuf::from("../shared/assets"), PathBuf::from);
+                    let kits = vec![
                         shared.join("kenney_city_kit"),
                         shared.join("quaternius_medieval_village"),
-                    ]
+                    ];
+                    if let Some(k) = kits.iter().find(|k| !k.is_dir()) {
+                        bail!(
+                            "no --kit given, and the default kit {} is not a folder (the default \
+                             kits are looked for in $AGGTOOL_ASSETS, else in ../shared/assets from \
+                             the current folder): give --kit FOLDER (repeatable) or set \
+                             AGGTOOL_ASSETS",
+                            k.display()
+                        );
+                    }
+                    kits
                 } else {
                     kits
                 };
