@@ -31,4 +31,5 @@ echo "== examples/host.rs (a host renderer shading hits with its own code)"
 cargo run --quiet --example host -- -o "${TMPDIR:-/tmp}/aggtool-host-ci.ppm"
 
 echo "== pytest"
-python3 -m pytest tests/python -q
+# -rs: each skip with its reason (a skip for want of ../shared/assets fails .ci/run when it is here).
+python3 -m pytest tests/python -q -rs

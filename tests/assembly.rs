@@ -9,6 +9,8 @@
 //!
 //! Bakes are tiny (16³ finest level) so that the file runs in seconds.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
 use aggtool::assembly::{self, Assembly, Manifest, ManifestError};
@@ -510,10 +512,18 @@ fn a_hundred_thousand_instances_parse_and_render() {
         16,
     );
     let t = std::time::Instant::now();
-    let img = render_asm(&asm, &cam, 2);
+    let (img, stats) = assembly::render(
+        &asm,
+        &cam,
+        &lights(),
+        2,
+        7,
+        &TraceSettings::default(),
+        &no_progress,
+    );
     let render = t.elapsed().as_secs_f64();
     eprintln!("100k instances: opened in {open:.2} s, 32x16 at 2 spp in {render:.2} s");
-    assert!(img.pixels.iter().all(|p| p.is_finite()));
+    common::assert_clean_render(&img, &stats, "100k instances");
     // Trees fill the lower half (darker than the sky of 0.2 + sun): not the empty sky image.
     let sky = lights().environment.eval(Vec3::Y);
     let differs = img
@@ -753,11 +763,9 @@ fn gen_city_lays_out_a_kit() {
     std::fs::create_dir_all(&empty).unwrap();
     let e = assembly::city::write(&d.path().join("t2"), &[empty], 4, 1).unwrap_err();
     assert!(e.contains("no building"), "{e}");
-    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/assets");
-    if !shared.exists() {
-        eprintln!("skipped the shared kits: {} is absent", shared.display());
+    let Some(shared) = common::shared_assets("gen_city_lays_out_a_kit (the shared kits)") else {
         return;
-    }
+    };
     let kits = [
         shared.join("kenney_city_kit"),
         shared.join("quaternius_medieval_village"),

@@ -156,7 +156,7 @@ fn shadows_block_the_sun() {
     assert_eq!(img.get(4, 4), Vec3::ZERO);
 }
 
-fn foliage_render(threads: usize) -> Image {
+fn foliage_render(threads: usize) -> (Image, aggtool::film::ImageStats) {
     let (_d, s) = common::generated("foliage", 3000, false);
     let accel = Accel::build(&s);
     let lights = Lights {
@@ -171,15 +171,17 @@ fn foliage_render(threads: usize) -> Image {
         .num_threads(threads)
         .build()
         .unwrap();
-    pool.install(|| render(&accel, &cam, &lights, settings(8), &no_progress).0)
+    pool.install(|| render(&accel, &cam, &lights, settings(8), &no_progress))
 }
 
 #[test]
 fn renders_are_deterministic_across_thread_counts() {
-    let a = foliage_render(1);
-    let b = foliage_render(2);
-    let c = foliage_render(2);
+    let (a, sa) = foliage_render(1);
+    let (b, sb) = foliage_render(2);
+    let (c, sc) = foliage_render(2);
     assert_eq!(a, b);
     assert_eq!(b, c);
-    assert!(a.pixels.iter().all(|p| p.is_finite()));
+    for (s, threads) in [(sa, 1), (sb, 2), (sc, 2)] {
+        common::assert_clean_render(&a, &s, &format!("{threads} threads"));
+    }
 }

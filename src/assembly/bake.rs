@@ -104,6 +104,27 @@ fn stale(asset: &Asset, want: &Stamp) -> Option<String> {
     }
 }
 
+/// The assets of `m` whose aggregate [`assemble`] would bake under `settings`, as (id, why), in
+/// asset order; nothing is baked (each source is read for its checksum). For refusing before
+/// a bake rather than after it (`assemble --require-reuse`).
+pub fn stale_assets(
+    m: &Manifest,
+    settings: &BakeSettings,
+) -> Result<Vec<(String, String)>, AssembleError> {
+    settings.validate().map_err(AssembleError::Settings)?;
+    m.require_sources()?;
+    m.assets
+        .par_iter()
+        .filter_map(|a| match stamp(a, settings) {
+            Ok(want) => stale(a, &want).map(|why| Ok((a.id.clone(), why))),
+            Err(message) => Some(Err(AssembleError::Asset {
+                asset: a.id.clone(),
+                message,
+            })),
+        })
+        .collect()
+}
+
 /// Bakes every asset of `m` whose aggregate is missing or stale, assets in parallel;
 /// `report(outcome)` hears of each as it finishes. The outcomes come back in asset order.
 pub fn assemble(

@@ -206,7 +206,9 @@ struct RawManifest {
     /// 1 (checked after the parse).
     version: serde_json::Value,
     assets: BTreeMap<String, RawAsset>,
-    #[serde(default)]
+    /// Required: a manifest without it is more likely a mistake (a misspelt key is refused as
+    /// unknown, a missing one would otherwise be an empty scene) than an empty assembly, which
+    /// says `"instances": []`.
     instances: RawInstances,
 }
 
@@ -608,6 +610,14 @@ mod tests {
         );
         let e = parse(r#"{"assets":{}}"#).unwrap_err();
         assert!(e.to_string().contains("version"), "{e}");
+        // No "instances" is an error naming it, not an empty assembly; `[]` is one.
+        let e = parse(&format!(r#"{{"version":1,{assets}}}"#)).unwrap_err();
+        assert!(
+            matches!(&e, ManifestError::Malformed { .. }) && e.to_string().contains("`instances`"),
+            "{e}"
+        );
+        let m = parse(&format!(r#"{{"version":1,{assets},"instances":[]}}"#)).unwrap();
+        assert_eq!(m.instance_count(), 0);
         let m = parse(&format!(
             r#"{{"version":1,{assets},"instances":[{{"asset":"a"}}]}}"#
         ))
@@ -636,9 +646,9 @@ mod tests {
             ));
         }
         s.push_str("]}");
-        let t = std::time::Instant::now();
+        // How fast is measured by `cargo bench --bench manifest`, not asserted here: a time
+        // limit fails on a loaded machine and passes a slow parser on a fast one.
         let m = parse(&s).unwrap();
-        let secs = t.elapsed().as_secs_f64();
         assert_eq!(m.instance_count(), 100_000);
         assert_eq!(m.instances_per_asset(), vec![33_334, 66_666]);
         assert_eq!(m.instance_bytes(), 100_000 * 52);
@@ -646,8 +656,5 @@ mod tests {
             m.transform(99_999).transform_point3(Vec3::ZERO),
             Vec3::new((99_999 % 317) as f32, 0.0, (99_999 / 317) as f32)
         );
-        // A million must parse "in seconds": a tenth of that in well under one even in a
-        // debug-ish test build on a loaded 2-core machine.
-        assert!(secs < 2.0, "100k instances took {secs:.2} s");
     }
 }

@@ -219,8 +219,11 @@ impl BakeSettings {
                 self.compression
             ));
         }
-        if !(self.keep > 0.0 && self.keep <= 1.0) || !(self.energy >= 0.0 && self.energy <= 1.0) {
-            return Err("--keep must be in (0, 1] and --energy in [0, 1]".into());
+        if !(self.keep > 0.0 && self.keep <= 1.0) {
+            return Err(format!("--keep must be in (0, 1], got {}", self.keep));
+        }
+        if !(self.energy >= 0.0 && self.energy <= 1.0) {
+            return Err(format!("--energy must be in [0, 1], got {}", self.energy));
         }
         Ok(())
     }

@@ -426,6 +426,8 @@ pub fn bake_to_file(
         path: out.display().to_string(),
         source: e,
     };
+    // Before the bake, not after it: a folder given as the output fails now.
+    crate::util::atomic::check_destination(out).map_err(io)?;
     let t_start = Instant::now();
     let mut writer = Writer::create(out).map_err(io)?;
     writer.set_compression(settings.compression);
@@ -490,6 +492,7 @@ pub fn bake_shard_to_file(
         path: out.display().to_string(),
         source: e,
     };
+    crate::util::atomic::check_destination(out).map_err(io)?;
     let t_start = Instant::now();
     let mut writer = PartWriter::create(out, settings.compression).map_err(io)?;
     let b = bake_levels(

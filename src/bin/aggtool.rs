@@ -132,11 +132,11 @@ enum Command {
         /// Frame the asset's bounding sphere instead of reading a view file.
         #[arg(long)]
         auto_view: bool,
-        /// Image width for --auto-view.
-        #[arg(long, default_value_t = 256)]
+        /// Image width for --auto-view (1 to 16384).
+        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=16384))]
         width: u32,
-        /// Image height for --auto-view.
-        #[arg(long, default_value_t = 256)]
+        /// Image height for --auto-view (1 to 16384).
+        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=16384))]
         height: u32,
         /// Samples per pixel (overrides the view file).
         #[arg(long)]
@@ -157,7 +157,8 @@ enum Command {
         #[arg(long)]
         save_view: Option<PathBuf>,
     },
-    /// Compare two images (EXR, PFM, HDR): RMSE and relative MSE on linear values.
+    /// Compare two linear images (EXR, PFM, HDR; PNG and other 8-bit formats are refused):
+    /// RMSE and relative MSE.
     Compare {
         a: PathBuf,
         /// The reference.
@@ -173,7 +174,8 @@ enum Command {
     /// trees of --triangles each and a manifest (forest.json) placing --instances of them; or,
     /// with `city`, a manifest (city.json) laying out --instances pieces of existing kits
     /// (--kit, repeatable; default: the Kenney city kit and the Quaternius village of
-    /// ../shared/assets) as a town, referenced by relative path, not copied.
+    /// $AGGTOOL_ASSETS, else of ../shared/assets from the current folder) as a town, referenced
+    /// by relative path, not copied.
     Gen {
         /// One of: plane45, lattice, foliage, displaced-sphere, rings, buildings, all, forest
         /// or city.
@@ -303,8 +305,8 @@ enum Command {
         /// Cones per pixel (overrides the view file).
         #[arg(long)]
         spp: Option<u32>,
-        /// Light samples (and ABSDF samples) per primitive hit, combined by MIS.
-        #[arg(long, default_value_t = 1)]
+        /// Light samples (and ABSDF samples) per primitive hit, combined by MIS (at least 1).
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
         nee: u32,
         /// Random seed (overrides the view file).
         #[arg(long)]
@@ -1344,8 +1346,8 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Compare { a, b, diff, json } => {
-            let ia = Image::read_any(&a)?;
-            let ib = Image::read_any(&b)?;
+            let ia = Image::read_linear(&a)?;
+            let ib = Image::read_linear(&b)?;
             let c = compare(&ia, &ib).map_err(anyhow::Error::msg)?;
             if let Some(d) = diff {
                 let (img, scale) = difference_image(&ia, &ib, None);
@@ -1377,16 +1379,23 @@ fn run(cli: Cli) -> Result<()> {
         } => {
             if name == "city" {
                 let kits = if kits.is_empty() {
-                    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/assets");
-                    let shared = if shared.exists() {
-                        shared
-                    } else {
-                        PathBuf::from("../shared/assets")
-                    };
-                    vec![
+                    // Looked for at run time (a path compiled in would be the build machine's).
+                    let shared = std::env::var_os("AGGTOOL_ASSETS")
+                        .map_or_else(|| PathBuf::from("../shared/assets"), PathBuf::from);
+                    let kits = vec![
                         shared.join("kenney_city_kit"),
                         shared.join("quaternius_medieval_village"),
-                    ]
+                    ];
+                    if let Some(k) = kits.iter().find(|k| !k.is_dir()) {
+                        bail!(
+                            "no --kit given, and the default kit {} is not a folder (the default \
+                             kits are looked for in $AGGTOOL_ASSETS, else in ../shared/assets from \
+                             the current folder): give --kit FOLDER (repeatable) or set \
+                             AGGTOOL_ASSETS",
+                            k.display()
+                        );
+                    }
+                    kits
                 } else {
                     kits
                 };
@@ -1578,6 +1587,23 @@ fn run(cli: Cli) -> Result<()> {
                 }
                 m.assets.retain(|a| assets.contains(&a.id));
             }
+            if require_reuse {
+                // Refused before anything is baked, not after the bakes.
+                let stale = aggtool::assembly::bake::stale_assets(&m, &settings)?;
+                if !stale.is_empty() {
+                    let list: Vec<String> = stale
+                        .iter()
+                        .map(|(id, why)| format!("asset '{id}' ({why})"))
+                        .collect();
+                    anyhow::bail!(
+                        "{}: {} aggregate(s) would have had to be baked, so nothing was baked \
+                         (--require-reuse: every asset's bake task should have written them): {}",
+                        manifest.display(),
+                        stale.len(),
+                        list.join(", ")
+                    );
+                }
+            }
             let t0 = std::time::Instant::now();
             let outcomes =
                 aggtool::assembly::bake::assemble(&m, &settings, ImportOptions { strict }, &|o| {
@@ -1765,6 +1791,11 @@ fn convert(
         Some(s) => asset.with_extension(format!("{}-of-{}.aggpart", s.index, s.count)),
         None => asset.with_extension("agg"),
     });
+    // Where the files go is checked before the import and the bake (minutes), not after them.
+    for p in std::iter::once(out.as_path()).chain(report) {
+        aggtool::util::atomic::check_destination(p)
+            .with_context(|| format!("cannot write {}", p.display()))?;
+    }
     let t0 = std::time::Instant::now();
     let scene = load_scene(asset, strict)?;
     let t_import = t0.elapsed().as_secs_f64();
@@ -1995,8 +2026,16 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e}");
+            // Many errors put their source in their own message ("cannot read F: {source}"):
+            // a cause already said is not said again.
+            let mut said = e.to_string();
             for cause in e.chain().skip(1) {
-                eprintln!("  caused by: {cause}");
+                let cause = cause.to_string();
+                if !said.contains(&cause) {
+                    eprintln!("  caused by: {cause}");
+                }
+                said.push('\n');
+                said.push_str(&cause);
             }
             ExitCode::FAILURE
         }

@@ -187,6 +187,34 @@ impl Image {
         })
     }
 
+    /// Reads an image of linear radiance for measuring: `.exr`, `.pfm` or `.hdr`. Any other
+    /// format (PNG, JPEG, …) is refused, not decoded: its values went through a tonemap (the
+    /// PNG `render` and `reference` write beside their EXR is exposed, clamped to [0, 1] and
+    /// sRGB-encoded), so errors measured on them are not errors in radiance.
+    pub fn read_linear(path: &Path) -> Result<Image, ImageError> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(|e| e.to_ascii_lowercase())
+            .unwrap_or_default();
+        if !matches!(ext.as_str(), "exr" | "pfm" | "hdr") {
+            let what = if ext.is_empty() {
+                "a file without an extension".to_string()
+            } else {
+                format!("a .{ext} file")
+            };
+            return Err(ImageError::Read {
+                path: path.to_path_buf(),
+                message: format!(
+                    "{what} is not linear: give an EXR, PFM or HDR image (an 8-bit image such as \
+                     a PNG or JPEG holds tonemapped, clamped, sRGB-encoded values, not radiance; \
+                     `render` and `reference` write the EXR beside their PNG)"
+                ),
+            });
+        }
+        Image::read_any(path)
+    }
+
     /// 8-bit sRGB bytes after exposure `2^stops`, clamped.
     pub fn to_srgb8(&self, stops: f32) -> Vec<u8> {
         let k = 2f32.powf(stops);

@@ -199,6 +199,14 @@ impl View {
             ));
         }
         let c = &self.camera;
+        // The size first: a view framed for a zero-sized image (`View::framing`) has an
+        // infinite eye, which is not what is wrong with it.
+        if c.width == 0 || c.height == 0 || c.width > 16384 || c.height > 16384 {
+            return Err(format!(
+                "image size {}x{} must be 1 to 16384 per side",
+                c.width, c.height
+            ));
+        }
         let eye = Vec3::from(c.eye);
         let target = Vec3::from(c.target);
         let up = Vec3::from(c.up);
@@ -214,12 +222,6 @@ impl View {
         }
         if !(c.fov_y_deg > 0.0 && c.fov_y_deg < 179.0) {
             return Err(format!("fov_y_deg {} must be in (0, 179)", c.fov_y_deg));
-        }
-        if c.width == 0 || c.height == 0 || c.width > 16384 || c.height > 16384 {
-            return Err(format!(
-                "image size {}x{} must be 1 to 16384 per side",
-                c.width, c.height
-            ));
         }
         if self.spp == 0 || self.spp > 1 << 20 {
             return Err(format!("spp {} must be 1 to 1048576", self.spp));

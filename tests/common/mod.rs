@@ -23,16 +23,48 @@ pub fn ok(o: &Output) -> String {
     String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
-/// `../shared/assets` beside the checkout, or `None` (with a message) when it is absent:
-/// tests that need it skip, they never fail for its absence.
-pub fn shared_assets() -> Option<PathBuf> {
+/// What a test that skips for want of `../shared/assets` prints, before its name. `.ci/run`
+/// fails when a test's output holds it while the folder is present.
+pub const SKIPPED_NO_ASSETS: &str = "SKIPPED (no ../shared/assets)";
+
+/// Says that `test` skipped (all or part of it) because `../shared/assets` is absent: one line
+/// on stderr, written past libtest's capture (which hides a passing test's `eprintln!`), so
+/// that a skip shows in `cargo test`'s output.
+pub fn skipped_no_assets(test: &str) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stderr(), "{SKIPPED_NO_ASSETS}: {test}");
+}
+
+/// `../shared/assets` beside the checkout, or `None` when it is absent, after saying that
+/// `test` skipped ([`skipped_no_assets`]): tests that need it skip, they never fail for its
+/// absence, and never silently.
+pub fn shared_assets(test: &str) -> Option<PathBuf> {
     let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/assets");
     if p.is_dir() {
         Some(p)
     } else {
-        eprintln!("skipped: {} is absent", p.display());
+        skipped_no_assets(test);
         None
     }
+}
+
+/// Asserts that a render is sound: every pixel finite, and no sample dropped as non-finite nor
+/// value replaced on the way. The image loop leaves non-finite samples out of their pixels and
+/// counts them, so finite pixels alone cannot show a NaN: the counters can.
+pub fn assert_clean_render(
+    img: &aggtool::film::Image,
+    stats: &aggtool::film::ImageStats,
+    what: &str,
+) {
+    assert_eq!(
+        (stats.invalid_samples, stats.non_finite),
+        (0, 0),
+        "{what}: (invalid samples, non-finite values)"
+    );
+    assert!(
+        img.pixels.iter().all(|p| p.is_finite()),
+        "{what}: a non-finite pixel"
+    );
 }
 
 /// Generates a scene into a temporary folder and imports it.

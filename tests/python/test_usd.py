@@ -520,7 +520,7 @@ def test_not_a_manifest(assets):
 
 
 @pytest.mark.skipif(not (SHARED / "kenney_city_kit" / "building-small-a.glb").exists(),
-                    reason="needs ../shared/assets (Kenney city kit)")
+                    reason="(no ../shared/assets): its Kenney city kit is needed")
 def test_shared_textured_asset(tmp_path):
     """A textured shared asset (Kenney city kit): its base-colour texture is written beside the
     layer, wired into the UsdPreviewSurface as sRGB, and resolves."""
