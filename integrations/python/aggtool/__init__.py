@@ -10,7 +10,16 @@ the native module `aggtool._native`, built with maturin (integrations/python/pyp
 """
 
 try:
-    from ._native import AggError, Lights, Scene, __version__, convert, open  # noqa: F401
+    from ._native import (  # noqa: F401
+        AggError,
+        Lights,
+        Scene,
+        __version__,
+        cache_stats,
+        convert,
+        open,
+        set_cache_mib,
+    )
 except ImportError as _e:  # only the generated reader: the native module is not built here
     _native_error = _e
 

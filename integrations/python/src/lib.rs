@@ -687,6 +687,33 @@ fn open(path: PathBuf) -> PyResult<Scene> {
     Ok(Scene { scene, path })
 }
 
+/// Sets the memory budget of the block cache every scene of the process shares, in MiB (the
+/// CLI's `render --cache-mib`): prepared blocks of every aggregate stay within it, the least
+/// recently used evicted; a smaller budget gives the same results, only slower. The default
+/// is a quarter of the machine's memory.
+#[pyfunction]
+fn set_cache_mib(mib: u64) -> PyResult<()> {
+    if mib == 0 {
+        return Err(agg_err("the cache budget must be at least 1 MiB".to_string()));
+    }
+    aggtool::runtime::BlockCache::global().set_budget(mib.saturating_mul(1 << 20));
+    Ok(())
+}
+
+/// The block cache's statistics: a dict of budget, loaded, evicted, bytes and peak (bytes and
+/// block counts).
+#[pyfunction]
+fn cache_stats(py: Python<'_>) -> PyResult<Bound<'_, pyo3::types::PyDict>> {
+    let c = aggtool::runtime::BlockCache::global().stats();
+    let d = pyo3::types::PyDict::new(py);
+    d.set_item("budget", c.budget)?;
+    d.set_item("loaded", c.loaded)?;
+    d.set_item("evicted", c.evicted)?;
+    d.set_item("bytes", c.bytes)?;
+    d.set_item("peak", c.peak)?;
+    Ok(d)
+}
+
 /// Bakes `source` (.gltf, .glb or .obj) into an aggregate at `output` (default: the source's
 /// path with `.agg`) and returns the output path. Settings as keyword arguments, named as
 /// `aggtool convert`'s flags with underscores (max_res, min_res, samples, aiv_res, aiv_rays,
@@ -753,6 +780,8 @@ fn convert(
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(open, m)?)?;
     m.add_function(wrap_pyfunction!(convert, m)?)?;
+    m.add_function(wrap_pyfunction!(set_cache_mib, m)?)?;
+    m.add_function(wrap_pyfunction!(cache_stats, m)?)?;
     m.add_class::<Scene>()?;
     m.add_class::<Lights>()?;
     m.add("AggError", m.py().get_type::<AggError>())?;

@@ -1,0 +1,183 @@
+//! The runtime's block cache (`aggtool::runtime::BlockCache`): the same image bits under any
+//! budget, eviction while many threads trace cones, the bytes counted returning to zero once
+//! the scenes are closed, and a damaged block met in the middle of a render reported while the
+//! rest of the scene renders.
+
+mod common;
+
+use std::sync::Arc;
+
+use aggtool::bake::{bake_to_file, BakeSettings};
+use aggtool::format::Aggregate;
+use aggtool::gen::{generate, GenSettings};
+use aggtool::render::View;
+use aggtool::runtime::{BlockCache, Cone, LodScene, TraceSettings};
+use aggtool::util::no_progress;
+use glam::Vec3;
+
+/// The foliage hard case baked at 32³ (several levels, voxel and face blocks at each).
+fn foliage_bytes() -> Vec<u8> {
+    let scene = generate(
+        "foliage",
+        &GenSettings {
+            triangles: 6000,
+            ..Default::default()
+        },
+    )
+    .unwrap()
+    .to_scene();
+    let s = BakeSettings {
+        max_res: 32,
+        min_res: 2,
+        samples: 16,
+        max_samples: 256,
+        aiv_res: 16,
+        aiv_rays: 16,
+        abv_res: 16,
+        abv_rays: 2,
+        ..Default::default()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("f.agg");
+    bake_to_file(&scene, "f", &s, &p, &no_progress).unwrap();
+    std::fs::read(&p).unwrap()
+}
+
+/// A view framing the aggregate, under a sky and a sun.
+fn view(lod: &LodScene, size: u32, spp: u32) -> View {
+    let (lo, hi) = lod.bounds().unwrap();
+    let mut v = View::framing(0.5 * (lo + hi), 0.5 * (hi - lo).length(), size, size, spp);
+    v.environment = Some(aggtool::render::view::EnvironmentDesc::Constant {
+        constant: aggtool::render::view::Rgb::Rgb([0.4, 0.5, 0.7]),
+    });
+    v.sun = Some(aggtool::render::view::SunDesc {
+        direction: [0.3, 1.0, 0.5],
+        irradiance: aggtool::render::view::Rgb::Scalar(2.0),
+    });
+    v
+}
+
+/// Renders `lod` from `v`, the pixels as bits.
+fn render_bits(lod: &LodScene, v: &View) -> Vec<[u32; 3]> {
+    let (img, stats) = aggtool::runtime::render(
+        lod,
+        &v.camera(),
+        &v.lights().unwrap(),
+        v.spp,
+        v.seed,
+        &TraceSettings::default(),
+        &no_progress,
+    );
+    common::assert_clean_render(&img, &stats, "LoD render");
+    img.pixels
+        .iter()
+        .map(|p| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()])
+        .collect()
+}
+
+/// A budget far smaller than the working set (zero bytes: every block is evicted as soon as
+/// another is prepared) gives the same bits as a budget that holds everything, with blocks
+/// prepared again; once the scenes are closed no byte is left counted.
+#[test]
+fn same_bits_under_any_budget() {
+    let bytes = foliage_bytes();
+    let roomy = BlockCache::new(1 << 30);
+    let tiny = BlockCache::new(0);
+    let bits = |cache: &Arc<BlockCache>| {
+        let lod =
+            LodScene::with_cache(Aggregate::from_bytes_lazy(bytes.clone()).unwrap(), cache.clone());
+        let v = view(&lod, 24, 4);
+        let b = render_bits(&lod, &v);
+        assert!(lod.first_error().is_none());
+        b
+    };
+    let a = bits(&roomy);
+    let b = bits(&tiny);
+    assert!(a.iter().any(|p| p != &a[0]), "the picture is not flat");
+    assert!(a == b, "a small budget changed the image");
+    let (r, t) = (roomy.stats(), tiny.stats());
+    assert_eq!(r.evicted, 0, "{r:?}");
+    assert!(r.loaded >= 2 && r.peak > 0, "{r:?}");
+    assert!(t.evicted > 0 && t.loaded > r.loaded, "{t:?} against {r:?}");
+    // Every block dropped with its scene: nothing left counted.
+    assert_eq!(roomy.stats().bytes, 0);
+    assert_eq!(tiny.stats().bytes, 0);
+}
+
+/// Many threads tracing cones through one scene under a budget smaller than one block, so
+/// that blocks are evicted while other cones hold them: every cone's result is the one it
+/// gets with a roomy budget, bit for bit.
+#[test]
+fn eviction_under_concurrent_cones() {
+    let bytes = foliage_bytes();
+    let roomy = BlockCache::new(1 << 30);
+    let tiny = BlockCache::new(1);
+    let open = |c: &Arc<BlockCache>| {
+        LodScene::with_cache(Aggregate::from_bytes_lazy(bytes.clone()).unwrap(), c.clone())
+    };
+    let (a, b) = (open(&roomy), open(&tiny));
+    let (lo, hi) = a.bounds().unwrap();
+    let c = 0.5 * (lo + hi);
+    let r = (hi - lo).length();
+    // Cones from every side and distance, so that every level and many blocks are needed.
+    let cones: Vec<Cone> = (0..4000)
+        .map(|i| {
+            let t = i as f32 * 0.618_034;
+            let z = 1.0 - 2.0 * ((i as f32 + 0.5) / 4000.0);
+            let s = (1.0 - z * z).sqrt();
+            let d = Vec3::new(s * (6.283 * t).cos(), z, s * (6.283 * t).sin());
+            let dist = r * (0.8 + 30.0 * ((i % 7) as f32 / 6.0).powi(3));
+            let jitter = Vec3::new((i % 5) as f32, (i % 3) as f32, (i % 11) as f32) * (0.01 * r);
+            Cone::new(c + d * dist, -d + jitter / dist, 2e-3)
+        })
+        .collect();
+    let lights = view(&a, 8, 1).lights().unwrap();
+    let s = TraceSettings::default();
+    let mut ra = vec![0f32; 4 * cones.len()];
+    let mut rb = vec![0f32; 4 * cones.len()];
+    a.trace_batch(&cones, &lights, &s, 5, &mut ra);
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(8).build().unwrap();
+    pool.install(|| b.trace_batch(&cones, &lights, &s, 5, &mut rb));
+    assert!(ra.iter().all(|v| v.is_finite()));
+    assert!(ra.iter().zip(&rb).all(|(x, y)| x.to_bits() == y.to_bits()));
+    let t = tiny.stats();
+    assert!(t.evicted > 10, "{t:?}");
+    assert!(a.first_error().is_none() && b.first_error().is_none());
+}
+
+/// A face block damaged in the file is met in the middle of a render, not on open: the
+/// render finishes with finite pixels, the damage is reported with its level and block, and
+/// the voxels still render (only that block's faces are missing).
+#[test]
+fn a_damaged_block_met_mid_render() {
+    let bytes = foliage_bytes();
+    let agg = Aggregate::from_bytes(bytes.clone()).unwrap();
+    let (vb, fb) = agg.level_bytes(0);
+    assert!(vb > 0 && fb > 64, "{vb} {fb}");
+    // The finest level's voxel blocks come first (at byte 64), then its face blocks.
+    let mut bad = bytes.clone();
+    let at = 64 + vb as usize + fb as usize / 2;
+    bad[at] ^= 0x5a;
+    assert!(Aggregate::from_bytes(bad.clone()).is_err(), "the damage is in a block");
+    let cache = BlockCache::new(1 << 30);
+    let lod = LodScene::with_cache(Aggregate::from_bytes_lazy(bad).unwrap(), cache);
+    assert!(lod.first_error().is_none(), "nothing is read on open");
+    let good = LodScene::with_cache(
+        Aggregate::from_bytes_lazy(bytes).unwrap(),
+        BlockCache::new(1 << 30),
+    );
+    let mut v = view(&lod, 24, 2);
+    // Close enough that the finest level is drawn.
+    let (lo, hi) = lod.bounds().unwrap();
+    v.camera.eye = (0.5 * (lo + hi) + Vec3::new(0.0, 0.0, 0.9 * (hi - lo).length())).to_array();
+    let damaged = render_bits(&lod, &v);
+    let e = lod.first_error().expect("the damage is reported").to_string();
+    assert!(e.contains("level 0") && e.contains("face block"), "{e}");
+    let intact = render_bits(&good, &v);
+    assert!(good.first_error().is_none());
+    // The voxels render: most pixels are the same as without the damage.
+    let same = damaged.iter().zip(&intact).filter(|(a, b)| a == b).count();
+    assert!(same > 0, "no pixel survived the damage of one face block");
+    let covered = intact.iter().filter(|p| p != &&intact[0]).count();
+    assert!(covered > 10, "the view misses the aggregate");
+}
