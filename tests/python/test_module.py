@@ -331,3 +331,28 @@ def test_open_a_manifest(aggtool_module):
                                  "instances": [{"asset": "oak"}]}))
         with pytest.raises(aggtool.AggError, match="oak"):
             aggtool.open(str(m))
+
+
+def test_cache_budget(aggtool_module):
+    """The block cache's budget from Python: 0 is an AggError; under 1 MiB the same cones give
+    the same numbers as under the default, and the statistics count the blocks prepared. The
+    budget is the process's: the test puts a roomy one back."""
+    aggtool = aggtool_module
+    with pytest.raises(aggtool.AggError, match="at least 1 MiB"):
+        aggtool.set_cache_mib(0)
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        agg = tree(tmp)
+        lo, hi = aggtool.open(str(agg)).bounds
+        c = [(lo[i] + hi[i]) / 2 for i in range(3)]
+        o = np.array([[c[0] + (i - 4) * 0.1 * (hi[0] - lo[0]), c[1], hi[2] + (hi[2] - lo[2])]
+                      for i in range(9)], np.float32)
+        dirs = np.tile(np.array([[0, 0, -1]], np.float32), (9, 1))
+        roomy = aggtool.open(str(agg)).trace(o, dirs, 0.002, seed=3)
+        aggtool.set_cache_mib(1)
+        small = aggtool.open(str(agg)).trace(o, dirs, 0.002, seed=3)
+        stats = aggtool.cache_stats()
+        aggtool.set_cache_mib(4096)
+        assert stats["budget"] == 1 << 20 and stats["loaded"] > 0 and stats["peak"] > 0, stats
+        assert np.array_equal(roomy, small)
+        assert (roomy[:, 3] < 1).any(), "the cones miss the tree"
