@@ -1,7 +1,8 @@
 //! Criterion benchmarks of the LoD runtime: cones per second through the foliage (generated,
 //! 1M triangles) and Japanese maple aggregates baked at 64³, for the walk alone, the walk with
 //! exact coverage weights, and `trace` (reservoir shading; with PCG numbers and with the image
-//! loop's stratified ones), at the quality study's 64² view.
+//! loop's stratified ones), at the quality study's 64² view; and `trace` with every cone forced
+//! to each level in turn (cones per second per level).
 //! `cargo bench --bench runtime`.
 //!
 //! The aggregates are baked on first use into `target/aggtool-bench/` (a few minutes each) and
@@ -145,6 +146,27 @@ fn bench(c: &mut Criterion) {
                     .sum::<f32>()
             })
         });
+        // Cones per second per level: every cone forced to level l (0 = finest), the blocks
+        // it needs prepared before the measurement.
+        for l in 0..scene.level_count() {
+            let forced = TraceSettings {
+                level: Some(l),
+                ..s
+            };
+            for c in &cones {
+                let _ = scene.trace(c, &lights, &forced, &mut rng);
+            }
+            let res = scene.grid(l).res;
+            g.bench_function(format!("trace at level {l} ({res}³)"), |b| {
+                let mut rng = Pcg32::new(3, 3);
+                b.iter(|| {
+                    cones
+                        .iter()
+                        .map(|c| scene.trace(c, &lights, &forced, &mut rng).radiance.x)
+                        .sum::<f32>()
+                })
+            });
+        }
         g.finish();
     }
 }

@@ -84,8 +84,10 @@ fn same_bits_under_any_budget() {
     let roomy = BlockCache::new(1 << 30);
     let tiny = BlockCache::new(0);
     let bits = |cache: &Arc<BlockCache>| {
-        let lod =
-            LodScene::with_cache(Aggregate::from_bytes_lazy(bytes.clone()).unwrap(), cache.clone());
+        let lod = LodScene::with_cache(
+            Aggregate::from_bytes_lazy(bytes.clone()).unwrap(),
+            cache.clone(),
+        );
         let v = view(&lod, 24, 4);
         let b = render_bits(&lod, &v);
         assert!(lod.first_error().is_none());
@@ -113,7 +115,10 @@ fn eviction_under_concurrent_cones() {
     let roomy = BlockCache::new(1 << 30);
     let tiny = BlockCache::new(1);
     let open = |c: &Arc<BlockCache>| {
-        LodScene::with_cache(Aggregate::from_bytes_lazy(bytes.clone()).unwrap(), c.clone())
+        LodScene::with_cache(
+            Aggregate::from_bytes_lazy(bytes.clone()).unwrap(),
+            c.clone(),
+        )
     };
     let (a, b) = (open(&roomy), open(&tiny));
     let (lo, hi) = a.bounds().unwrap();
@@ -136,7 +141,10 @@ fn eviction_under_concurrent_cones() {
     let mut ra = vec![0f32; 4 * cones.len()];
     let mut rb = vec![0f32; 4 * cones.len()];
     a.trace_batch(&cones, &lights, &s, 5, &mut ra);
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(8).build().unwrap();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(8)
+        .build()
+        .unwrap();
     pool.install(|| b.trace_batch(&cones, &lights, &s, 5, &mut rb));
     assert!(ra.iter().all(|v| v.is_finite()));
     assert!(ra.iter().zip(&rb).all(|(x, y)| x.to_bits() == y.to_bits()));
@@ -158,7 +166,10 @@ fn a_damaged_block_met_mid_render() {
     let mut bad = bytes.clone();
     let at = 64 + vb as usize + fb as usize / 2;
     bad[at] ^= 0x5a;
-    assert!(Aggregate::from_bytes(bad.clone()).is_err(), "the damage is in a block");
+    assert!(
+        Aggregate::from_bytes(bad.clone()).is_err(),
+        "the damage is in a block"
+    );
     let cache = BlockCache::new(1 << 30);
     let lod = LodScene::with_cache(Aggregate::from_bytes_lazy(bad).unwrap(), cache);
     assert!(lod.first_error().is_none(), "nothing is read on open");
@@ -171,7 +182,10 @@ fn a_damaged_block_met_mid_render() {
     let (lo, hi) = lod.bounds().unwrap();
     v.camera.eye = (0.5 * (lo + hi) + Vec3::new(0.0, 0.0, 0.9 * (hi - lo).length())).to_array();
     let damaged = render_bits(&lod, &v);
-    let e = lod.first_error().expect("the damage is reported").to_string();
+    let e = lod
+        .first_error()
+        .expect("the damage is reported")
+        .to_string();
     assert!(e.contains("level 0") && e.contains("face block"), "{e}");
     let intact = render_bits(&good, &v);
     assert!(good.first_error().is_none());

@@ -281,7 +281,6 @@ fn pair_g2(frame: Mat3, macro_alpha: Vec2, micro_alpha: f32, wi: Vec3, wo: Vec3,
     }
 }
 
-
 impl<'t> Absdf<'t> {
     /// Bytes this ABSDF holds, itself and on the heap (what the runtime's block cache counts
     /// for a voxel shaded).

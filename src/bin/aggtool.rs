@@ -947,7 +947,9 @@ fn run_assembly_lod(
             s.resolutions_used()
         );
     }
-    let skeletons = (0..m.assets.len()).map(|a| asm.scene(a).skeleton_bytes()).sum();
+    let skeletons = (0..m.assets.len())
+        .map(|a| asm.scene(a).skeleton_bytes())
+        .sum();
     println!("{}", cache_line(skeletons));
     if let Some(path) = level_map {
         let camera = view.camera();

@@ -419,7 +419,68 @@ pub struct SpeedResult {
     pub equal_time_reference_rmse: f64,
     /// Non-finite values counted in the LoD render (zero when healthy).
     pub lod_non_finite: u64,
+    /// Peak resident memory in bytes of the whole commands `aggtool render` and `aggtool
+    /// reference` at equal spp, each run as a process of its own (`None` when the study does
+    /// not run from the `aggtool` binary, as in the library's tests).
+    pub lod_peak_rss: Option<u64>,
+    pub reference_peak_rss: Option<u64>,
     pub picture: PathBuf,
+}
+
+/// Peak resident memory of the whole commands `aggtool render AGG` and `aggtool reference
+/// ASSET` on `view` (saved beside the study's outputs), each a child process of this
+/// executable when it is the `aggtool` binary; `None` otherwise or when a command fails.
+fn peak_rss_of_commands(
+    view: &crate::render::View,
+    asset: &Path,
+    agg: &Path,
+    dir: &Path,
+    name: &str,
+) -> (Option<u64>, Option<u64>) {
+    let Ok(exe) = std::env::current_exe() else {
+        return (None, None);
+    };
+    if exe.file_stem().and_then(|s| s.to_str()) != Some("aggtool") {
+        return (None, None);
+    }
+    let v = dir.join(format!("{name}-{}-view.json", view.camera.width));
+    let Ok(json) = serde_json::to_string_pretty(view) else {
+        return (None, None);
+    };
+    if std::fs::write(&v, json).is_err() {
+        return (None, None);
+    }
+    let run = |args: &[&std::ffi::OsStr]| {
+        let mut cmd = std::process::Command::new(&exe);
+        cmd.args(args);
+        crate::util::process::measure(&mut cmd)
+            .ok()
+            .filter(|m| m.success)
+            .map(|m| m.max_rss)
+    };
+    let out = |what: &str| dir.join(format!("{name}-{}-{what}-rss.exr", view.camera.width));
+    let (lod_out, ref_out) = (out("lod"), out("reference"));
+    let lod = run(&[
+        "render".as_ref(),
+        agg.as_os_str(),
+        "--view".as_ref(),
+        v.as_os_str(),
+        "-o".as_ref(),
+        lod_out.as_os_str(),
+    ]);
+    let reference = run(&[
+        "reference".as_ref(),
+        asset.as_os_str(),
+        "--view".as_ref(),
+        v.as_os_str(),
+        "-o".as_ref(),
+        ref_out.as_os_str(),
+    ]);
+    for p in [&v, &lod_out, &ref_out] {
+        let _ = std::fs::remove_file(p);
+        let _ = std::fs::remove_file(p.with_extension("png"));
+    }
+    (lod, reference)
 }
 
 /// A scene for the speed study: an asset file (imported the way `aggtool reference` does) and
@@ -542,6 +603,8 @@ pub fn speed_scene(
     let tile_h = side + 2 * crate::render::label::line_height(sc) + 4 * sc;
     let picture = dir.join(format!("{name}-{res}-speed.png"));
     tile_png(&picture, &[tiles], side, tile_h)?;
+    let (lod_peak_rss, reference_peak_rss) =
+        peak_rss_of_commands(&view, input.asset, input.agg, dir, name);
     Ok(SpeedResult {
         scene: name.to_string(),
         triangles: scene.instanced_triangle_count(),
@@ -563,16 +626,27 @@ pub fn speed_scene(
         equal_time_reference_seconds: eq_secs,
         equal_time_reference_rmse: eq_rmse,
         lod_non_finite: stats.non_finite,
+        lod_peak_rss,
+        reference_peak_rss,
         picture,
     })
 }
 
 /// The speed table in Markdown.
 pub fn speed_table(rows: &[SpeedResult]) -> String {
-    let mut s = String::from("| scene | triangles | image | bake | spp | LoD cpu s | reference cpu s | LoD / reference (cpu) | (wall) | render only (wall) | LoD levels | LoD RMSE | reference RMSE | equal-time reference spp (cpu s) | its RMSE |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    let mut s = String::from("| scene | triangles | image | bake | spp | LoD cpu s | reference cpu s | LoD / reference (cpu) | (wall) | render only (wall) | LoD levels | LoD RMSE | reference RMSE | equal-time reference spp (cpu s) | its RMSE | peak RSS LoD / reference (MiB) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    let rss = |r: &SpeedResult| match (r.lod_peak_rss, r.reference_peak_rss) {
+        (Some(a), Some(b)) => format!(
+            "{:.0} / {:.0} ({:.2}×)",
+            a as f64 / (1 << 20) as f64,
+            b as f64 / (1 << 20) as f64,
+            a as f64 / b.max(1) as f64
+        ),
+        _ => "-".into(),
+    };
     for r in rows {
         s += &format!(
-            "| {} | {} | {}² | {}³ | {} | {:.2} | {:.2} | {:.2}× | {:.2}× | {:.2}× | {:?} | {:.4} | {:.4} | {} ({:.2}) | {:.4} |\n",
+            "| {} | {} | {}² | {}³ | {} | {:.2} | {:.2} | {:.2}× | {:.2}× | {:.2}× | {:?} | {:.4} | {:.4} | {} ({:.2}) | {:.4} | {} |\n",
             r.scene,
             r.triangles,
             r.res,
@@ -588,7 +662,8 @@ pub fn speed_table(rows: &[SpeedResult]) -> String {
             r.reference_rmse,
             r.equal_time_reference_spp,
             r.equal_time_reference_seconds,
-            r.equal_time_reference_rmse
+            r.equal_time_reference_rmse,
+            rss(r)
         );
     }
     s

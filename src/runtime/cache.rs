@@ -146,7 +146,11 @@ impl BlockCache {
     /// A slot that just received a block: counted, put on the ring, and room made.
     pub(crate) fn inserted(&self, slot: Arc<dyn Evictable>) {
         self.loaded.fetch_add(1, Relaxed);
-        self.ring.lock().unwrap_or_else(|p| p.into_inner()).slots.push(slot);
+        self.ring
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .slots
+            .push(slot);
         self.evict_over_budget();
     }
 
@@ -185,25 +189,29 @@ impl BlockCache {
     }
 }
 
-/// A slot of a level: the block prepared there, if any, and its reference bit.
+/// A slot of a level: the block prepared there, if any, and its reference bit. Reading is
+/// lock-free ([`arc_swap`]); a lock is taken only to prepare a block (so that it is prepared
+/// once however many cones want it) and to evict one.
 pub(crate) struct Slot<T: Send + Sync> {
-    block: Mutex<Option<Arc<T>>>,
+    block: arc_swap::ArcSwapOption<T>,
+    loading: Mutex<()>,
     referenced: AtomicBool,
 }
 
 impl<T: Send + Sync> Default for Slot<T> {
     fn default() -> Self {
         Slot {
-            block: Mutex::new(None),
+            block: arc_swap::ArcSwapOption::empty(),
+            loading: Mutex::new(()),
             referenced: AtomicBool::new(false),
         }
     }
 }
 
 impl<T: Send + Sync + 'static> Slot<T> {
-    /// The slot's block, prepared by `load` if it is not there (the slot is locked meanwhile,
-    /// so that a block is prepared once however many cones want it); `Err` from `load` leaves
-    /// the slot empty. A block prepared here is handed to `cache` (counted and evictable).
+    /// The slot's block, prepared by `load` if it is not there; `Err` from `load` leaves the
+    /// slot empty. A block prepared here is handed to `cache` (counted and evictable).
+    #[inline]
     pub(crate) fn get_or_load<E>(
         self: &Arc<Self>,
         cache: &BlockCache,
@@ -212,12 +220,24 @@ impl<T: Send + Sync + 'static> Slot<T> {
         if !self.referenced.load(Relaxed) {
             self.referenced.store(true, Relaxed);
         }
-        let mut guard = self.block.lock().unwrap_or_else(|p| p.into_inner());
-        if let Some(b) = guard.as_ref() {
-            return Ok(b.clone());
+        if let Some(b) = self.block.load_full() {
+            return Ok(b);
+        }
+        self.load_slow(cache, load)
+    }
+
+    #[inline(never)]
+    fn load_slow<E>(
+        self: &Arc<Self>,
+        cache: &BlockCache,
+        load: impl FnOnce() -> Result<T, E>,
+    ) -> Result<Arc<T>, E> {
+        let guard = self.loading.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(b) = self.block.load_full() {
+            return Ok(b);
         }
         let b = Arc::new(load()?);
-        *guard = Some(b.clone());
+        self.block.store(Some(b.clone()));
         drop(guard);
         cache.inserted(self.clone());
         Ok(b)
@@ -225,7 +245,8 @@ impl<T: Send + Sync + 'static> Slot<T> {
 
     /// Drops the block (a level being dropped).
     pub(crate) fn clear(&self) {
-        *self.block.lock().unwrap_or_else(|p| p.into_inner()) = None;
+        let _guard = self.loading.lock().unwrap_or_else(|p| p.into_inner());
+        self.block.store(None);
     }
 }
 
@@ -234,18 +255,15 @@ impl<T: Send + Sync> Evictable for Slot<T> {
         self.referenced.swap(false, Relaxed)
     }
     fn evict(&self) -> bool {
-        match self.block.try_lock() {
-            Ok(mut g) => {
-                g.take();
+        match self.loading.try_lock() {
+            Ok(_guard) => {
+                self.block.store(None);
                 true
             }
             Err(_) => false,
         }
     }
     fn is_empty(&self) -> bool {
-        match self.block.try_lock() {
-            Ok(g) => g.is_none(),
-            Err(_) => false,
-        }
+        self.block.load().is_none()
     }
 }

@@ -519,7 +519,11 @@ impl<'s> Hits<'s> {
             (PrimitiveKind::TruncatedEllipsoid, Some(case)) => {
                 let ellipsoid = std::f32::consts::PI * w.det * (rec.inv * d).length();
                 let cube = box_projected_area(Vec3::splat(level.voxel_size + 2.0 * level.pad), d);
-                let projected = || block.primitive(level, i).map_or(0.0, |p| p.projected_area(d));
+                let projected = || {
+                    block
+                        .primitive(level, i)
+                        .map_or(0.0, |p| p.projected_area(d))
+                };
                 match (case, self.weights) {
                     (AreaCase::EllipsoidInside, _) => (ellipsoid, ellipsoid),
                     (AreaCase::VoxelInside, _) => (cube, cube),

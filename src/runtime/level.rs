@@ -23,8 +23,8 @@ use std::sync::{Arc, OnceLock};
 
 use glam::{IVec3, Mat3, UVec3, Vec3};
 
-use crate::absdf::Absdf;
 use super::cache::{BlockCache, Slot};
+use crate::absdf::Absdf;
 use crate::format::read::FaceRef;
 use crate::format::{Aggregate, LoadedBlock, VoxelRef};
 use crate::math::microfacet::m5_exact;
@@ -365,7 +365,11 @@ impl<'a> Level<'a> {
     /// keys; no block is kept), its blocks to be prepared into `cache` on demand. A voxel
     /// block that fails to verify is left out (its voxels are empty space) and reported by
     /// [`Level::error`]; a level none of whose blocks verify fails.
-    pub fn prepare(agg: &'a Aggregate, l: usize, cache: Arc<BlockCache>) -> Result<Level<'a>, String> {
+    pub fn prepare(
+        agg: &'a Aggregate,
+        l: usize,
+        cache: Arc<BlockCache>,
+    ) -> Result<Level<'a>, String> {
         let grid = agg.grid(l);
         let (nv, _) = agg.block_counts(l);
         let error = OnceLock::new();
@@ -389,7 +393,10 @@ impl<'a> Level<'a> {
         }
         block_first.push(keys.len() as u32);
         if nv > 0 && block_number.is_empty() {
-            return Err(error.get().cloned().unwrap_or_else(|| "no voxel block".into()));
+            return Err(error
+                .get()
+                .cloned()
+                .unwrap_or_else(|| "no voxel block".into()));
         }
         // Bricks: voxels are sorted by Morton key, so each brick is a run of keys >> 6.
         let brick_res = (grid.res as i32 + BRICK - 1) / BRICK;
@@ -463,8 +470,11 @@ impl<'a> Level<'a> {
             }
             occ.push(bits);
         }
-        let face_ranges: Vec<(u64, u64)> =
-            agg.face_block_ranges(l).iter().map(|r| (r.0, r.1)).collect();
+        let face_ranges: Vec<(u64, u64)> = agg
+            .face_block_ranges(l)
+            .iter()
+            .map(|r| (r.0, r.1))
+            .collect();
         let voxel_size = grid.voxel_size();
         Ok(Level {
             grid,
@@ -551,7 +561,10 @@ impl<'a> Level<'a> {
     /// cache; `None` when it fails to load (recorded in [`Level::error`]).
     #[inline(never)]
     pub fn voxels(&self, idx: u32) -> Option<Arc<Voxels>> {
-        let b = self.block_first.partition_point(|&f| f <= idx).checked_sub(1)?;
+        let b = self
+            .block_first
+            .partition_point(|&f| f <= idx)
+            .checked_sub(1)?;
         if b >= self.voxel_slots.len() {
             return None;
         }
@@ -573,7 +586,9 @@ impl<'a> Level<'a> {
         match r {
             Ok(v) => Some(v),
             Err(e) => {
-                let _ = self.error.set(format!("level {}: voxel block {b}: {e}", self.l));
+                let _ = self
+                    .error
+                    .set(format!("level {}: voxel block {b}: {e}", self.l));
                 None
             }
         }
@@ -602,7 +617,9 @@ impl<'a> Level<'a> {
                     }
                 }
                 Err(e) => {
-                    let _ = self.error.set(format!("level {}: face block {b}: {e}", self.l));
+                    let _ = self
+                        .error
+                        .set(format!("level {}: face block {b}: {e}", self.l));
                 }
             }
             b += 1;

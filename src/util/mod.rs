@@ -3,6 +3,7 @@
 //! else in the crate.
 
 pub mod atomic;
+pub mod process;
 pub mod progress;
 
 pub use atomic::write_atomic;

@@ -290,7 +290,10 @@ pub struct AggCacheStats {
 pub extern "C" fn agg_set_cache_mib(mib: u64) -> c_int {
     guard(|| {
         if mib == 0 {
-            return Err((AGG_ERR_VALUE, "the cache budget must be at least 1 MiB".into()));
+            return Err((
+                AGG_ERR_VALUE,
+                "the cache budget must be at least 1 MiB".into(),
+            ));
         }
         aggtool::runtime::BlockCache::global().set_budget(mib.saturating_mul(1 << 20));
         Ok(())

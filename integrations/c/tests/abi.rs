@@ -404,7 +404,14 @@ fn the_cache_budget_through_the_abi() {
                 .collect();
             let mut out = vec![0f32; 4 * cones.len()];
             assert_eq!(
-                agg_trace_cones(scene, lights, cones.as_ptr(), cones.len(), 5, out.as_mut_ptr()),
+                agg_trace_cones(
+                    scene,
+                    lights,
+                    cones.as_ptr(),
+                    cones.len(),
+                    5,
+                    out.as_mut_ptr()
+                ),
                 AGG_OK
             );
             agg_close(scene);
@@ -420,7 +427,13 @@ fn the_cache_budget_through_the_abi() {
         let default_mib = aggtool::runtime::default_budget() >> 20;
         assert_eq!(agg_set_cache_mib(default_mib), AGG_OK);
         agg_lights_free(lights);
-        assert!(roomy.iter().zip(&small).all(|(a, b)| a.to_bits() == b.to_bits()));
-        assert!(roomy.chunks(4).any(|c| c[3] < 1.0), "the cones miss the tree");
+        assert!(roomy
+            .iter()
+            .zip(&small)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
+        assert!(
+            roomy.chunks(4).any(|c| c[3] < 1.0),
+            "the cones miss the tree"
+        );
     }
 }

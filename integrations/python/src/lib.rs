@@ -694,7 +694,9 @@ fn open(path: PathBuf) -> PyResult<Scene> {
 #[pyfunction]
 fn set_cache_mib(mib: u64) -> PyResult<()> {
     if mib == 0 {
-        return Err(agg_err("the cache budget must be at least 1 MiB".to_string()));
+        return Err(agg_err(
+            "the cache budget must be at least 1 MiB".to_string(),
+        ));
     }
     aggtool::runtime::BlockCache::global().set_budget(mib.saturating_mul(1 << 20));
     Ok(())
