@@ -814,6 +814,9 @@ fn run_reference(
         build, accel.stats.blas_count, accel.stats.tlas_entries,
     );
     println!("{}", stats.line("reference"));
+    if let Some(l) = aggtool::util::process::peak_rss_line() {
+        println!("{l}");
+    }
     println!(
         "output: {} and {}",
         output.display(),
@@ -875,6 +878,9 @@ fn run_lod(
         scene.resolutions_used()
     );
     println!("{}", cache_line(scene.skeleton_bytes()));
+    if let Some(l) = aggtool::util::process::peak_rss_line() {
+        println!("{l}");
+    }
     println!(
         "output: {} and {}",
         output.display(),
@@ -951,6 +957,9 @@ fn run_assembly_lod(
         .map(|a| asm.scene(a).skeleton_bytes())
         .sum();
     println!("{}", cache_line(skeletons));
+    if let Some(l) = aggtool::util::process::peak_rss_line() {
+        println!("{l}");
+    }
     if let Some(path) = level_map {
         let camera = view.camera();
         let map = aggtool::assembly::level_map(&asm, &camera, settings);

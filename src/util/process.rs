@@ -5,6 +5,27 @@
 use std::process::{Command, Stdio};
 use std::time::Instant;
 
+/// The peak resident memory of this process since it was started (`VmHWM` of
+/// `/proc/self/status`, in bytes), or `None` where it cannot be read. Unlike `getrusage`'s
+/// `ru_maxrss`, it starts afresh at `exec`: a child spawned by a large process (with
+/// `CLONE_VM`, as `posix_spawn` does) inherits the parent's high-water mark in `ru_maxrss`.
+pub fn peak_rss() -> Option<u64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
+}
+
+/// The line a command prints with [`peak_rss`], which [`measure`] reads back.
+pub fn peak_rss_line() -> Option<String> {
+    peak_rss().map(|b| {
+        format!(
+            "stats: peak resident memory {:.1} MiB ({b} bytes)",
+            b as f64 / (1 << 20) as f64
+        )
+    })
+}
+
 /// What one child process took.
 #[derive(Clone, Debug)]
 pub struct Measured {
@@ -12,7 +33,9 @@ pub struct Measured {
     pub wall: f64,
     /// User plus system CPU seconds of the child.
     pub cpu: f64,
-    /// Peak resident set size of the child, in bytes.
+    /// Peak resident set size of the child, in bytes: what it printed with
+    /// [`peak_rss_line`] if it did (exact), else `wait4`'s `ru_maxrss` (which may hold the
+    /// parent's high-water mark, see [`peak_rss`]).
     pub max_rss: u64,
     /// Whether it exited with status 0.
     pub success: bool,
@@ -56,11 +79,21 @@ pub fn measure(cmd: &mut Command) -> std::io::Result<Measured> {
         wall: t.elapsed().as_secs_f64(),
         cpu: secs(ru.ru_utime) + secs(ru.ru_stime),
         // Linux reports ru_maxrss in KiB.
-        max_rss: ru.ru_maxrss.max(0) as u64 * 1024,
+        max_rss: reported_rss(&out).unwrap_or(ru.ru_maxrss.max(0) as u64 * 1024),
         success: libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0,
         stdout: out,
         stderr: err,
     })
+}
+
+/// The bytes of a [`peak_rss_line`] in a command's output.
+fn reported_rss(out: &str) -> Option<u64> {
+    let l = out
+        .lines()
+        .rev()
+        .find(|l| l.starts_with("stats: peak resident memory"))?;
+    let inner = l.rsplit('(').next()?;
+    inner.split_whitespace().next()?.parse().ok()
 }
 
 #[cfg(test)]
@@ -83,5 +116,10 @@ mod tests {
         assert!(m.max_rss > 0 && m.max_rss < 1 << 30, "{}", m.max_rss);
         let f = measure(Command::new("sh").args(["-c", "exit 3"])).unwrap();
         assert!(!f.success);
+        // A command that reports its own peak: that figure is taken.
+        let line = "stats: peak resident memory 1.0 MiB (1048576 bytes)";
+        let r = measure(Command::new("sh").args(["-c", &format!("echo '{line}'")])).unwrap();
+        assert_eq!(r.max_rss, 1 << 20);
+        assert!(peak_rss().is_some_and(|b| b > 0));
     }
 }
