@@ -187,7 +187,12 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
     place: &P,
 ) -> (Vec3, f32, u32, f32, f32) {
     let wo = place.to_world(-cone.dir);
-    let mut hits = scene.hits(cone, settings);
+    // Reservoir shading weighs hits by a bound of |B|_ω (see below).
+    let weights = match settings.shading {
+        Shading::Every => Weights::Exact,
+        Shading::Reservoir { .. } => Weights::Bound,
+    };
+    let mut hits = scene.hits_weighted(cone, settings, weights);
     let mut first = f32::INFINITY;
     // The sum of the hits' weights (for `settings.normalize`): exact when every hit is
     // shaded; under reservoir shading the deterministic sum of bound weights times the mean
@@ -208,7 +213,6 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
             // upper bound): each pick keeps hit k with probability ŵ_k / Σŵ ([`Picks`], one
             // number a cone); shading the kept one and scaling by Σŵ · w_k/ŵ_k is an unbiased
             // estimate of Σ w_k L_o^k, with the exact |B|_ω computed once per pick.
-            hits = hits.with_weights(Weights::Bound);
             let n = (picks.max(1) as usize).min(MAX_PICKS);
             let mut reservoir = Picks::new(n, sampler.next_1d());
             for h in &mut hits {
