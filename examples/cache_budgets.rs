@@ -76,13 +76,21 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .find(|l| l.starts_with("stats: cache:"))
             .unwrap_or("")
             .to_string();
-        let field = |word: &str| {
+        // "stats: cache: N blocks loaded, M evicted, peak X MiB of a Y MiB budget (...)".
+        let number_before = |word: &str| {
             cache
-                .split([',', ':'])
+                .split(',')
                 .find(|p| p.contains(word))
-                .map(|p| p.trim().to_string())
-                .unwrap_or_default()
+                .and_then(|p| p.split_whitespace().rev().nth(word.split(' ').count()))
+                .unwrap_or("?")
+                .to_string()
         };
+        let peak = cache
+            .split("peak ")
+            .nth(1)
+            .and_then(|p| p.split(" of").next())
+            .unwrap_or("?")
+            .to_string();
         let img = aggtool::film::Image::read_exr(&out)?;
         let bytes: Vec<u32> = img
             .pixels
@@ -103,9 +111,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             m.wall,
             m.cpu,
             m.max_rss as f64 / (1 << 20) as f64,
-            field("loaded"),
-            field("evicted"),
-            field("peak"),
+            number_before("blocks loaded"),
+            number_before("evicted"),
+            peak,
             same
         );
     }

@@ -5,6 +5,7 @@
 
 mod common;
 
+use std::f32::consts::TAU;
 use std::sync::Arc;
 
 use aggtool::bake::{bake_to_file, BakeSettings};
@@ -130,7 +131,7 @@ fn eviction_under_concurrent_cones() {
             let t = i as f32 * 0.618_034;
             let z = 1.0 - 2.0 * ((i as f32 + 0.5) / 4000.0);
             let s = (1.0 - z * z).sqrt();
-            let d = Vec3::new(s * (6.283 * t).cos(), z, s * (6.283 * t).sin());
+            let d = Vec3::new(s * (TAU * t).cos(), z, s * (TAU * t).sin());
             let dist = r * (0.8 + 30.0 * ((i % 7) as f32 / 6.0).powi(3));
             let jitter = Vec3::new((i % 5) as f32, (i % 3) as f32, (i % 11) as f32) * (0.01 * r);
             Cone::new(c + d * dist, -d + jitter / dist, 2e-3)

@@ -514,17 +514,7 @@ impl Aggregate {
     /// Verifies blob `i` if it was not yet, and returns its block.
     fn check(&self, i: usize) -> Result<fb::Block<'_>, FormatError> {
         let b = &self.blobs[i];
-        let state = b.checked.get_or_init(|| {
-            check_blob(
-                self.bytes(),
-                b,
-                &self.settings,
-                self.levels.as_slice(),
-                self.checksums,
-                self.trees,
-                self.header.minor,
-            )
-        });
+        let state = b.checked.get_or_init(|| self.check_blob(b));
         match state {
             Ok(inflated) => Ok(self.block_unchecked(b, inflated.as_deref())),
             Err(e) => Err(FormatError::Corrupt(e.clone())),
@@ -632,6 +622,19 @@ impl Aggregate {
             .collect()
     }
 
+    /// Verifies blob `b` with this file's settings ([`check_blob`]).
+    fn check_blob(&self, b: &Blob) -> Result<Option<Box<[u8]>>, String> {
+        check_blob(
+            self.bytes(),
+            b,
+            &self.settings,
+            self.levels.as_slice(),
+            self.checksums,
+            self.trees,
+            self.header.minor,
+        )
+    }
+
     /// Blob `bi`, verified once, its bytes lent from the file or from `open`'s kept copy, or
     /// inflated for the caller.
     fn load_block(&self, bi: usize) -> Result<LoadedBlock<'_>, FormatError> {
@@ -650,18 +653,9 @@ impl Aggregate {
             None => {}
         }
         let mut fresh = None;
-        let verdict = b.verdict.get_or_init(|| {
-            check_blob(
-                self.bytes(),
-                b,
-                &self.settings,
-                self.levels.as_slice(),
-                self.checksums,
-                self.trees,
-                self.header.minor,
-            )
-            .map(|inflated| fresh = inflated)
-        });
+        let verdict = b
+            .verdict
+            .get_or_init(|| self.check_blob(b).map(|inflated| fresh = inflated));
         if let Err(e) = verdict {
             return Err(corrupt(e.clone()));
         }
