@@ -223,8 +223,7 @@ pub struct Absdf<'t> {
     /// Per lobe, for the diffuse term: 1 / mass and (mass/4)·E[n nᵀ] in world space.
     diffuse_terms: Vec<(f32, Mat3)>,
     spec: Vec<SpecLobe>,
-    /// Specular sampling lobes (weight, convolved SGGX) and their total weight.
-    spec_sampling: Vec<(f32, Sggx, SggxDensity)>,
+    /// The specular lobes' total weight (they are also the specular sampling mixture).
     spec_total: f32,
     /// Diffuse sampling lobes at the fixed κ (§7.3) and their total weight.
     diffuse_sampling: Vec<(f32, Sggx, SggxDensity)>,
@@ -233,6 +232,45 @@ pub struct Absdf<'t> {
     /// Moments averaged over directions: used when ω_h is undefined (ω_i = −ω_o), so that the
     /// lookup stays symmetric in ω_i and ω_o.
     mean_moments: (MaterialMoments, MaterialMoments),
+}
+
+/// A lobe of a sampling mixture: its weight, its SGGX and the SGGX's precomputed density. The
+/// specular mixture samples the specular lobes themselves ([`SpecLobe`], not a copy of their
+/// three fields: a voxel's ABSDF is what the runtime's cache holds most of).
+trait SamplingLobe {
+    fn weight(&self) -> f32;
+    fn sggx(&self) -> &Sggx;
+    fn density(&self) -> &SggxDensity;
+}
+
+impl SamplingLobe for SpecLobe {
+    #[inline]
+    fn weight(&self) -> f32 {
+        self.weight
+    }
+    #[inline]
+    fn sggx(&self) -> &Sggx {
+        &self.sggx
+    }
+    #[inline]
+    fn density(&self) -> &SggxDensity {
+        &self.density
+    }
+}
+
+impl SamplingLobe for (f32, Sggx, SggxDensity) {
+    #[inline]
+    fn weight(&self) -> f32 {
+        self.0
+    }
+    #[inline]
+    fn sggx(&self) -> &Sggx {
+        &self.1
+    }
+    #[inline]
+    fn density(&self) -> &SggxDensity {
+        &self.2
+    }
 }
 
 /// κ assumed when sampling the diffuse component (§7.3): that of ω_i = ω_o, the sharpest.
@@ -299,7 +337,6 @@ impl<'t> Absdf<'t> {
             + vec(&self.unit)
             + vec(&self.diffuse_terms)
             + vec(&self.spec)
-            + vec(&self.spec_sampling)
             + vec(&self.diffuse_sampling)
             + moments
     }
@@ -393,9 +430,8 @@ impl<'t> Absdf<'t> {
                 MaterialMoments::mean(specular),
             ),
         };
-        let spec_sampling: Vec<(f32, Sggx, SggxDensity)> =
-            spec.iter().map(|l| (l.weight, l.sggx, l.density)).collect();
-        let spec_total = spec_sampling.iter().map(|x| x.0).sum();
+        spec.shrink_to_fit();
+        let spec_total = spec.iter().map(|x| x.weight).sum();
         let diffuse_total = diffuse_sampling.iter().map(|x| x.0).sum();
         Absdf {
             tables,
@@ -403,7 +439,6 @@ impl<'t> Absdf<'t> {
             unit,
             diffuse_terms,
             spec,
-            spec_sampling,
             spec_total,
             diffuse_sampling,
             diffuse_total,
@@ -466,7 +501,7 @@ impl<'t> Absdf<'t> {
     }
 
     /// Density of ω_h under a visible-normal mixture and the reflection Jacobian.
-    fn mixture_pdf(lobes: &[(f32, Sggx, SggxDensity)], total: f32, wi: Vec3, wo: Vec3) -> f32 {
+    fn mixture_pdf<L: SamplingLobe>(lobes: &[L], total: f32, wi: Vec3, wo: Vec3) -> f32 {
         let h = wi + wo;
         let hl = h.length();
         if !(hl > 1e-6) || total <= 0.0 {
@@ -478,14 +513,32 @@ impl<'t> Absdf<'t> {
             return 0.0;
         }
         let mut p = 0.0;
-        for (w, s, d) in lobes {
+        for l in lobes {
             // The visible-normal density max(0, ω_o·m) D(m) / σ(ω_o), D precomputed.
-            let sigma = s.sigma(wo);
+            let sigma = l.sggx().sigma(wo);
             if sigma > 0.0 {
-                p += w / total * (oh * d.d(wh) / sigma);
+                p += l.weight() / total * (oh * l.density().d(wh) / sigma);
             }
         }
         finite_or_zero(p / (4.0 * oh))
+    }
+
+    /// The lobe of a mixture whose share of the total weight holds `v` in [0, 1).
+    #[inline]
+    fn pick<L: SamplingLobe>(list: &[L], total: f32, v: f32) -> Option<Sggx> {
+        if !(total > 0.0) {
+            return None;
+        }
+        let mut v = v.clamp(0.0, 0.999_999) * total;
+        let mut chosen = *list.last()?.sggx();
+        for l in list {
+            if v < l.weight() {
+                chosen = *l.sggx();
+                break;
+            }
+            v -= l.weight();
+        }
+        Some(chosen)
     }
 }
 
@@ -546,7 +599,7 @@ impl Bsdf for Absdf<'_> {
         let ps = self.specular_probability();
         let mut p = 0.0;
         if ps > 0.0 {
-            p += ps * Self::mixture_pdf(&self.spec_sampling, self.spec_total, wi, wo);
+            p += ps * Self::mixture_pdf(&self.spec, self.spec_total, wi, wo);
         }
         if ps < 1.0 {
             p += (1.0 - ps) * Self::mixture_pdf(&self.diffuse_sampling, self.diffuse_total, wi, wo);
@@ -566,27 +619,15 @@ impl Bsdf for Absdf<'_> {
             return None;
         }
         let ps = self.specular_probability();
-        let (list, total, mut v) = if u_lobe < ps {
-            (&self.spec_sampling, self.spec_total, u_lobe / ps.max(1e-12))
+        let chosen = if u_lobe < ps {
+            Self::pick(&self.spec, self.spec_total, u_lobe / ps.max(1e-12))?
         } else {
-            (
+            Self::pick(
                 &self.diffuse_sampling,
                 self.diffuse_total,
                 (u_lobe - ps) / (1.0 - ps).max(1e-12),
-            )
+            )?
         };
-        if !(total > 0.0) {
-            return None;
-        }
-        v = v.clamp(0.0, 0.999_999) * total;
-        let mut chosen = list.last()?.1;
-        for (w, s, _) in list {
-            if v < *w {
-                chosen = *s;
-                break;
-            }
-            v -= w;
-        }
         let wh = chosen.sample_visible(wo, u);
         let oh = wo.dot(wh);
         if !(oh > 0.0) {
