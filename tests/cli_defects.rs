@@ -363,3 +363,72 @@ fn gen_city_finds_its_default_kits_at_run_time() {
     let err = failed(&gen_city(&work, Some(&root.join("nothing"))), ERROR);
     assert!(err.contains("nothing"), "{err}");
 }
+
+/// `render -o out.png` printed "output: out.png and out.png" and kept no EXR (the PNG was
+/// written over the EXR data): now the EXR goes beside it as out.exr, and the PNG is a PNG.
+/// The same for `reference`.
+#[test]
+fn a_png_output_keeps_its_exr_beside_it() {
+    let d = tempfile::tempdir().unwrap();
+    let cwd = d.path();
+    ok(&aggtool(
+        &["gen", "plane45", "-o", ".", "--triangles", "200"],
+        cwd,
+    ));
+    ok(&aggtool(
+        &[
+            "reference",
+            "plane45.glb",
+            "--auto-view",
+            "--width",
+            "16",
+            "--height",
+            "16",
+            "--spp",
+            "2",
+            "--save-view",
+            "v.json",
+            "-o",
+            "ref.png",
+        ],
+        cwd,
+    ));
+    ok(&aggtool(
+        &[
+            "convert",
+            "plane45.glb",
+            "--max-res",
+            "8",
+            "--min-res",
+            "4",
+            "--samples",
+            "4",
+            "--aiv-res",
+            "8",
+            "--aiv-rays",
+            "4",
+            "--abv-res",
+            "8",
+            "--abv-full-res",
+            "8",
+        ],
+        cwd,
+    ));
+    let out = ok(&aggtool(
+        &["render", "plane45.agg", "--view", "v.json", "-o", "lod.png"],
+        cwd,
+    ));
+    assert!(
+        out.contains("lod.exr and") && out.contains("lod.png"),
+        "{out}"
+    );
+    for name in ["ref", "lod"] {
+        let png = std::fs::read(cwd.join(format!("{name}.png"))).unwrap();
+        assert!(png.starts_with(b"\x89PNG"), "{name}.png is not a PNG");
+        let exr = std::fs::read(cwd.join(format!("{name}.exr"))).unwrap();
+        assert!(
+            exr.starts_with(&[0x76, 0x2f, 0x31, 0x01]),
+            "{name}.exr is not an EXR"
+        );
+    }
+}

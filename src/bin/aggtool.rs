@@ -785,6 +785,20 @@ fn png_beside(exr: &Path) -> PathBuf {
     exr.with_extension("png")
 }
 
+/// The EXR a render writes for `-o OUTPUT`: OUTPUT itself, or beside it with `.exr` when
+/// OUTPUT names the PNG (which is then the tonemapped picture, not overwritten by EXR data).
+fn exr_path(output: &Path) -> PathBuf {
+    let png = output
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("png"));
+    if png {
+        output.with_extension("exr")
+    } else {
+        output.to_path_buf()
+    }
+}
+
 fn run_reference(
     scene: &Scene,
     view: &View,
@@ -807,7 +821,7 @@ fn run_reference(
         &|s, d, n| bars.report(s, d, n),
     );
     bars.finish();
-    img.write_exr(output)?;
+    img.write_exr(&exr_path(output))?;
     img.write_png(&png_beside(output), exposure)?;
     println!(
         "stats: bvh {:.2} s ({} BLAS, {} TLAS entries)",
@@ -819,7 +833,7 @@ fn run_reference(
     }
     println!(
         "output: {} and {}",
-        output.display(),
+        exr_path(output).display(),
         png_beside(output).display()
     );
     Ok(stats)
@@ -867,7 +881,7 @@ fn run_lod(
     if let Some(e) = scene.first_error() {
         bail!("{}: {e}", agg_path.display());
     }
-    img.write_exr(output)?;
+    img.write_exr(&exr_path(output))?;
     img.write_png(&png_beside(output), exposure)?;
     let seconds = stats.seconds;
     println!("{}", stats.line("LoD"));
@@ -883,7 +897,7 @@ fn run_lod(
     }
     println!(
         "output: {} and {}",
-        output.display(),
+        exr_path(output).display(),
         png_beside(output).display()
     );
     Ok((prepare, seconds))
@@ -938,7 +952,7 @@ fn run_assembly_lod(
             m.assets[a].id
         );
     }
-    img.write_exr(output)?;
+    img.write_exr(&exr_path(output))?;
     img.write_png(&png_beside(output), exposure)?;
     println!("{}", stats.line("LoD"));
     for (a, asset) in m.assets.iter().enumerate() {
@@ -979,7 +993,7 @@ fn run_assembly_lod(
     }
     println!(
         "output: {} and {}",
-        output.display(),
+        exr_path(output).display(),
         png_beside(output).display()
     );
     Ok(stats.seconds)
