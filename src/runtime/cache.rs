@@ -227,6 +227,28 @@ impl<T: Send + Sync + 'static> Slot<T> {
         self.load_slow(cache, load)
     }
 
+    /// `f` of the slot's block, prepared by `load` if it is not there, without taking a
+    /// reference count in the common case (an `arc_swap` guard: a look-up that many threads
+    /// make at once, such as a cone's boundary face, does not contend on the block's count).
+    #[inline]
+    pub(crate) fn with<E, R>(
+        self: &Arc<Self>,
+        cache: &BlockCache,
+        load: impl FnOnce() -> Result<T, E>,
+        f: impl FnOnce(&T) -> R,
+    ) -> Result<R, E> {
+        if !self.referenced.load(Relaxed) {
+            self.referenced.store(true, Relaxed);
+        }
+        {
+            let guard = self.block.load();
+            if let Some(b) = guard.as_ref() {
+                return Ok(f(b));
+            }
+        }
+        Ok(f(&*self.load_slow(cache, load)?))
+    }
+
     #[inline(never)]
     fn load_slow<E>(
         self: &Arc<Self>,

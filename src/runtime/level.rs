@@ -601,7 +601,7 @@ impl<'a> Level<'a> {
         let key8 = key * 8 + dir as u64;
         let mut b = self.face_ranges.partition_point(|r| r.1 < key);
         while b < self.face_ranges.len() && self.face_ranges[b].0 <= key {
-            let r = self.face_slots[b].get_or_load(&self.cache, || {
+            let load = || {
                 let loaded = self
                     .agg
                     .load_face_block(self.l, b)
@@ -609,13 +609,12 @@ impl<'a> Level<'a> {
                 // SAFETY: as for voxel blocks (`Level::voxels`).
                 let loaded: LoadedBlock<'static> = unsafe { std::mem::transmute(loaded) };
                 Faces::prepare(loaded, self.cache.clone())
-            });
-            match r {
-                Ok(faces) => {
-                    if let Some(f) = faces.get(key8) {
-                        return f.abv(d);
-                    }
-                }
+            };
+            match self.face_slots[b]
+                .with(&self.cache, load, |faces| faces.get(key8).map(|f| f.abv(d)))
+            {
+                Ok(Some(v)) => return v,
+                Ok(None) => {}
                 Err(e) => {
                     let _ = self
                         .error
