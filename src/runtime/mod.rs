@@ -402,8 +402,9 @@ impl LodScene {
         (x.log2().floor() as usize).min(self.grids.len().saturating_sub(1))
     }
 
-    /// Level `l`, prepared now if it was not: its blocks verified, its voxels' ABSDFs and
-    /// primitives set up, its occupancy masks built.
+    /// Level `l`'s skeleton, built now if it was not: its voxel blocks verified and their keys
+    /// read into the occupancy masks and bricks (the blocks themselves are prepared into the
+    /// cache when cones need them). An error when no voxel block of the level verifies.
     pub fn prepare(&self, l: usize) -> Result<(), RuntimeError> {
         match self.level(l) {
             Some(_) => Ok(()),
@@ -417,7 +418,7 @@ impl LodScene {
         }
     }
 
-    /// Which levels have been prepared so far.
+    /// Which levels' skeletons have been built so far (the levels cones have touched).
     pub fn prepared(&self) -> Vec<bool> {
         self.levels.iter().map(|l| l.get().is_some()).collect()
     }
