@@ -432,3 +432,88 @@ fn a_png_output_keeps_its_exr_beside_it() {
         );
     }
 }
+
+/// `render` lacked `reference`'s `--auto-view`, `--width`, `--height` and `--save-view`: now
+/// it takes them, and frames an aggregate as `reference --auto-view` frames its mesh (the
+/// aggregate records the asset's bounds).
+#[test]
+fn render_frames_as_reference_does() {
+    let d = tempfile::tempdir().unwrap();
+    let cwd = d.path();
+    ok(&aggtool(
+        &["gen", "plane45", "-o", ".", "--triangles", "200"],
+        cwd,
+    ));
+    ok(&aggtool(
+        &[
+            "convert",
+            "plane45.glb",
+            "--max-res",
+            "8",
+            "--min-res",
+            "4",
+            "--samples",
+            "4",
+            "--aiv-res",
+            "8",
+            "--aiv-rays",
+            "4",
+            "--abv-res",
+            "8",
+            "--abv-full-res",
+            "8",
+        ],
+        cwd,
+    ));
+    let size = [
+        "--width",
+        "20",
+        "--height",
+        "10",
+        "--spp",
+        "2",
+        "--auto-view",
+    ];
+    let mut a = vec![
+        "reference",
+        "plane45.glb",
+        "-o",
+        "r.exr",
+        "--save-view",
+        "r.json",
+    ];
+    a.extend(size);
+    ok(&aggtool(&a, cwd));
+    let mut b = vec![
+        "render",
+        "plane45.agg",
+        "-o",
+        "l.exr",
+        "--save-view",
+        "l.json",
+    ];
+    b.extend(size);
+    ok(&aggtool(&b, cwd));
+    let read = |f: &str| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(cwd.join(f)).unwrap()).unwrap()
+    };
+    let (r, l) = (read("r.json"), read("l.json"));
+    assert_eq!(r["camera"]["width"], 20);
+    assert_eq!(l["camera"]["width"], 20);
+    assert_eq!(l["camera"]["height"], 10);
+    for key in ["eye", "target"] {
+        for i in 0..3 {
+            let (x, y) = (
+                r["camera"][key][i].as_f64().unwrap(),
+                l["camera"][key][i].as_f64().unwrap(),
+            );
+            assert!(
+                (x - y).abs() <= 1e-4 * (1.0 + x.abs()),
+                "{key}[{i}]: {x} vs {y}"
+            );
+        }
+    }
+    // Neither a view nor --auto-view: a clear error.
+    let o = aggtool(&["render", "plane45.agg", "-o", "x.exr"], cwd);
+    assert!(failed(&o, ERROR).contains("--auto-view"));
+}

@@ -294,8 +294,21 @@ enum Command {
         /// The aggregate (.agg), or an assembly manifest (.json; see the README's "Assemblies").
         agg: PathBuf,
         /// View file (JSON), the same as for `aggtool reference`.
+        #[arg(long, conflicts_with = "auto_view")]
+        view: Option<PathBuf>,
+        /// Frame the asset's bounding sphere (from the aggregate's recorded bounds, as
+        /// `reference --auto-view` frames the mesh) instead of reading a view file.
         #[arg(long)]
-        view: PathBuf,
+        auto_view: bool,
+        /// Image width for --auto-view (1 to 16384).
+        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=16384))]
+        width: u32,
+        /// Image height for --auto-view (1 to 16384).
+        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=16384))]
+        height: u32,
+        /// Write the view used (useful with --auto-view) to this file.
+        #[arg(long)]
+        save_view: Option<PathBuf>,
         /// Output EXR; a tonemapped PNG is written beside it.
         #[arg(short, long)]
         output: PathBuf,
@@ -1688,11 +1701,27 @@ fn run(cli: Cli) -> Result<()> {
             no_mesh,
             level_map,
             cache_mib,
+            auto_view,
+            width,
+            height,
+            save_view,
         } => {
             if let Some(m) = cache_mib {
                 aggtool::runtime::BlockCache::global().set_budget(m.saturating_mul(1 << 20));
             }
-            let mut view = View::load(&view)?;
+            let mut view = match (view, auto_view) {
+                (Some(v), _) => View::load(&v)?,
+                (None, true) => {
+                    let opened = aggtool::assembly::Opened::open(&agg)
+                        .with_context(|| format!("cannot read {}", agg.display()))?;
+                    let (lo, hi) = opened
+                        .bounds()
+                        .ok_or_else(|| anyhow::anyhow!("{}: nothing to frame", agg.display()))?;
+                    let r = (0.5 * (hi - lo).length()).max(1e-6);
+                    View::framing(0.5 * (lo + hi), r, width, height, spp.unwrap_or(64))
+                }
+                (None, false) => bail!("give a view file with --view, or --auto-view"),
+            };
             if let Some(s) = spp {
                 view.spp = s;
             }
@@ -1700,6 +1729,10 @@ fn run(cli: Cli) -> Result<()> {
                 view.seed = s;
             }
             view.validate().map_err(anyhow::Error::msg)?;
+            if let Some(p) = save_view {
+                std::fs::write(&p, serde_json::to_string_pretty(&view)?)
+                    .with_context(|| format!("cannot write {}", p.display()))?;
+            }
             let settings = aggtool::runtime::TraceSettings {
                 nee,
                 level,
