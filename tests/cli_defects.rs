@@ -517,3 +517,41 @@ fn render_frames_as_reference_does() {
     let o = aggtool(&["render", "plane45.agg", "-o", "x.exr"], cwd);
     assert!(failed(&o, ERROR).contains("--auto-view"));
 }
+
+/// `gen city --instances 4` listed every asset of the kits (30 for the default ones) though it
+/// placed a few, and `assemble` bakes every asset a manifest lists: now the manifest lists the
+/// assets placed, and the report counts them.
+#[test]
+fn gen_city_lists_only_the_assets_it_places() {
+    let d = tempfile::tempdir().unwrap();
+    let cwd = d.path();
+    ok(&aggtool(
+        &["gen", "all", "-o", "kit", "--triangles", "300"],
+        cwd,
+    ));
+    let kit_assets = std::fs::read_dir(cwd.join("kit")).unwrap().count();
+    assert!(kit_assets >= 5, "{kit_assets}");
+    let out = ok(&aggtool(
+        &[
+            "gen",
+            "city",
+            "-o",
+            "town",
+            "--instances",
+            "2",
+            "--kit",
+            "kit",
+        ],
+        cwd,
+    ));
+    let m = aggtool::assembly::Manifest::load(&cwd.join("town/city.json")).unwrap();
+    assert_eq!(m.instance_count(), 2);
+    // Every listed asset is placed at least once.
+    let per_asset = m.instances_per_asset();
+    assert!(per_asset.iter().all(|&n| n > 0), "{per_asset:?}");
+    assert!(m.assets.len() <= 2 && m.assets.len() < kit_assets);
+    assert!(
+        out.contains(&format!("of {} assets", m.assets.len())),
+        "{out}"
+    );
+}

@@ -179,6 +179,15 @@ pub fn write(
             "scale": [s, s, s],
         }));
     }
+    // Only the assets placed: a small town of a large kit names a few, and `assemble` bakes
+    // every asset its manifest lists.
+    let used: std::collections::HashSet<&str> =
+        placed.iter().filter_map(|p| p["asset"].as_str()).collect();
+    let assets_json: serde_json::Map<String, serde_json::Value> = assets_json
+        .into_iter()
+        .filter(|(id, _)| used.contains(id.as_str()))
+        .collect();
+    let distinct = assets_json.len();
     let doc = serde_json::json!({ "version": 1, "assets": assets_json, "instances": placed });
     let text = serde_json::to_string_pretty(&doc).map_err(|e| e.to_string())?;
     let manifest = dir.join("city.json");
@@ -188,7 +197,7 @@ pub fn write(
     .map_err(|e| format!("{}: {e}", manifest.display()))?;
     Ok(CityReport {
         manifest,
-        assets: entries.len(),
+        assets: distinct,
         instances,
     })
 }
