@@ -371,10 +371,7 @@ fn gen_city_finds_its_default_kits_at_run_time() {
 fn a_png_output_keeps_its_exr_beside_it() {
     let d = tempfile::tempdir().unwrap();
     let cwd = d.path();
-    ok(&aggtool(
-        &["gen", "plane45", "-o", ".", "--triangles", "200"],
-        cwd,
-    ));
+    small_plane(cwd);
     ok(&aggtool(
         &[
             "reference",
@@ -390,27 +387,6 @@ fn a_png_output_keeps_its_exr_beside_it() {
             "v.json",
             "-o",
             "ref.png",
-        ],
-        cwd,
-    ));
-    ok(&aggtool(
-        &[
-            "convert",
-            "plane45.glb",
-            "--max-res",
-            "8",
-            "--min-res",
-            "4",
-            "--samples",
-            "4",
-            "--aiv-res",
-            "8",
-            "--aiv-rays",
-            "4",
-            "--abv-res",
-            "8",
-            "--abv-full-res",
-            "8",
         ],
         cwd,
     ));
@@ -440,31 +416,7 @@ fn a_png_output_keeps_its_exr_beside_it() {
 fn render_frames_as_reference_does() {
     let d = tempfile::tempdir().unwrap();
     let cwd = d.path();
-    ok(&aggtool(
-        &["gen", "plane45", "-o", ".", "--triangles", "200"],
-        cwd,
-    ));
-    ok(&aggtool(
-        &[
-            "convert",
-            "plane45.glb",
-            "--max-res",
-            "8",
-            "--min-res",
-            "4",
-            "--samples",
-            "4",
-            "--aiv-res",
-            "8",
-            "--aiv-rays",
-            "4",
-            "--abv-res",
-            "8",
-            "--abv-full-res",
-            "8",
-        ],
-        cwd,
-    ));
+    small_plane(cwd);
     let size = [
         "--width",
         "20",
@@ -554,4 +506,33 @@ fn gen_city_lists_only_the_assets_it_places() {
         out.contains(&format!("of {} assets", m.assets.len())),
         "{out}"
     );
+}
+
+/// `plane45.glb` and its small `plane45.agg` in `cwd`.
+fn small_plane(cwd: &Path) {
+    ok(&aggtool(
+        &["gen", "plane45", "-o", ".", "--triangles", "200"],
+        cwd,
+    ));
+    ok(&aggtool(
+        &[
+            "convert",
+            "plane45.glb",
+            "--max-res",
+            "8",
+            "--min-res",
+            "4",
+            "--samples",
+            "4",
+            "--aiv-res",
+            "8",
+            "--aiv-rays",
+            "4",
+            "--abv-res",
+            "8",
+            "--abv-full-res",
+            "8",
+        ],
+        cwd,
+    ));
 }
