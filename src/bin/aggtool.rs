@@ -126,24 +126,8 @@ enum Command {
         /// The asset (.gltf, .glb or .obj), or an assembly manifest (.json): each mesh loaded
         /// once and instanced by the two-level BVH.
         asset: PathBuf,
-        /// View file (JSON); see the README.
-        #[arg(long, conflicts_with = "auto_view")]
-        view: Option<PathBuf>,
-        /// Frame the asset's bounding sphere instead of reading a view file.
-        #[arg(long)]
-        auto_view: bool,
-        /// Image width for --auto-view (1 to 16384).
-        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=16384))]
-        width: u32,
-        /// Image height for --auto-view (1 to 16384).
-        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=16384))]
-        height: u32,
-        /// Samples per pixel (overrides the view file).
-        #[arg(long)]
-        spp: Option<u32>,
-        /// Random seed (overrides the view file).
-        #[arg(long)]
-        seed: Option<u64>,
+        #[command(flatten)]
+        view: ViewArgs,
         /// Output EXR; a tonemapped PNG is written beside it.
         #[arg(short, long)]
         output: PathBuf,
@@ -153,9 +137,6 @@ enum Command {
         /// Treat import warnings as errors.
         #[arg(long)]
         strict: bool,
-        /// Write the view used (useful with --auto-view) to this file.
-        #[arg(long)]
-        save_view: Option<PathBuf>,
     },
     /// Compare two linear images (EXR, PFM, HDR; PNG and other 8-bit formats are refused):
     /// RMSE and relative MSE.
@@ -293,37 +274,17 @@ enum Command {
     Render {
         /// The aggregate (.agg), or an assembly manifest (.json; see the README's "Assemblies").
         agg: PathBuf,
-        /// View file (JSON), the same as for `aggtool reference`.
-        #[arg(long, conflicts_with = "auto_view")]
-        view: Option<PathBuf>,
-        /// Frame the asset's bounding sphere (from the aggregate's recorded bounds, as
-        /// `reference --auto-view` frames the mesh) instead of reading a view file.
-        #[arg(long)]
-        auto_view: bool,
-        /// Image width for --auto-view (1 to 16384).
-        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=16384))]
-        width: u32,
-        /// Image height for --auto-view (1 to 16384).
-        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=16384))]
-        height: u32,
-        /// Write the view used (useful with --auto-view) to this file.
-        #[arg(long)]
-        save_view: Option<PathBuf>,
+        #[command(flatten)]
+        view: ViewArgs,
         /// Output EXR; a tonemapped PNG is written beside it.
         #[arg(short, long)]
         output: PathBuf,
         /// Force this level (0 = finest) instead of choosing by the pixel footprint.
         #[arg(long)]
         level: Option<usize>,
-        /// Cones per pixel (overrides the view file).
-        #[arg(long)]
-        spp: Option<u32>,
         /// Light samples (and ABSDF samples) per primitive hit, combined by MIS (at least 1).
         #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
         nee: u32,
-        /// Random seed (overrides the view file).
-        #[arg(long)]
-        seed: Option<u64>,
         /// Use the voxel cube as the primitive (the Fig. 6 ablation).
         #[arg(long, conflicts_with = "volume")]
         cube: bool,
@@ -792,6 +753,60 @@ fn load_assembly_scene(path: &Path, strict: bool) -> Result<Scene> {
         m.instance_count()
     );
     Ok(scene)
+}
+
+/// The view of a render command (`reference`, `render`): a view file, or the asset framed.
+#[derive(clap::Args)]
+struct ViewArgs {
+    /// View file (JSON); see the book's "View files".
+    #[arg(long, conflicts_with = "auto_view")]
+    view: Option<PathBuf>,
+    /// Frame the asset's bounding sphere instead of reading a view file (`render` frames the
+    /// bounds the aggregate records, so it frames an asset as `reference` frames its mesh).
+    #[arg(long)]
+    auto_view: bool,
+    /// Image width for --auto-view (1 to 16384).
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    width: u32,
+    /// Image height for --auto-view (1 to 16384).
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    height: u32,
+    /// Samples (cones) per pixel (overrides the view file).
+    #[arg(long)]
+    spp: Option<u32>,
+    /// Random seed (overrides the view file).
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Write the view used (useful with --auto-view) to this file.
+    #[arg(long)]
+    save_view: Option<PathBuf>,
+}
+
+impl ViewArgs {
+    /// The view: loaded, or framing the sphere `sphere` gives (centre, radius); with --spp and
+    /// --seed applied, validated, and saved where --save-view asks.
+    fn resolve(&self, sphere: impl FnOnce() -> Result<(glam::Vec3, f32)>) -> Result<View> {
+        let mut view = match (&self.view, self.auto_view) {
+            (Some(v), _) => View::load(v)?,
+            (None, true) => {
+                let (c, r) = sphere()?;
+                View::framing(c, r, self.width, self.height, self.spp.unwrap_or(64))
+            }
+            (None, false) => bail!("give a view file with --view, or --auto-view"),
+        };
+        if let Some(s) = self.spp {
+            view.spp = s;
+        }
+        if let Some(s) = self.seed {
+            view.seed = s;
+        }
+        view.validate().map_err(anyhow::Error::msg)?;
+        if let Some(p) = &self.save_view {
+            std::fs::write(p, serde_json::to_string_pretty(&view)?)
+                .with_context(|| format!("cannot write {}", p.display()))?;
+        }
+        Ok(view)
+    }
 }
 
 fn png_beside(exr: &Path) -> PathBuf {
@@ -1345,15 +1360,9 @@ fn run(cli: Cli) -> Result<()> {
         Command::Reference {
             asset,
             view,
-            auto_view,
-            width,
-            height,
-            spp,
-            seed,
             output,
             exposure,
             strict,
-            save_view,
         } => {
             let scene = if aggtool::assembly::is_manifest(&asset) {
                 load_assembly_scene(&asset, strict)?
@@ -1361,25 +1370,7 @@ fn run(cli: Cli) -> Result<()> {
                 load_scene(&asset, strict)?
             };
             println!("input: {}: {}", asset.display(), scene.summary());
-            let mut view = match (view, auto_view) {
-                (Some(v), _) => View::load(&v)?,
-                (None, true) => {
-                    let (c, r) = scene.bounding_sphere();
-                    View::framing(c, r, width, height, spp.unwrap_or(64))
-                }
-                (None, false) => bail!("give a view file with --view, or --auto-view"),
-            };
-            if let Some(s) = spp {
-                view.spp = s;
-            }
-            if let Some(s) = seed {
-                view.seed = s;
-            }
-            view.validate().map_err(anyhow::Error::msg)?;
-            if let Some(p) = save_view {
-                std::fs::write(&p, serde_json::to_string_pretty(&view)?)
-                    .with_context(|| format!("cannot write {}", p.display()))?;
-            }
+            let view = view.resolve(|| Ok(scene.bounding_sphere()))?;
             run_reference(&scene, &view, &output, exposure)?;
             Ok(())
         }
@@ -1691,9 +1682,7 @@ fn run(cli: Cli) -> Result<()> {
             view,
             output,
             level,
-            spp,
             nee,
-            seed,
             cube,
             volume,
             exposure,
@@ -1701,38 +1690,18 @@ fn run(cli: Cli) -> Result<()> {
             no_mesh,
             level_map,
             cache_mib,
-            auto_view,
-            width,
-            height,
-            save_view,
         } => {
             if let Some(m) = cache_mib {
                 aggtool::runtime::BlockCache::global().set_budget(m.saturating_mul(1 << 20));
             }
-            let mut view = match (view, auto_view) {
-                (Some(v), _) => View::load(&v)?,
-                (None, true) => {
-                    let opened = aggtool::assembly::Opened::open(&agg)
-                        .with_context(|| format!("cannot read {}", agg.display()))?;
-                    let (lo, hi) = opened
-                        .bounds()
-                        .ok_or_else(|| anyhow::anyhow!("{}: nothing to frame", agg.display()))?;
-                    let r = (0.5 * (hi - lo).length()).max(1e-6);
-                    View::framing(0.5 * (lo + hi), r, width, height, spp.unwrap_or(64))
-                }
-                (None, false) => bail!("give a view file with --view, or --auto-view"),
-            };
-            if let Some(s) = spp {
-                view.spp = s;
-            }
-            if let Some(s) = seed {
-                view.seed = s;
-            }
-            view.validate().map_err(anyhow::Error::msg)?;
-            if let Some(p) = save_view {
-                std::fs::write(&p, serde_json::to_string_pretty(&view)?)
-                    .with_context(|| format!("cannot write {}", p.display()))?;
-            }
+            let view = view.resolve(|| {
+                let opened = aggtool::assembly::Opened::open(&agg)
+                    .with_context(|| format!("cannot read {}", agg.display()))?;
+                let (lo, hi) = opened
+                    .bounds()
+                    .ok_or_else(|| anyhow::anyhow!("{}: nothing to frame", agg.display()))?;
+                Ok((0.5 * (lo + hi), (0.5 * (hi - lo).length()).max(1e-6)))
+            })?;
             let settings = aggtool::runtime::TraceSettings {
                 nee,
                 level,
