@@ -8,7 +8,7 @@ mod common;
 use std::f32::consts::TAU;
 use std::sync::Arc;
 
-use aggtool::bake::{bake_to_file, BakeSettings};
+use aggtool::bake::bake_to_file;
 use aggtool::format::Aggregate;
 use aggtool::gen::{generate, GenSettings};
 use aggtool::render::View;
@@ -27,17 +27,7 @@ fn foliage_bytes() -> Vec<u8> {
     )
     .unwrap()
     .to_scene();
-    let s = BakeSettings {
-        max_res: 32,
-        min_res: 2,
-        samples: 16,
-        max_samples: 256,
-        aiv_res: 16,
-        aiv_rays: 16,
-        abv_res: 16,
-        abv_rays: 2,
-        ..Default::default()
-    };
+    let s = common::small_bake(32);
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("f.agg");
     bake_to_file(&scene, "f", &s, &p, &no_progress).unwrap();

@@ -22,17 +22,7 @@ use aggtool::util::no_progress;
 use glam::Vec3;
 
 fn small(max_res: u32) -> BakeSettings {
-    BakeSettings {
-        max_res,
-        min_res: 2,
-        samples: 16,
-        max_samples: 256,
-        aiv_res: 16,
-        aiv_rays: 16,
-        abv_res: 16,
-        abv_rays: 2,
-        ..Default::default()
-    }
+    common::small_bake(max_res)
 }
 
 fn baked_bytes(scene: &Scene, s: &BakeSettings) -> Vec<u8> {

@@ -96,3 +96,18 @@ pub fn gen_scene(name: &str, triangles: usize) -> aggtool::scene::Scene {
     .unwrap()
     .to_scene()
 }
+
+/// Bake settings small enough for a test: `max_res` down to 2, few samples and rays.
+pub fn small_bake(max_res: u32) -> aggtool::bake::BakeSettings {
+    aggtool::bake::BakeSettings {
+        max_res,
+        min_res: 2,
+        samples: 16,
+        max_samples: 256,
+        aiv_res: 16,
+        aiv_rays: 16,
+        abv_res: 16,
+        abv_rays: 2,
+        ..Default::default()
+    }
+}
