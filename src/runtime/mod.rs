@@ -313,10 +313,38 @@ pub struct LodScene {
     /// dropped first.
     levels: Vec<OnceLock<Result<level::Level<'static>, String>>>,
     grids: Vec<Grid>,
+    /// Per level, the box a cone's walk is clipped to: the source asset's recorded bounds
+    /// snapped outwards to the level's voxels and padded as its primitives are
+    /// ([`crate::spatial::VOXEL_PAD`]). Every occupied voxel holds surface, so it lies in
+    /// this box, and the walk need not cross the empty rest of the level's cube (on a tall
+    /// tree a third of the steps). The level's cube where the file records no bounds.
+    clip: Vec<(Vec3, Vec3)>,
     /// Finest voxel size.
     base: f32,
     cache: Arc<BlockCache>,
     agg: Aggregate,
+}
+
+/// The box a walk through level grid `g` is clipped to, for a source whose bounds are
+/// [`lo`, `hi`] ([`LodScene`]'s `clip`): those bounds snapped outwards to the grid's voxels,
+/// one voxel more on each side against rounding, padded by [`crate::spatial::VOXEL_PAD`] and
+/// kept inside the cube; the cube itself when the bounds are missing or not finite.
+fn clip_box(g: &Grid, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
+    let (cube_lo, cube_hi) = g.bounds();
+    if !(lo.is_finite() && hi.is_finite() && lo.cmplt(hi).all()) {
+        return (cube_lo, cube_hi);
+    }
+    let s = g.voxel_size();
+    let pad = Vec3::splat(crate::spatial::VOXEL_PAD * s);
+    let a = ((lo - g.origin) / s).floor() - 1.0;
+    let b = ((hi - g.origin) / s).ceil() + 1.0;
+    let clo = (g.origin + a * s - pad).max(cube_lo);
+    let chi = (g.origin + b * s + pad).min(cube_hi);
+    if clo.cmplt(chi).all() {
+        (clo, chi)
+    } else {
+        (cube_lo, cube_hi)
+    }
 }
 
 impl LodScene {
@@ -341,9 +369,12 @@ impl LodScene {
     /// A scene over an opened aggregate, its blocks in `cache`.
     pub fn with_cache(agg: Aggregate, cache: Arc<BlockCache>) -> LodScene {
         let grids: Vec<Grid> = (0..agg.level_count()).map(|l| agg.grid(l)).collect();
+        let (lo, hi) = agg.bounds();
+        let clip = grids.iter().map(|g| clip_box(g, lo, hi)).collect();
         LodScene {
             levels: (0..grids.len()).map(|_| OnceLock::new()).collect(),
             base: grids.first().map_or(1.0, |g| g.voxel_size()),
+            clip,
             grids,
             cache,
             agg,
