@@ -32,7 +32,7 @@ pub mod settings;
 
 pub use aggregate_generated::aggtool::format as fb;
 pub use level::{FaceData, LevelData, VoxelData};
-pub use read::{Aggregate, LoadedBlock, VoxelRef};
+pub use read::{Aggregate, AivMap, LoadedBlock, VoxelRef};
 pub use settings::{AivWeighting, RecordedSettings};
 
 use std::fs::File;

@@ -193,6 +193,32 @@ enum Tree<'a> {
     Q16(&'a [u8]),
 }
 
+/// A voxel's AIV map (`n` × `n` cells of the equal-area square) as its Haar tree's bytes:
+/// [`VoxelRef::aiv_map`].
+#[derive(Clone, Copy)]
+pub struct AivMap<'a> {
+    n: u32,
+    scaling: f32,
+    /// `None` for a constant map (no coefficients kept).
+    tree: Option<Tree<'a>>,
+}
+
+impl AivMap<'_> {
+    /// The interior visibility towards `d` (unit), walking one path of the tree.
+    #[inline]
+    pub fn eval(&self, d: Vec3) -> f32 {
+        let n = self.n;
+        match self.tree {
+            None => (self.scaling / n.max(1) as f32).clamp(0.0, 1.0),
+            Some(tree) => {
+                let cell = grid_cell(equal_area_sphere_to_square(d), n);
+                // A visibility: truncated wavelets may ring slightly outside [0, 1].
+                eval_bytes(n, self.scaling, tree, cell)
+            }
+        }
+    }
+}
+
 /// Node `i` of a float tree's raw bytes, decoded (the look-ups' hot path: no accessor calls).
 #[inline]
 fn node_at(tree: &[u8], i: usize) -> Node {
@@ -988,16 +1014,21 @@ impl<'a> VoxelRef<'a> {
     /// The interior visibility towards `d` (unit), walking one path of the tree.
     #[inline]
     pub fn aiv(&self, d: Vec3) -> f32 {
+        self.aiv_map().eval(d)
+    }
+
+    /// The voxel's AIV map with its fields read out of the record once: for a holder that
+    /// looks it up many times ([`AivMap::eval`] is [`VoxelRef::aiv`] without the
+    /// FlatBuffers accessors, 7% of a LoD render).
+    #[inline]
+    pub fn aiv_map(&self) -> AivMap<'a> {
         let r = self.rec;
-        let n = self.aiv_res;
-        let scaling = r.aiv_scaling();
-        if r.aiv_count() == 0 {
-            return (scaling / n.max(1) as f32).clamp(0.0, 1.0);
+        let (start, count) = (r.aiv_start() as usize, r.aiv_count() as usize);
+        AivMap {
+            n: self.aiv_res,
+            scaling: r.aiv_scaling(),
+            tree: (count > 0).then(|| Nodes::aiv(&self.block).tree(start, count)),
         }
-        let cell = grid_cell(equal_area_sphere_to_square(d), n);
-        let tree = Nodes::aiv(&self.block).tree(r.aiv_start() as usize, r.aiv_count() as usize);
-        // A visibility: truncated wavelets may ring slightly outside [0, 1].
-        eval_bytes(n, scaling, tree, cell)
     }
 
     /// The decoded AIV tree.

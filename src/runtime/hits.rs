@@ -564,7 +564,7 @@ impl<'s> Hits<'s> {
     /// else the same.
     #[inline]
     fn weight(&self, level: &Level, block: &Voxels, i: u32, exact: bool) -> (f32, f32, f32) {
-        let vo = block.weight[i as usize].vref.aiv(-self.cone.dir);
+        let vo = block.weight[i as usize].aiv.eval(-self.cone.dir);
         let (g, g_exact, area) = self.geometric_weight(level, block, i, exact);
         (vo * g, vo * g_exact, area)
     }

@@ -26,7 +26,7 @@ use glam::{IVec3, Mat3, UVec3, Vec3};
 use super::cache::{BlockCache, Slot};
 use crate::absdf::Absdf;
 use crate::format::read::FaceRef;
-use crate::format::{Aggregate, LoadedBlock, VoxelRef};
+use crate::format::{Aggregate, AivMap, LoadedBlock, VoxelRef};
 use crate::math::microfacet::m5_exact;
 use crate::math::sggx::Sggx;
 use crate::spatial::ellipsoid::AreaCase;
@@ -80,6 +80,8 @@ pub struct WeightRecord<'a> {
     pub axes: Mat3,
     pub det: f32,
     pub vref: VoxelRef<'a>,
+    /// The voxel's AIV map, read out of `vref` once (every hit and light sample looks it up).
+    pub aiv: AivMap<'a>,
 }
 
 impl WeightRecord<'_> {
@@ -264,6 +266,7 @@ fn records<'a>(grid: &Grid, v: VoxelRef<'a>) -> (HitRecord, WeightRecord<'a>) {
         inv_exposure: 1.0 / v.exposure().clamp(1.0 / 16.0, 1.0),
         axes: e.axes,
         det: prim.map_or(0.0, |p| p.det),
+        aiv: v.aiv_map(),
         vref: v,
     };
     (hit, weight)

@@ -642,7 +642,7 @@ impl<'s> VoxelHandle<'s> {
     /// The interior visibility V̂(ω) of the voxel's surfaces towards unit `d` (Eq. 25).
     #[inline]
     pub fn aiv(&self, d: Vec3) -> f32 {
-        self.block.weight[self.i as usize].vref.aiv(d)
+        self.block.weight[self.i as usize].aiv.eval(d)
     }
 
     /// The voxel's exposure η in [1/16, 1] (see [`VoxelHandle::incident_visibility`]).
@@ -657,7 +657,7 @@ impl<'s> VoxelHandle<'s> {
     #[inline]
     pub fn incident_visibility(&self, wi: Vec3) -> f32 {
         let w = &self.block.weight[self.i as usize];
-        (w.vref.aiv(wi) * w.inv_exposure).min(1.0)
+        (w.aiv.eval(wi) * w.inv_exposure).min(1.0)
     }
 }
 
