@@ -19,13 +19,16 @@ pub struct Dda {
 }
 
 impl Dda {
-    /// A walk that has not started (a placeholder to be overwritten).
+    /// A walk that has not started (a placeholder to be overwritten): all zeros, so that an
+    /// array of them is cleared rather than copied from a constant (a cone's walk holds one
+    /// per granularity, and copying them in was 4% of a LoD render), and a grid of no voxels,
+    /// so that advancing it ends at once.
     pub const IDLE: Dda = Dda {
         v: IVec3::ZERO,
         step: IVec3::ZERO,
-        t_next: Vec3::INFINITY,
-        delta: Vec3::INFINITY,
-        res: 1,
+        t_next: Vec3::ZERO,
+        delta: Vec3::ZERO,
+        res: 0,
     };
 
     /// Starts at parameter `t` of `origin + t·dir` (`inv` = 1/dir), in voxel `v` if given, else
