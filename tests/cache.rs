@@ -186,3 +186,43 @@ fn a_damaged_block_met_mid_render() {
     let covered = intact.iter().filter(|p| p != &&intact[0]).count();
     assert!(covered > 10, "the view misses the aggregate");
 }
+
+/// A level's skeleton built from the voxel keys the index holds (files since 2026-12-06) and
+/// one built from its voxel blocks' keys, as for older files, give the same walk: the same
+/// image bits. The keys path reads no voxel block until a cone needs one, so opening the
+/// finest level loads no block.
+#[test]
+fn index_keys_and_block_keys_give_the_same_walk() {
+    let bytes = foliage_bytes();
+    let agg = Aggregate::from_bytes(bytes.clone()).unwrap();
+    for l in 0..agg.level_count() {
+        let from_index = agg.voxel_keys(l).expect("a new bake writes keys").unwrap();
+        let mut from_blocks = Vec::new();
+        for b in 0..agg.block_counts(l).0 {
+            let block = agg.voxel_block(l, b).unwrap();
+            from_blocks.extend((0..block.len()).map(|i| block.key(i)));
+        }
+        assert_eq!(from_index, from_blocks, "level {l}");
+    }
+    let open = |cache: &Arc<BlockCache>| {
+        LodScene::with_cache(
+            Aggregate::from_bytes_lazy(bytes.clone()).unwrap(),
+            cache.clone(),
+        )
+    };
+    let (c1, c2) = (BlockCache::new(1 << 30), BlockCache::new(1 << 30));
+    let (keys, blocks) = (open(&c1), open(&c2).keys_from_blocks());
+    let v = view(&keys, 24, 4);
+    let a = render_bits(&keys, &v);
+    let b = render_bits(&blocks, &v);
+    assert!(a.iter().any(|p| p != &a[0]), "the picture is not flat");
+    assert!(a == b, "the keys' skeleton walks differently");
+    assert!(keys.first_error().is_none() && blocks.first_error().is_none());
+    // Only the blocks the cones needed were loaded, and no more than the other way.
+    assert!(
+        c1.stats().loaded <= c2.stats().loaded,
+        "{:?} {:?}",
+        c1.stats(),
+        c2.stats()
+    );
+}

@@ -4137,6 +4137,7 @@ impl<'a> Level<'a> {
   pub const VT_VOXEL_BLOCKS: ::flatbuffers::VOffsetT = 10;
   pub const VT_FACE_BLOCKS: ::flatbuffers::VOffsetT = 12;
   pub const VT_COUNTS: ::flatbuffers::VOffsetT = 14;
+  pub const VT_VOXEL_KEYS: ::flatbuffers::VOffsetT = 16;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -4148,6 +4149,7 @@ impl<'a> Level<'a> {
     args: &'args LevelArgs<'args>
   ) -> ::flatbuffers::WIPOffset<Level<'bldr>> {
     let mut builder = LevelBuilder::new(_fbb);
+    if let Some(x) = args.voxel_keys { builder.add_voxel_keys(x); }
     if let Some(x) = args.counts { builder.add_counts(x); }
     if let Some(x) = args.face_blocks { builder.add_face_blocks(x); }
     if let Some(x) = args.voxel_blocks { builder.add_voxel_blocks(x); }
@@ -4202,6 +4204,18 @@ impl<'a> Level<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<LevelCounts>>(Level::VT_COUNTS, None)}
   }
+  /// Appended within 1.5 (2026-12-06; readers need not know it): the Morton keys of the
+  /// level's voxels, ascending, as the LEB128 varints of their differences (the first from
+  /// 0), in one Zstandard frame that states its content size. The same keys as the voxel
+  /// blocks', in their order, so that a reader learns the level's occupancy without
+  /// inflating every block. Absent in older files: read the keys from the blocks.
+  #[inline]
+  pub fn voxel_keys(&self) -> Option<::flatbuffers::Vector<'a, u8>> {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'a, u8>>>(Level::VT_VOXEL_KEYS, None)}
+  }
 }
 
 impl ::flatbuffers::Verifiable for Level<'_> {
@@ -4216,6 +4230,7 @@ impl ::flatbuffers::Verifiable for Level<'_> {
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, BlobRef>>>("voxel_blocks", Self::VT_VOXEL_BLOCKS, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, BlobRef>>>("face_blocks", Self::VT_FACE_BLOCKS, false)?
      .visit_field::<::flatbuffers::ForwardsUOffset<LevelCounts>>("counts", Self::VT_COUNTS, false)?
+     .visit_field::<::flatbuffers::ForwardsUOffset<::flatbuffers::Vector<'_, u8>>>("voxel_keys", Self::VT_VOXEL_KEYS, false)?
      .finish();
     Ok(())
   }
@@ -4227,6 +4242,7 @@ pub struct LevelArgs<'a> {
     pub voxel_blocks: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, BlobRef>>>,
     pub face_blocks: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, BlobRef>>>,
     pub counts: Option<::flatbuffers::WIPOffset<LevelCounts<'a>>>,
+    pub voxel_keys: Option<::flatbuffers::WIPOffset<::flatbuffers::Vector<'a, u8>>>,
 }
 impl<'a> Default for LevelArgs<'a> {
   #[inline]
@@ -4238,6 +4254,7 @@ impl<'a> Default for LevelArgs<'a> {
       voxel_blocks: None,
       face_blocks: None,
       counts: None,
+      voxel_keys: None,
     }
   }
 }
@@ -4272,6 +4289,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> LevelBuilder<'a, 'b, A> {
     self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<LevelCounts>>(Level::VT_COUNTS, counts);
   }
   #[inline]
+  pub fn add_voxel_keys(&mut self, voxel_keys: ::flatbuffers::WIPOffset<::flatbuffers::Vector<'b , u8>>) {
+    self.fbb_.push_slot_always::<::flatbuffers::WIPOffset<_>>(Level::VT_VOXEL_KEYS, voxel_keys);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> LevelBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     LevelBuilder {
@@ -4295,6 +4316,7 @@ impl ::core::fmt::Debug for Level<'_> {
       ds.field("voxel_blocks", &self.voxel_blocks());
       ds.field("face_blocks", &self.face_blocks());
       ds.field("counts", &self.counts());
+      ds.field("voxel_keys", &self.voxel_keys());
       ds.finish()
   }
 }

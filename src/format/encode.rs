@@ -478,6 +478,8 @@ pub struct LevelEntry {
     pub face_blocks: Vec<fb::BlobRef>,
     /// What it stores.
     pub counts: Counts,
+    /// Its voxel keys, encoded ([`super::encode_voxel_keys`]); `None` writes none.
+    pub voxel_keys: Option<Vec<u8>>,
 }
 
 /// Everything the index records.
@@ -529,6 +531,7 @@ pub fn index(e: &IndexEntry) -> Vec<u8> {
         let vb = b.create_vector(&l.voxel_blocks);
         let fbk = b.create_vector(&l.face_blocks);
         let origin = v3(l.origin);
+        let keys = l.voxel_keys.as_ref().map(|k| b.create_vector(k));
         levels.push(fb::Level::create(
             &mut b,
             &fb::LevelArgs {
@@ -538,6 +541,7 @@ pub fn index(e: &IndexEntry) -> Vec<u8> {
                 voxel_blocks: Some(vb),
                 face_blocks: Some(fbk),
                 counts: Some(counts),
+                voxel_keys: keys,
             },
         ));
     }

@@ -488,8 +488,11 @@ pub fn merge(parts: &[PathBuf], out: &Path) -> Result<u64, MergeError> {
             voxel_blocks: Vec::new(),
             face_blocks: Vec::new(),
             counts: Counts::default(),
+            voxel_keys: None,
         })
         .collect();
+    // Each level's voxel keys, rebuilt from its voxel blocks in chunk order.
+    let mut level_keys: Vec<Vec<u64>> = vec![Vec::new(); levels.len()];
     for m in &metas {
         for (e, l) in entries.iter_mut().zip(&m.levels) {
             e.counts.add(&l.counts);
@@ -519,10 +522,34 @@ pub fn merge(parts: &[PathBuf], out: &Path) -> Result<u64, MergeError> {
             .map_err(io)?;
         let e = &mut entries[*level as usize];
         if *kind == 0 {
+            let keys = super::read::stored_block_keys(&buf).map_err(|why| MergeError::Part {
+                path: name(*i),
+                message: format!("level {level} voxel block of chunk {}: {why}", b.chunk),
+            })?;
+            level_keys[*level as usize].extend(keys);
             e.voxel_blocks.push(r);
         } else {
             e.face_blocks.push(r);
         }
+    }
+    for ((e, keys), l) in entries.iter_mut().zip(&level_keys).zip(levels.iter()) {
+        let mut h = crc32fast::Hasher::new();
+        for k in keys {
+            h.update(&k.to_le_bytes());
+        }
+        if keys.len() as u64 != l.voxels || h.finalize() != l.keys_crc32 {
+            return Err(MergeError::Part {
+                path: name(0),
+                message: format!(
+                    "level {}³: the blocks' voxel keys disagree with the parts' metadata",
+                    l.res
+                ),
+            });
+        }
+        e.voxel_keys = Some(super::encode_voxel_keys(
+            keys.iter().copied(),
+            metas[0].settings.compression,
+        ));
     }
     let m = &metas[0];
     let mut settings = m.settings.clone();

@@ -648,6 +648,34 @@ impl Aggregate {
             .collect()
     }
 
+    /// Level `l`'s voxel keys from the index (`Level.voxel_keys`, written since 2026-12-06),
+    /// checked against its voxel blocks' counts and first and last keys; `None` where the file
+    /// has none, so that the caller reads the keys from the blocks.
+    pub fn voxel_keys(&self, l: usize) -> Option<Result<Vec<u64>, FormatError>> {
+        let lv = self.index().levels()?.get(l);
+        let bytes = lv.voxel_keys()?.bytes();
+        let blobs = &self.blobs[self.levels[l].voxel_blobs.clone()];
+        let count: u64 = blobs.iter().map(|b| b.count as u64).sum();
+        let limit = (self.levels[l].grid.res as u64).pow(3);
+        let check = || -> Result<Vec<u64>, String> {
+            let keys = super::decode_voxel_keys(bytes, count, limit)?;
+            let mut at = 0usize;
+            for b in blobs {
+                let n = b.count as usize;
+                let run = keys.get(at..at + n).filter(|r| !r.is_empty());
+                if run.is_none_or(|r| r[0] != b.first_key || r[n - 1] != b.last_key) {
+                    return Err(format!(
+                        "voxel keys disagree with the block at {}",
+                        b.offset
+                    ));
+                }
+                at += n;
+            }
+            Ok(keys)
+        };
+        Some(check().map_err(|e| corrupt(format!("level {l}: {e}"))))
+    }
+
     /// Verifies blob `b` with this file's settings ([`check_blob`]).
     fn check_blob(&self, b: &Blob) -> Result<Option<Box<[u8]>>, String> {
         check_blob(
@@ -1232,6 +1260,25 @@ fn verify_index(
         }
     }
     Ok((settings, infos, blobs))
+}
+
+/// The voxel keys of a voxel block as stored (compressed or not), verified as a FlatBuffer:
+/// for the farm merge, which rebuilds a level's `voxel_keys` from its shards' blocks.
+pub(crate) fn stored_block_keys(stored: &[u8]) -> Result<Vec<u64>, String> {
+    let inflated;
+    let bytes = if stored.starts_with(&super::ZSTD_MAGIC) {
+        inflated = super::inflate_block(stored)?;
+        &inflated[..]
+    } else {
+        stored
+    };
+    let block = flatbuffers::root_with_opts::<fb::Block>(&verifier_options(), bytes)
+        .map_err(|e| format!("voxel block: {e}"))?;
+    Ok(block
+        .keys()
+        .ok_or("a voxel block without keys")?
+        .iter()
+        .collect())
 }
 
 /// The padding after blob `b` up to the next blob is zero.

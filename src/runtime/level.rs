@@ -364,14 +364,17 @@ impl Drop for Level<'_> {
 }
 
 impl<'a> Level<'a> {
-    /// Builds the skeleton of level `l` of `agg` (verifying every voxel block and reading its
-    /// keys; no block is kept), its blocks to be prepared into `cache` on demand. A voxel
-    /// block that fails to verify is left out (its voxels are empty space) and reported by
-    /// [`Level::error`]; a level none of whose blocks verify fails.
+    /// Builds the skeleton of level `l` of `agg` from the voxel keys its index holds
+    /// (`Level.voxel_keys`, when `index_keys`), or, in files without them, by verifying every voxel block and
+    /// reading its keys (no block is kept); its blocks are prepared into `cache` on demand. A
+    /// voxel block that fails to verify is left out (its voxels are empty space) and reported
+    /// by [`Level::error`], when the skeleton is built or when a cone first needs the block;
+    /// a level none of whose blocks verify fails, and so does one whose keys are damaged.
     pub fn prepare(
         agg: &'a Aggregate,
         l: usize,
         cache: Arc<BlockCache>,
+        index_keys: bool,
     ) -> Result<Level<'a>, String> {
         let grid = agg.grid(l);
         let (nv, _) = agg.block_counts(l);
@@ -379,7 +382,22 @@ impl<'a> Level<'a> {
         let mut keys: Vec<u64> = Vec::new();
         let mut block_first = Vec::with_capacity(nv + 1);
         let mut block_number = Vec::with_capacity(nv);
-        for b in 0..nv {
+        match agg.voxel_keys(l).filter(|_| index_keys) {
+            // The index has the keys: no block is read until a cone needs it.
+            Some(Ok(k)) => {
+                keys = k;
+                let mut at = 0u32;
+                for (b, r) in agg.voxel_block_ranges(l).iter().enumerate() {
+                    block_first.push(at);
+                    block_number.push(b as u32);
+                    at += r.2;
+                }
+            }
+            Some(Err(e)) => return Err(e.to_string()),
+            None => {}
+        }
+        let from_blocks = block_number.is_empty();
+        for b in (0..nv).filter(|_| from_blocks) {
             let loaded = match agg.load_voxel_block(l, b) {
                 Ok(x) => x,
                 Err(e) => {

@@ -322,6 +322,9 @@ pub struct LodScene {
     /// Finest voxel size.
     base: f32,
     cache: Arc<BlockCache>,
+    /// Whether levels learn their voxels from the index's keys where the file has them
+    /// (otherwise from the blocks, as for older files).
+    index_keys: bool,
     agg: Aggregate,
 }
 
@@ -375,6 +378,7 @@ impl LodScene {
             levels: (0..grids.len()).map(|_| OnceLock::new()).collect(),
             base: grids.first().map_or(1.0, |g| g.voxel_size()),
             clip,
+            index_keys: true,
             grids,
             cache,
             agg,
@@ -489,7 +493,7 @@ impl LodScene {
     fn level(&self, l: usize) -> Option<&level::Level<'_>> {
         let slot = self.levels.get(l)?;
         let r = slot.get_or_init(|| {
-            let lv = level::Level::prepare(&self.agg, l, self.cache.clone())?;
+            let lv = level::Level::prepare(&self.agg, l, self.cache.clone(), self.index_keys)?;
             // SAFETY: the level borrows the bytes of `self.agg`, which this scene owns and
             // never mutates or drops before `self.levels` (field order); the bytes live in a
             // memory map or a heap buffer, so moving the scene does not move them. The
@@ -497,6 +501,15 @@ impl LodScene {
             Ok(unsafe { std::mem::transmute::<level::Level<'_>, level::Level<'static>>(lv) })
         });
         r.as_ref().ok()
+    }
+
+    /// The same scene with its levels built from the voxel blocks' keys even where the index
+    /// has them, as for files written before 2026-12-06: for tests that check both ways give
+    /// the same walk.
+    #[doc(hidden)]
+    pub fn keys_from_blocks(mut self) -> LodScene {
+        self.index_keys = false;
+        self
     }
 
     /// The voxel with Morton key `key` at level `l` (0 = finest), as [`Hit::voxel`] hands it

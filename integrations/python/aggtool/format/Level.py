@@ -114,8 +114,40 @@ class Level(object):
             return obj
         return None
 
+    # Appended within 1.5 (2026-12-06; readers need not know it): the Morton keys of the
+    # level's voxels, ascending, as the LEB128 varints of their differences (the first from
+    # 0), in one Zstandard frame that states its content size. The same keys as the voxel
+    # blocks', in their order, so that a reader learns the level's occupancy without
+    # inflating every block. Absent in older files: read the keys from the blocks.
+    # Level
+    def VoxelKeys(self, j):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(16))
+        if o != 0:
+            a = self._tab.Vector(o)
+            return self._tab.Get(flatbuffers.number_types.Uint8Flags, a + flatbuffers.number_types.UOffsetTFlags.py_type(j * 1))
+        return 0
+
+    # Level
+    def VoxelKeysAsNumpy(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(16))
+        if o != 0:
+            return self._tab.GetVectorAsNumpy(flatbuffers.number_types.Uint8Flags, o)
+        return 0
+
+    # Level
+    def VoxelKeysLength(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(16))
+        if o != 0:
+            return self._tab.VectorLen(o)
+        return 0
+
+    # Level
+    def VoxelKeysIsNone(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(16))
+        return o == 0
+
 def LevelStart(builder):
-    builder.StartObject(6)
+    builder.StartObject(7)
 
 def Start(builder):
     LevelStart(builder)
@@ -167,6 +199,18 @@ def LevelAddCounts(builder, counts):
 
 def AddCounts(builder, counts):
     LevelAddCounts(builder, counts)
+
+def LevelAddVoxelKeys(builder, voxelKeys):
+    builder.PrependUOffsetTRelativeSlot(6, flatbuffers.number_types.UOffsetTFlags.py_type(voxelKeys), 0)
+
+def AddVoxelKeys(builder, voxelKeys):
+    LevelAddVoxelKeys(builder, voxelKeys)
+
+def LevelStartVoxelKeysVector(builder, numElems):
+    return builder.StartVector(1, numElems, 1)
+
+def StartVoxelKeysVector(builder, numElems):
+    return LevelStartVoxelKeysVector(builder, numElems)
 
 def LevelEnd(builder):
     return builder.EndObject()
