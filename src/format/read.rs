@@ -1570,6 +1570,7 @@ pub fn exercise(agg: &Aggregate) -> usize {
     for l in 0..agg.level_count() {
         let _ = agg.grid(l);
         let _ = agg.counts(l);
+        let _ = agg.voxel_keys(l);
         for v in agg.voxels(l) {
             let _ = v.appearance();
             let _ = v.ellipsoid();
