@@ -538,3 +538,38 @@ fn small_plane(cwd: &Path) {
         cwd,
     ));
 }
+
+/// `eval --speed` without assets wrote an empty table (the hard cases, the default when no
+/// asset is given, were ignored under `--speed`): now it studies every hard case.
+#[test]
+fn eval_speed_without_assets_studies_the_hard_cases() {
+    let d = tempfile::tempdir().unwrap();
+    let args = [
+        "eval",
+        "--speed",
+        "8",
+        "--triangles",
+        "300",
+        "--spp",
+        "1",
+        "--reference-spp",
+        "2",
+        "-o",
+        "ev",
+        "--json",
+    ];
+    let r: serde_json::Value = serde_json::from_str(&ok(&aggtool(&args, d.path()))).unwrap();
+    let scenes: Vec<&str> = r["results"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|row| row["scene"].as_str().unwrap())
+        .collect();
+    assert_eq!(scenes, aggtool::gen::NAMES, "{r}");
+    let table = std::fs::read_to_string(d.path().join("ev/speed.md")).unwrap();
+    assert_eq!(
+        table.lines().count(),
+        2 + aggtool::gen::NAMES.len(),
+        "{table}"
+    );
+}
