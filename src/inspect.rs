@@ -222,7 +222,10 @@ impl std::fmt::Display for Summary {
                 l.compression_ratio
             )?;
         }
-        writeln!(f, "bytes per component (payloads, without FlatBuffers headers and padding):")?;
+        writeln!(
+            f,
+            "bytes per component (payloads, without FlatBuffers headers and padding):"
+        )?;
         writeln!(
             f,
             "{:>6} {:>10} {:>10} {:>10} {:>11} {:>10} {:>11} {:>9}  layout",

@@ -236,13 +236,16 @@ pub fn assemble_file(path: &Path, request: &AssembleRequest) -> anyhow::Result<A
     let mut m = Manifest::load(path)?;
     let mut ids = request.assets.clone();
     for &k in &request.asset_numbers {
-        let a = k.checked_sub(1).and_then(|i| m.assets.get(i)).ok_or_else(|| {
-            usage(format!(
-                "{}: no asset number {k} (it has {}, numbered from 1)",
-                path.display(),
-                m.assets.len()
-            ))
-        })?;
+        let a = k
+            .checked_sub(1)
+            .and_then(|i| m.assets.get(i))
+            .ok_or_else(|| {
+                usage(format!(
+                    "{}: no asset number {k} (it has {}, numbered from 1)",
+                    path.display(),
+                    m.assets.len()
+                ))
+            })?;
         ids.push(a.id.clone());
     }
     if !ids.is_empty() {

@@ -799,7 +799,12 @@ pub fn level_map_picture(
     res_of: &dyn Fn(&FirstHit) -> u32,
 ) -> (Vec<u8>, u32, Vec<String>) {
     let levels = resolutions.len().max(1);
-    let rank = |r: u32| resolutions.iter().position(|&x| x == r).unwrap_or(levels - 1);
+    let rank = |r: u32| {
+        resolutions
+            .iter()
+            .position(|&x| x == r)
+            .unwrap_or(levels - 1)
+    };
     let mut counts = vec![0usize; levels + 2]; // levels, mesh, sky
     let mut rgb = Vec::with_capacity(map.len() * 3);
     for m in map {

@@ -213,7 +213,12 @@ pub fn demo(output: &Path, settings: &DemoSettings, progress: Progress) -> Resul
 impl std::fmt::Display for DemoReport {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let r = self;
-        writeln!(f, "input: generated {} ({} triangles)", r.asset.display(), r.triangles)?;
+        writeln!(
+            f,
+            "input: generated {} ({} triangles)",
+            r.asset.display(),
+            r.triangles
+        )?;
         for w in &r.warnings {
             writeln!(f, "warning: {w}")?;
         }

@@ -656,7 +656,9 @@ pub fn sweep_file(
         settings.spp,
         settings.reference_spp
     ));
-    let report = sweep(asset, &scene, settings, dir, progress, &|e| notes(&e.to_string()))?;
+    let report = sweep(asset, &scene, settings, dir, progress, &|e| {
+        notes(&e.to_string())
+    })?;
     let table = std::fs::read_to_string(dir.join(&report.table_md))?;
     Ok(SweepRun {
         output: dir.display().to_string(),

@@ -887,8 +887,7 @@ pub fn check_file(
     let owned;
     let t = match file {
         Some(f) => {
-            let bytes =
-                std::fs::read(f).with_context(|| format!("cannot read {}", f.display()))?;
+            let bytes = std::fs::read(f).with_context(|| format!("cannot read {}", f.display()))?;
             owned = Tables::from_bytes(&bytes).with_context(|| f.display().to_string())?;
             &owned
         }
