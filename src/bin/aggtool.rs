@@ -16,7 +16,7 @@ use aggtool::assembly::{self, render_file::render_file};
 use aggtool::import::ImportOptions;
 use aggtool::render::view::ImageFiles;
 use aggtool::report::{ErrorReport, Report, Written};
-use aggtool::tables::fit::BuildSettings;
+use aggtool::tables::fit::{self, BuildSettings};
 use aggtool::util::Progress;
 use args::{AssembleArgs, ConvertArgs, EvalArgs, GenArgs, RenderArgs, SweepArgs, ViewArgs};
 
@@ -250,10 +250,10 @@ enum TablesAction {
         #[arg(long)]
         file: Option<PathBuf>,
         /// Random parameter points per table.
-        #[arg(long, default_value_t = 64)]
+        #[arg(long, default_value_t = fit::CheckSettings::default().points)]
         points: usize,
         /// Monte Carlo samples per strategy per direction.
-        #[arg(long, default_value_t = 512)]
+        #[arg(long, default_value_t = fit::CheckSettings::default().samples)]
         mc_samples: u32,
     },
 }
@@ -339,7 +339,7 @@ impl Out {
 
 /// Runs one command: its settings from its flags, one library call, its report.
 fn run(command: Command, out: &Out) -> Result<Box<dyn Report>> {
-    use aggtool::{eval, inspect, render, tables::fit};
+    use aggtool::{eval, inspect, render};
     let progress = |s: &str, d: u64, n: u64| out.progress(s, d, n);
     let notes = |l: &str| out.note(l);
     Ok(match command {
@@ -433,7 +433,13 @@ fn run(command: Command, out: &Out) -> Result<Box<dyn Report>> {
                 file,
                 points,
                 mc_samples,
-            } => Box::new(fit::check_file(file.as_deref(), points, mc_samples)?),
+            } => {
+                let settings = fit::CheckSettings {
+                    points,
+                    samples: mc_samples,
+                };
+                Box::new(fit::check_file(file.as_deref(), settings)?)
+            }
         },
         Command::AbsdfPlot {
             case,

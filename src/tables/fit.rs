@@ -877,11 +877,28 @@ pub struct CheckReport {
     pub tables: Vec<CheckResult>,
 }
 
+/// Settings of the table check (`aggtool tables check`).
+#[derive(Clone, Copy, Debug)]
+pub struct CheckSettings {
+    /// Random parameter points per table.
+    pub points: usize,
+    /// Monte Carlo samples per strategy per ground-truth direction.
+    pub samples: u32,
+}
+
+impl Default for CheckSettings {
+    fn default() -> Self {
+        CheckSettings {
+            points: 64,
+            samples: 512,
+        }
+    }
+}
+
 /// Checks the tables of `file` (the embedded ones when `None`) as [`check`] does.
 pub fn check_file(
     file: Option<&std::path::Path>,
-    points: usize,
-    samples: u32,
+    settings: CheckSettings,
 ) -> anyhow::Result<CheckReport> {
     use anyhow::Context;
     let owned;
@@ -894,7 +911,7 @@ pub fn check_file(
         None => Tables::embedded(),
     };
     Ok(CheckReport {
-        tables: check(t, points, samples),
+        tables: check(t, settings.points, settings.samples),
     })
 }
 

@@ -379,7 +379,7 @@ pub struct ViewArgs {
     #[arg(short, long)]
     pub output: PathBuf,
     /// Exposure of the PNG in stops.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = RenderRequest::default().exposure)]
     pub exposure: f32,
 }
 
