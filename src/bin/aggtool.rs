@@ -15,7 +15,7 @@ use clap::{Parser, Subcommand};
 use aggtool::assembly::{self, render_file::render_file};
 use aggtool::import::ImportOptions;
 use aggtool::render::view::ImageFiles;
-use aggtool::report::{ErrorReport, Report, Written};
+use aggtool::report::{ErrorKind, ErrorReport, Report, Written};
 use aggtool::tables::fit::{self, BuildSettings};
 use aggtool::util::Progress;
 use args::{AssembleArgs, ConvertArgs, EvalArgs, GenArgs, RenderArgs, SweepArgs, ViewArgs};
@@ -503,10 +503,14 @@ fn main() -> ExitCode {
         Err(e) if e.use_stderr() && std::env::args_os().any(|a| a == "--json") => {
             let message = e.to_string();
             let first = message.lines().next().unwrap_or_default();
-            let error = first.strip_prefix("error: ").unwrap_or(first);
-            let report = serde_json::json!({ "error": error, "kind": "usage", "causes": [], "exit_code": e.exit_code() });
-            println!("{report:#}");
-            return ExitCode::from(e.exit_code() as u8);
+            let report = ErrorReport {
+                error: first.strip_prefix("error: ").unwrap_or(first).to_string(),
+                kind: ErrorKind::Usage,
+                causes: Vec::new(),
+                exit_code: ErrorKind::Usage.exit_code(),
+            };
+            println!("{:#}", report.to_json());
+            return ExitCode::from(report.exit_code);
         }
         Err(e) => e.exit(),
     };
@@ -532,7 +536,7 @@ fn main() -> ExitCode {
         Err(e) => {
             let report = ErrorReport::new(&e);
             if json {
-                println!("{:#}", serde_json::to_value(&report).unwrap_or_default());
+                println!("{:#}", report.to_json());
             } else {
                 eprintln!("{report}");
             }
