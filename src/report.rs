@@ -241,3 +241,9 @@ impl fmt::Display for Written {
         Ok(())
     }
 }
+
+/// Writes `contents` to `path` atomically ([`crate::util::atomic::write_bytes_atomic`]); a
+/// failure is an output error naming the file.
+pub fn write_output(path: &std::path::Path, contents: impl AsRef<[u8]>) -> anyhow::Result<()> {
+    crate::util::atomic::write_bytes_atomic(path, contents.as_ref()).map_err(output)
+}

@@ -10,7 +10,7 @@ use serde::Serialize;
 use super::budget::{budget_scene, budget_table, BudgetSettings};
 use super::{markdown_table, speed_scene, speed_table, study_scene, SpeedInput, StudySettings};
 use crate::gen::{self, GenSettings};
-use crate::report::{usage, Notes, Written};
+use crate::report::{usage, write_output, Notes, Written};
 use crate::scene::Scene;
 use crate::util::Progress;
 
@@ -214,8 +214,11 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
                 }
             }
             let table = budget_table(&all);
-            std::fs::write(out.join("budget.md"), &table)?;
-            std::fs::write(out.join("budget.json"), serde_json::to_string_pretty(&all)?)?;
+            write_output(&out.join("budget.md"), &table)?;
+            write_output(
+                &out.join("budget.json"),
+                serde_json::to_string_pretty(&all)?,
+            )?;
             outputs.push(&out.join("budget.md"), "the table");
             outputs.push(&out.join("budget.json"), "the figures");
             outputs.push(
@@ -257,8 +260,11 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
                 }
             }
             let table = speed_table(&rows);
-            std::fs::write(out.join("speed.md"), &table)?;
-            std::fs::write(out.join("speed.json"), serde_json::to_string_pretty(&rows)?)?;
+            write_output(&out.join("speed.md"), &table)?;
+            write_output(
+                &out.join("speed.json"),
+                serde_json::to_string_pretty(&rows)?,
+            )?;
             outputs.push(&out.join("speed.md"), "the table");
             outputs.push(&out.join("speed.json"), "the figures");
             outputs.push(
@@ -301,8 +307,8 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
                 all.extend(r);
             }
             let table = markdown_table(&all);
-            std::fs::write(out.join("table.md"), &table)?;
-            std::fs::write(out.join("table.json"), serde_json::to_string_pretty(&all)?)?;
+            write_output(&out.join("table.md"), &table)?;
+            write_output(&out.join("table.json"), serde_json::to_string_pretty(&all)?)?;
             outputs.push(&out.join("table.md"), "the table");
             outputs.push(&out.join("table.json"), "the figures");
             outputs.push(
