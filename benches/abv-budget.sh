@@ -28,7 +28,7 @@ echo "| ABV rays | bake wall s | bake CPU s | ${res}³ level MiB | ${res}³ ABV 
 echo "|---|---|---|---|---|---|"
 for full in "$res" $((res / 2)) $((res / 4)); do
   /usr/bin/time -f "%e %U %S" -o t "$bin" convert "$asset" -o b.agg --max-res "$res" --abv-full-res "$full" --report r.json >/dev/null 2>&1
-  "$bin" render b.agg --view view.json --level 0 --spp 64 -o r.exr >/dev/null
+  "$bin" render b.agg --view view.json --level "$res" --spp 64 -o r.exr >/dev/null
   rmse=$("$bin" compare r.exr ref.exr --json | python3 -c "import json,sys; print(round(json.load(sys.stdin)['rmse'], 6))")
   python3 - "$full" "$res" "$rmse" <<'PY'
 import json, sys
