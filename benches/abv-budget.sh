@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # What the boundary-visibility ray budget costs: bakes ASSET at --max-res RES three times, with
 # a ray per ABV cell on the finest level (--abv-full-res RES), per 2×2 cells (RES/2) and per
-# 4×4 cells (RES/4), renders the finest level (--level 0, RES² pixels, 64 spp) under a sun and
+# 4×4 cells (RES/4), renders the finest level (--level RES, RES² pixels, 64 spp) under a sun and
 # a blue sky, and prints each bake's time, the finest level's size and ABV seconds, and the
 # RMSE against the reference renderer at 1024 spp. Work files go to a temporary folder.
 #
