@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # What the boundary-visibility ray budget costs: bakes ASSET at --max-res RES three times, with
 # a ray per ABV cell on the finest level (--abv-full-res RES), per 2×2 cells (RES/2) and per
-# 4×4 cells (RES/4), renders the finest level (--level 0, RES² pixels, 64 spp) under a sun and
+# 4×4 cells (RES/4), renders the finest level (--level RES, RES² pixels, 64 spp) under a sun and
 # a blue sky, and prints each bake's time, the finest level's size and ABV seconds, and the
 # RMSE against the reference renderer at 1024 spp. Work files go to a temporary folder.
 #
@@ -28,7 +28,7 @@ echo "| ABV rays | bake wall s | bake CPU s | ${res}³ level MiB | ${res}³ ABV 
 echo "|---|---|---|---|---|---|"
 for full in "$res" $((res / 2)) $((res / 4)); do
   /usr/bin/time -f "%e %U %S" -o t "$bin" convert "$asset" -o b.agg --max-res "$res" --abv-full-res "$full" --report r.json >/dev/null 2>&1
-  "$bin" render b.agg --view view.json --level 0 --spp 64 -o r.exr >/dev/null
+  "$bin" render b.agg --view view.json --level "$res" --spp 64 -o r.exr >/dev/null
   rmse=$("$bin" compare r.exr ref.exr --json | python3 -c "import json,sys; print(round(json.load(sys.stdin)['rmse'], 6))")
   python3 - "$full" "$res" "$rmse" <<'PY'
 import json, sys

@@ -41,6 +41,8 @@ pub mod lights;
 pub mod math;
 pub mod render;
 #[deny(missing_docs)]
+pub mod report;
+#[deny(missing_docs)]
 pub mod runtime;
 pub mod scene;
 pub mod spatial;

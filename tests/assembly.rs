@@ -1210,6 +1210,9 @@ fn command_line_hybrid_and_no_mesh() {
         out.contains("level map:") && d.join("map.png").is_file(),
         "{out}"
     );
+    // Its key names levels by their resolution, as `inspect` does ("64³ 12.0%"), not by index.
+    let key = out.lines().find(|l| l.starts_with("level map:")).unwrap();
+    assert!(key.contains("³ ") && !key.contains(" l0 "), "{key}");
     assert!(read("hybrid.exr").pixels != lib.pixels);
     // Far: identical, no mesh loaded.
     let out = run(&["render", m, "--view", "far.json", "-o", "far.exr"]);

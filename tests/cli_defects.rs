@@ -19,8 +19,10 @@ fn failed(o: &Output, code: i32) -> String {
 
 /// Exit status of usage errors (clap's).
 const USAGE: i32 = 2;
-/// Exit status of every other error.
-const ERROR: i32 = 1;
+/// Exit status of input errors (an input missing, unreadable or invalid).
+const INPUT: i32 = 3;
+/// Exit status of output errors (an output that cannot be written).
+const OUTPUT: i32 = 4;
 
 /// `render --nee 0` was accepted and rendered as `--nee 1`: now a usage error naming the flag.
 #[test]
@@ -72,11 +74,11 @@ fn reference_zero_size_names_the_size() {
 fn bad_keep_or_energy_names_only_itself() {
     let d = tempfile::tempdir().unwrap();
     let o = aggtool(&["convert", "missing.glb", "--keep", "2"], d.path());
-    let err = failed(&o, ERROR);
+    let err = failed(&o, USAGE);
     assert!(err.contains("--keep must be in (0, 1], got 2"), "{err}");
     assert!(!err.contains("--energy"), "{err}");
     let o = aggtool(&["convert", "missing.glb", "--energy", "1.5"], d.path());
-    let err = failed(&o, ERROR);
+    let err = failed(&o, USAGE);
     assert!(err.contains("--energy must be in [0, 1], got 1.5"), "{err}");
     assert!(!err.contains("--keep"), "{err}");
 }
@@ -92,7 +94,7 @@ fn manifest_without_instances_is_an_error() {
         r#"{"version": 1, "assets": {"a": {"source": "a.glb"}}}"#,
     )
     .unwrap();
-    let err = failed(&aggtool(&["inspect", "m.json"], d.path()), ERROR);
+    let err = failed(&aggtool(&["inspect", "m.json"], d.path()), INPUT);
     assert!(err.contains("missing field `instances`"), "{err}");
     let e = aggtool::assembly::Manifest::load(&m).unwrap_err();
     assert!(
@@ -124,7 +126,7 @@ fn compare_refuses_non_linear_images() {
         ("a.exr", "a.png", "a.png"),
         ("a.jpg", "a.exr", "a.jpg"),
     ] {
-        let err = failed(&aggtool(&["compare", a, b], p), ERROR);
+        let err = failed(&aggtool(&["compare", a, b], p), INPUT);
         assert!(
             err.contains(bad) && err.contains("not linear") && err.contains("EXR, PFM or HDR"),
             "{err}"
@@ -163,7 +165,7 @@ fn a_missing_file_says_its_cause_once() {
         &["assemble", "missing.json"],
     ];
     for args in runs {
-        let err = failed(&aggtool(args, p), ERROR);
+        let err = failed(&aggtool(args, p), INPUT);
         let missing = args.iter().find(|a| a.starts_with("missing")).unwrap();
         assert!(err.contains(missing), "{args:?}: {err}");
         // The OS's words for a missing file, once ("(os error 2)" on every platform).
@@ -189,7 +191,7 @@ fn convert_checks_its_output_before_baking() {
     for (extra, needle) in cases {
         let mut args = vec!["convert", "missing.glb"];
         args.extend_from_slice(extra);
-        let err = failed(&aggtool(&args, p), ERROR);
+        let err = failed(&aggtool(&args, p), OUTPUT);
         assert!(err.contains(needle), "{args:?}: {err}");
         assert!(
             !err.contains("missing.glb"),
@@ -262,7 +264,7 @@ fn assemble_require_reuse_refuses_before_baking() {
     ];
     let mut args = vec!["assemble", "f/forest.json", "--require-reuse"];
     args.extend(tiny);
-    let err = failed(&aggtool(&args, p), ERROR);
+    let err = failed(&aggtool(&args, p), INPUT);
     assert!(
         err.contains("would have had to be baked, so nothing was baked"),
         "{err}"
@@ -336,7 +338,7 @@ fn gen_city_finds_its_default_kits_at_run_time() {
     let work = root.join("work");
     std::fs::create_dir_all(&work).unwrap();
     // Neither: an error naming both ways out (the build's own ../shared/assets is not used).
-    let err = failed(&gen_city(&work, None), ERROR);
+    let err = failed(&gen_city(&work, None), INPUT);
     assert!(
         err.contains("--kit") && err.contains("AGGTOOL_ASSETS") && err.contains("kenney_city_kit"),
         "{err}"
@@ -360,7 +362,7 @@ fn gen_city_finds_its_default_kits_at_run_time() {
     let sources = city_sources(&work);
     assert!(sources.iter().all(|s| s.starts_with(&other)), "{sources:?}");
     // A variable naming a folder without the kits is an error, not a fallback.
-    let err = failed(&gen_city(&work, Some(&root.join("nothing"))), ERROR);
+    let err = failed(&gen_city(&work, Some(&root.join("nothing"))), INPUT);
     assert!(err.contains("nothing"), "{err}");
 }
 
@@ -467,7 +469,7 @@ fn render_frames_as_reference_does() {
     }
     // Neither a view nor --auto-view: a clear error.
     let o = aggtool(&["render", "plane45.agg", "-o", "x.exr"], cwd);
-    assert!(failed(&o, ERROR).contains("--auto-view"));
+    assert!(failed(&o, USAGE).contains("--auto-view"));
 }
 
 /// `gen city --instances 4` listed every asset of the kits (30 for the default ones) though it
@@ -535,4 +537,39 @@ fn small_plane(cwd: &Path) {
         ],
         cwd,
     ));
+}
+
+/// `eval --speed` without assets wrote an empty table (the hard cases, the default when no
+/// asset is given, were ignored under `--speed`): now it studies every hard case.
+#[test]
+fn eval_speed_without_assets_studies_the_hard_cases() {
+    let d = tempfile::tempdir().unwrap();
+    let args = [
+        "eval",
+        "--speed",
+        "8",
+        "--triangles",
+        "300",
+        "--spp",
+        "1",
+        "--reference-spp",
+        "2",
+        "-o",
+        "ev",
+        "--json",
+    ];
+    let r: serde_json::Value = serde_json::from_str(&ok(&aggtool(&args, d.path()))).unwrap();
+    let scenes: Vec<&str> = r["results"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|row| row["scene"].as_str().unwrap())
+        .collect();
+    assert_eq!(scenes, aggtool::gen::NAMES, "{r}");
+    let table = std::fs::read_to_string(d.path().join("ev/speed.md")).unwrap();
+    assert_eq!(
+        table.lines().count(),
+        2 + aggtool::gen::NAMES.len(),
+        "{table}"
+    );
 }

@@ -184,3 +184,132 @@ pub fn assemble(
         })
         .collect()
 }
+
+/// Which assets of a manifest `aggtool assemble` considers, and how.
+#[derive(Clone, Debug, Default)]
+pub struct AssembleRequest {
+    /// The bake settings of every asset.
+    pub settings: BakeSettings,
+    /// Only these asset ids (none: every asset).
+    pub assets: Vec<String>,
+    /// Only these asset numbers, 1-based, in manifest order.
+    pub asset_numbers: Vec<usize>,
+    /// Fail, before baking anything, if any aggregate would have to be baked.
+    pub require_reuse: bool,
+    /// Import warnings are errors.
+    pub strict: bool,
+}
+
+/// What `aggtool assemble` reports.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct AssembleReport {
+    /// Per asset considered, in manifest order.
+    pub outcomes: Vec<Outcome>,
+    /// Seconds in all.
+    pub seconds: f64,
+}
+
+/// The ids of the manifest's assets, in order (`aggtool assemble --list`).
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct AssetList {
+    /// The ids.
+    pub assets: Vec<String>,
+}
+
+impl std::fmt::Display for AssetList {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}", self.assets.join("\n"))
+    }
+}
+
+/// Lists the asset ids of the manifest at `path`.
+pub fn list(path: &Path) -> anyhow::Result<AssetList> {
+    let m = Manifest::load(path)?;
+    Ok(AssetList {
+        assets: m.assets.iter().map(|a| a.id.clone()).collect(),
+    })
+}
+
+/// Bakes the stale assets of the manifest at `path` that `request` selects ([`assemble`]).
+pub fn assemble_file(path: &Path, request: &AssembleRequest) -> anyhow::Result<AssembleReport> {
+    use crate::report::usage;
+    let mut m = Manifest::load(path)?;
+    let mut ids = request.assets.clone();
+    for &k in &request.asset_numbers {
+        let a = k
+            .checked_sub(1)
+            .and_then(|i| m.assets.get(i))
+            .ok_or_else(|| {
+                usage(format!(
+                    "{}: no asset number {k} (it has {}, numbered from 1)",
+                    path.display(),
+                    m.assets.len()
+                ))
+            })?;
+        ids.push(a.id.clone());
+    }
+    if !ids.is_empty() {
+        if let Some(id) = ids.iter().find(|id| !m.assets.iter().any(|a| &a.id == *id)) {
+            return Err(usage(format!("{}: no asset '{id}'", path.display())));
+        }
+        m.assets.retain(|a| ids.contains(&a.id));
+    }
+    if request.require_reuse {
+        // Refused before anything is baked, not after the bakes.
+        let stale = stale_assets(&m, &request.settings)?;
+        if !stale.is_empty() {
+            let list: Vec<String> = stale
+                .iter()
+                .map(|(id, why)| format!("asset '{id}' ({why})"))
+                .collect();
+            anyhow::bail!(
+                "{}: {} aggregate(s) would have had to be baked, so nothing was baked \
+                 (--require-reuse: every asset's bake task should have written them): {}",
+                path.display(),
+                stale.len(),
+                list.join(", ")
+            );
+        }
+    }
+    let t0 = Instant::now();
+    let options = ImportOptions {
+        strict: request.strict,
+    };
+    let outcomes = assemble(&m, &request.settings, options, &|_| {})?;
+    Ok(AssembleReport {
+        outcomes,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
+
+impl std::fmt::Display for AssembleReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        use crate::report::mib;
+        for o in &self.outcomes {
+            match &o.reason {
+                Some(r) => writeln!(
+                    f,
+                    "baked: asset '{}' ({r}) -> {} ({}, {:.1} s)",
+                    o.asset,
+                    o.aggregate.display(),
+                    mib(o.bytes),
+                    o.seconds
+                )?,
+                None => writeln!(
+                    f,
+                    "reused: asset '{}': {} is up to date",
+                    o.asset,
+                    o.aggregate.display()
+                )?,
+            }
+        }
+        let baked = self.outcomes.iter().filter(|o| o.baked).count();
+        write!(
+            f,
+            "stats: {} assets: {baked} baked, {} reused, {:.1} s",
+            self.outcomes.len(),
+            self.outcomes.len() - baked,
+            self.seconds
+        )
+    }
+}

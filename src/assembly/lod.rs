@@ -300,6 +300,19 @@ impl Assembly {
         &self.scenes[a]
     }
 
+    /// The distinct resolutions of its aggregates' levels, finest first.
+    pub fn level_resolutions(&self) -> Vec<u32> {
+        let mut r: Vec<u32> = (0..self.manifest().assets.len())
+            .flat_map(|i| {
+                let s = self.scene(i);
+                (0..s.level_count()).map(move |l| s.grid(l).res)
+            })
+            .collect();
+        r.sort_unstable_by(|x, y| y.cmp(x));
+        r.dedup();
+        r
+    }
+
     /// World bounds of every instance together, for framing views; `None` when empty.
     pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
         let mut b = Aabb::empty();
@@ -774,21 +787,36 @@ pub fn level_colour(l: usize, levels: usize) -> [u8; 3] {
 }
 
 /// The level picture as sRGB8 with a legend strip under it (each line in its colour, with the
-/// share of pixels), and the legend as text lines: (rgb, height, legend).
+/// share of pixels), and the legend as text lines: (rgb, height, legend). Levels are named by
+/// their resolution ("64³"), as `inspect` names them: `resolutions` lists every resolution the
+/// assembly's aggregates hold, finest first, and `res_of` gives the resolution of a hit drawn
+/// from a level.
 pub fn level_map_picture(
     map: &[Option<FirstHit>],
     width: u32,
     height: u32,
-    levels: usize,
+    resolutions: &[u32],
+    res_of: &dyn Fn(&FirstHit) -> u32,
 ) -> (Vec<u8>, u32, Vec<String>) {
-    let levels = levels.max(1);
+    let levels = resolutions.len().max(1);
+    let rank = |r: u32| {
+        resolutions
+            .iter()
+            .position(|&x| x == r)
+            .unwrap_or(levels - 1)
+    };
     let mut counts = vec![0usize; levels + 2]; // levels, mesh, sky
     let mut rgb = Vec::with_capacity(map.len() * 3);
     for m in map {
-        let (c, k) = match m.map(|f| f.drawn) {
+        let (c, k) = match m {
             None => (SKY_COLOUR, levels + 1),
-            Some(Drawn::Mesh) => (MESH_COLOUR, levels),
-            Some(Drawn::Level(l)) => (level_colour(l, levels), l.min(levels - 1)),
+            Some(FirstHit {
+                drawn: Drawn::Mesh, ..
+            }) => (MESH_COLOUR, levels),
+            Some(f) => {
+                let l = rank(res_of(f));
+                (level_colour(l, levels), l)
+            }
         };
         counts[k] += 1;
         rgb.extend_from_slice(&c);
@@ -797,8 +825,8 @@ pub fn level_map_picture(
     let pct = |k: usize| 100.0 * counts[k] as f32 / n;
     let mut entries: Vec<(String, [u8; 3])> =
         vec![(format!("MESH {:.1}%", pct(levels)), MESH_COLOUR)];
-    for l in 0..levels {
-        entries.push((format!("L{l} {:.1}%", pct(l)), level_colour(l, levels)));
+    for (l, r) in resolutions.iter().enumerate() {
+        entries.push((format!("{r}³ {:.1}%", pct(l)), level_colour(l, levels)));
     }
     entries.push((format!("SKY {:.1}%", pct(levels + 1)), [150, 150, 150]));
     let scale = if width >= 256 { 2 } else { 1 };

@@ -178,3 +178,17 @@ pub fn summary(m: &Manifest, import_sources: bool) -> Result<Summary, MeshError>
         per_asset,
     })
 }
+
+/// What a render command reads as meshes: an asset file, or an assembly manifest (each source
+/// imported once, [`scene`]); with a line saying what it is ("PATH: 3 meshes, …").
+pub fn load_any(path: &std::path::Path, options: ImportOptions) -> anyhow::Result<(Scene, String)> {
+    let scene = if super::is_manifest(path) {
+        let m = Manifest::load(path)?;
+        let sources = load_sources(&m, options)?;
+        scene(&m, &sources)
+    } else {
+        import::load(path, options)?
+    };
+    let line = format!("{}: {}", path.display(), scene.summary());
+    Ok((scene, line))
+}

@@ -4,11 +4,13 @@
 pub mod bake;
 pub mod city;
 pub mod forest;
+pub mod generate;
 pub mod hybrid;
 pub mod lod;
 pub mod manifest;
 pub mod mesh;
 pub mod opened;
+pub mod render_file;
 
 pub use hybrid::Representation;
 pub use lod::{level_map, render, Assembly, AssemblyError, Drawn, FirstHit};

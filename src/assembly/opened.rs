@@ -62,14 +62,7 @@ impl Opened {
             |s: &LodScene| -> Vec<u32> { (0..s.level_count()).map(|l| s.grid(l).res).collect() };
         match self {
             Opened::Aggregate(s) => of(s),
-            Opened::Assembly(a) => {
-                let mut r: Vec<u32> = (0..a.manifest().assets.len())
-                    .flat_map(|i| of(a.scene(i)))
-                    .collect();
-                r.sort_unstable_by(|x, y| y.cmp(x));
-                r.dedup();
-                r
-            }
+            Opened::Assembly(a) => a.level_resolutions(),
         }
     }
 

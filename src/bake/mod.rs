@@ -7,6 +7,7 @@
 
 pub mod boundary;
 pub mod boundary_visibility;
+pub mod convert;
 pub mod level;
 pub mod pipeline;
 pub mod primitive;

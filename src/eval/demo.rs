@@ -77,6 +77,10 @@ pub struct DemoReport {
     /// The picture, and the whole demo's wall seconds.
     pub picture: PathBuf,
     pub seconds: f64,
+    /// Cones per pixel of the LoD.
+    pub lod_spp: u32,
+    /// Samples per pixel of the converged reference both are judged against.
+    pub truth_spp: u32,
 }
 
 /// Runs the demo into `output` (created if needed): `foliage.glb`, `foliage.agg`, `view.json`,
@@ -201,5 +205,43 @@ pub fn demo(output: &Path, settings: &DemoSettings, progress: Progress) -> Resul
         reference_rmse: ref_cmp.rmse,
         picture,
         seconds: t_all.elapsed().as_secs_f64(),
+        lod_spp: settings.lod_spp,
+        truth_spp: settings.truth_spp,
     })
+}
+
+impl std::fmt::Display for DemoReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let r = self;
+        writeln!(
+            f,
+            "input: generated {} ({} triangles)",
+            r.asset.display(),
+            r.triangles
+        )?;
+        for w in &r.warnings {
+            writeln!(f, "warning: {w}")?;
+        }
+        writeln!(
+            f,
+            "stats: bake {:.1} s, {} levels, {}",
+            r.bake_seconds,
+            r.levels,
+            crate::report::mib(r.bytes)
+        )?;
+        writeln!(f, "{}", r.lod.line("LoD"))?;
+        writeln!(f, "{}", r.reference.line("reference"))?;
+        writeln!(
+            f,
+            "stats: equal time: LoD {:.2} s at {} spp, RMSE {:.4}; reference {:.2} s at {} spp, RMSE {:.4} (against the reference at {} spp)",
+            r.lod_seconds, r.lod_spp, r.lod_rmse, r.reference.seconds, r.reference_spp, r.reference_rmse, r.truth_spp
+        )?;
+        write!(
+            f,
+            "output: {} (reference {} spp | LoD | reference at equal time | differences), in {:.0} s",
+            r.picture.display(),
+            r.truth_spp,
+            r.seconds
+        )
+    }
 }

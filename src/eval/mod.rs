@@ -20,6 +20,7 @@
 pub mod budget;
 pub mod demo;
 pub mod plot;
+pub mod run;
 pub mod simplify;
 pub mod sweep;
 

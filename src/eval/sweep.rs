@@ -578,3 +578,111 @@ mod tests {
         assert_eq!(file_stem("a/b=1 2"), "a_b=1_2");
     }
 }
+
+impl std::fmt::Display for RowEvent<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RowEvent::Reference(Some(secs)) => write!(f, "reference: rendered in {secs:.1} s"),
+            RowEvent::Reference(None) => write!(f, "reused: reference"),
+            RowEvent::Done(r) => write!(
+                f,
+                "baked: {}: bake {:.2} s ({:.1} CPU s), {}, render {:.2} s ({:.2} CPU s), RMSE {:.5}",
+                r.label,
+                r.bake_seconds,
+                r.bake_cpu_seconds,
+                crate::report::mib(r.bytes),
+                r.render_seconds,
+                r.render_cpu_seconds,
+                r.rmse
+            ),
+            RowEvent::Reused { row, same_as } => match same_as {
+                Some(o) => write!(f, "reused: {} (same settings as {o})", row.label),
+                None => write!(f, "reused: {} (finished earlier)", row.label),
+            },
+        }
+    }
+}
+
+/// What `aggtool sweep` reports: the sweep's [`SweepReport`], its folder and its table.
+#[derive(Clone, Debug, Serialize)]
+pub struct SweepRun {
+    /// The sweep folder.
+    pub output: String,
+    /// The table (`table.md`).
+    pub table: String,
+    /// The figures (`table.json`).
+    pub report: SweepReport,
+}
+
+impl std::fmt::Display for SweepRun {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(f, "{}", self.table.trim_end())?;
+        write!(
+            f,
+            "output: {} (table.md, table.json, {})",
+            self.output,
+            self.report.plots.join(", ")
+        )
+    }
+}
+
+/// The sweep folder by default: `sweep-STEM`, STEM the asset's.
+pub fn default_dir(asset: &Path) -> std::path::PathBuf {
+    let stem = asset.file_stem().unwrap_or_default().to_string_lossy();
+    std::path::PathBuf::from(format!("sweep-{stem}"))
+}
+
+/// Imports `asset` and runs [`sweep`] into `dir`; bad `--vary` names and values are refused
+/// before anything is imported; `notes` hears a line per row.
+pub fn sweep_file(
+    asset: &Path,
+    settings: &SweepSettings,
+    dir: &Path,
+    strict: bool,
+    progress: Progress,
+    notes: crate::report::Notes,
+) -> Result<SweepRun> {
+    let planned = plan(settings).map_err(|e| crate::report::usage(format!("{e:#}")))?;
+    let scene = crate::import::load(asset, crate::import::ImportOptions { strict })?;
+    for w in &scene.warnings {
+        notes(&format!("warning: {w}"));
+    }
+    notes(&format!(
+        "input: {}: {}; {} settings, {}² pixels, {} spp, reference {} spp",
+        asset.display(),
+        scene.summary(),
+        planned.len(),
+        settings.res,
+        settings.spp,
+        settings.reference_spp
+    ));
+    let report = sweep(asset, &scene, settings, dir, progress, &|e| {
+        notes(&e.to_string())
+    })?;
+    let table = std::fs::read_to_string(dir.join(&report.table_md))?;
+    Ok(SweepRun {
+        output: dir.display().to_string(),
+        table,
+        report,
+    })
+}
+
+impl Default for SweepSettings {
+    /// The default preset as base, every preset a row, nothing varied, 64² pixels at 64
+    /// cones per pixel against a 1024-spp reference.
+    fn default() -> Self {
+        use crate::bake::Preset;
+        SweepSettings {
+            base_name: Preset::Default.name().to_string(),
+            base: BakeSettings::default(),
+            presets: Preset::ALL
+                .iter()
+                .map(|p| (p.name().to_string(), BakeSettings::preset(*p)))
+                .collect(),
+            vary: Vec::new(),
+            res: 64,
+            spp: 64,
+            reference_spp: 1024,
+        }
+    }
+}

@@ -570,3 +570,82 @@ pub fn merge(parts: &[PathBuf], out: &Path) -> Result<u64, MergeError> {
     });
     writer.finish(&index).map_err(io)
 }
+
+/// Which part files `aggtool merge` joins: listed, or named after a prefix as the farm
+/// template names them.
+#[derive(Clone, Debug)]
+pub enum PartFiles {
+    /// The part files, every shard once, in any order.
+    Listed(Vec<PathBuf>),
+    /// `PREFIX.I-of-N.aggpart` for I in 0..N.
+    Prefix(PathBuf, u32),
+}
+
+impl PartFiles {
+    /// The paths.
+    pub fn paths(&self) -> Vec<PathBuf> {
+        match self {
+            PartFiles::Listed(p) => p.clone(),
+            PartFiles::Prefix(prefix, n) => (0..*n)
+                .map(|i| {
+                    let mut p = prefix.clone().into_os_string();
+                    p.push(format!(".{i}-of-{n}.aggpart"));
+                    PathBuf::from(p)
+                })
+                .collect(),
+        }
+    }
+}
+
+/// What `aggtool merge` reports.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct MergeReport {
+    /// The aggregate written.
+    pub output: String,
+    /// Its size.
+    pub bytes: u64,
+    /// The parts joined.
+    pub parts: Vec<String>,
+    /// Whether the part files were deleted.
+    pub removed_parts: bool,
+    /// Seconds.
+    pub seconds: f64,
+}
+
+/// [`merge`]s `parts` into `out`, then deletes the parts if `remove_parts`.
+pub fn merge_files(
+    parts: &PartFiles,
+    out: &Path,
+    remove_parts: bool,
+) -> anyhow::Result<MergeReport> {
+    let t0 = std::time::Instant::now();
+    let paths = parts.paths();
+    let bytes = merge(&paths, out)?;
+    if remove_parts {
+        for p in &paths {
+            std::fs::remove_file(p).map_err(|e| {
+                crate::report::output(format!("cannot remove {}: {e}", p.display()))
+            })?;
+        }
+    }
+    Ok(MergeReport {
+        output: out.display().to_string(),
+        bytes,
+        parts: paths.iter().map(|p| p.display().to_string()).collect(),
+        removed_parts: remove_parts,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
+
+impl std::fmt::Display for MergeReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "output: {} ({}) from {} parts in {:.2} s",
+            self.output,
+            crate::report::mib(self.bytes),
+            self.parts.len(),
+            self.seconds
+        )
+    }
+}

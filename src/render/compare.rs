@@ -123,3 +123,54 @@ mod tests {
         assert!(s > 0.0 && d.pixels[0] == Vec3::ZERO && d.pixels[1].max_element() > 0.0);
     }
 }
+
+/// What `aggtool compare` reports: the [`Comparison`] of two image files and the difference
+/// image written, if asked for.
+#[derive(Clone, Debug, Serialize)]
+pub struct CompareReport {
+    /// The figures.
+    #[serde(flatten)]
+    pub comparison: Comparison,
+    /// The false-colour difference image written (PNG), if any.
+    pub diff: Option<String>,
+    /// The difference the diff image's white stands for.
+    pub diff_white: Option<f32>,
+}
+
+/// Reads two linear images (EXR, PFM, HDR; 8-bit formats are refused), compares `a` against
+/// the reference `b`, and writes the difference image to `diff` if given.
+pub fn compare_files(
+    a: &std::path::Path,
+    b: &std::path::Path,
+    diff: Option<&std::path::Path>,
+) -> anyhow::Result<CompareReport> {
+    let ia = Image::read_linear(a)?;
+    let ib = Image::read_linear(b)?;
+    let comparison = compare(&ia, &ib).map_err(anyhow::Error::msg)?;
+    let mut report = CompareReport {
+        comparison,
+        diff: None,
+        diff_white: None,
+    };
+    if let Some(d) = diff {
+        let (img, scale) = difference_image(&ia, &ib, None);
+        img.write_png(d, 0.0)?;
+        report.diff = Some(d.display().to_string());
+        report.diff_white = Some(scale);
+    }
+    Ok(report)
+}
+
+impl std::fmt::Display for CompareReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if let (Some(d), Some(s)) = (&self.diff, self.diff_white) {
+            writeln!(f, "diff: {d} (white = {s:.4})")?;
+        }
+        let c = &self.comparison;
+        write!(
+            f,
+            "rmse {:.6}  relmse {:.6}  ({}x{})",
+            c.rmse, c.relmse, c.width, c.height
+        )
+    }
+}

@@ -136,3 +136,75 @@ pub fn render(
         |s| radiance(accel, lights, &Ray::new(s.origin, s.dir), s.rng, s.rays),
     )
 }
+
+/// What `aggtool reference` reports.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct ReferenceReport {
+    /// What was rendered and what it imported as.
+    pub input: String,
+    /// Import warnings.
+    pub warnings: Vec<String>,
+    /// Seconds to build the BVH.
+    pub bvh_seconds: f64,
+    /// Bottom-level BVHs (one per mesh).
+    pub blas: usize,
+    /// Top-level entries (instances).
+    pub tlas_entries: usize,
+    /// The render's figures.
+    pub stats: ImageStats,
+    /// Peak resident memory, as a line, where the platform tells it.
+    pub peak_memory: Option<String>,
+    /// The files written.
+    pub output: crate::render::view::ImageFiles,
+}
+
+/// Renders `scene` as `view` says and writes `files` (the PNG at `exposure` stops); `input`
+/// names what was rendered in the report.
+pub fn render_to_files(
+    scene: &Scene,
+    input: String,
+    view: &crate::render::view::View,
+    files: &crate::render::view::ImageFiles,
+    exposure: f32,
+    progress: Progress,
+) -> anyhow::Result<ReferenceReport> {
+    let lights = view.lights()?;
+    let t0 = std::time::Instant::now();
+    let accel = Accel::build(scene);
+    let bvh_seconds = t0.elapsed().as_secs_f64();
+    let settings = ReferenceSettings {
+        spp: view.spp,
+        seed: view.seed,
+    };
+    let (img, stats) = render(&accel, &view.camera(), &lights, settings, progress);
+    files.write(&img, exposure)?;
+    Ok(ReferenceReport {
+        input,
+        warnings: scene.warnings.clone(),
+        bvh_seconds,
+        blas: accel.stats.blas_count,
+        tlas_entries: accel.stats.tlas_entries,
+        stats,
+        peak_memory: crate::util::process::peak_rss_line(),
+        output: files.clone(),
+    })
+}
+
+impl std::fmt::Display for ReferenceReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        for w in &self.warnings {
+            writeln!(f, "warning: {w}")?;
+        }
+        writeln!(f, "input: {}", self.input)?;
+        writeln!(
+            f,
+            "stats: bvh {:.2} s ({} BLAS, {} TLAS entries)",
+            self.bvh_seconds, self.blas, self.tlas_entries
+        )?;
+        writeln!(f, "{}", self.stats.line("reference"))?;
+        if let Some(l) = &self.peak_memory {
+            writeln!(f, "{l}")?;
+        }
+        write!(f, "{}", self.output)
+    }
+}

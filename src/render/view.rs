@@ -334,3 +334,125 @@ mod tests {
         assert!(d > 2.0 / (20f32.to_radians().sin()));
     }
 }
+
+/// How a render command gets its view: a view file, or the scene framed (`--auto-view`), with
+/// the sample count and seed overridden and the view used saved where asked.
+#[derive(Clone, Debug)]
+pub struct ViewRequest {
+    /// A view file.
+    pub view: Option<PathBuf>,
+    /// Frame the scene's bounding sphere instead.
+    pub auto_view: bool,
+    /// Image width when framing.
+    pub width: u32,
+    /// Image height when framing.
+    pub height: u32,
+    /// Samples per pixel (overrides the view file; 64 when framing).
+    pub spp: Option<u32>,
+    /// Random seed (overrides the view file).
+    pub seed: Option<u64>,
+    /// Write the view used to this file.
+    pub save_view: Option<PathBuf>,
+}
+
+impl Default for ViewRequest {
+    /// No view file, not framing (one of the two must be chosen), 256×256 when framing.
+    fn default() -> Self {
+        ViewRequest {
+            view: None,
+            auto_view: false,
+            width: 256,
+            height: 256,
+            spp: None,
+            seed: None,
+            save_view: None,
+        }
+    }
+}
+
+impl ViewRequest {
+    /// The view: loaded, or framing the sphere `sphere` gives (centre, radius); with the
+    /// overrides applied, validated, and saved where asked.
+    pub fn resolve(
+        &self,
+        sphere: impl FnOnce() -> anyhow::Result<(Vec3, f32)>,
+    ) -> anyhow::Result<View> {
+        use anyhow::Context;
+        let mut view = match (&self.view, self.auto_view) {
+            (Some(v), _) => View::load(v)?,
+            (None, true) => {
+                let (c, r) = sphere()?;
+                View::framing(c, r, self.width, self.height, self.spp.unwrap_or(64))
+            }
+            (None, false) => {
+                return Err(crate::report::usage(
+                    "give a view file with --view, or --auto-view",
+                ))
+            }
+        };
+        if let Some(s) = self.spp {
+            view.spp = s;
+        }
+        if let Some(s) = self.seed {
+            view.seed = s;
+        }
+        view.validate().map_err(crate::report::usage)?;
+        if let Some(p) = &self.save_view {
+            std::fs::write(p, serde_json::to_string_pretty(&view)?)
+                .map_err(|e| crate::report::output(format!("cannot write {}: {e}", p.display())))
+                .context("--save-view")?;
+        }
+        Ok(view)
+    }
+}
+
+/// The two files a render writes for `-o OUTPUT`: the linear EXR and a tonemapped PNG beside
+/// it. OUTPUT names the EXR, or the PNG (the EXR then goes beside it with `.exr`, so that the
+/// picture is not overwritten by EXR data).
+#[derive(Clone, Debug, Serialize)]
+pub struct ImageFiles {
+    /// The EXR.
+    pub exr: PathBuf,
+    /// The PNG.
+    pub png: PathBuf,
+}
+
+impl ImageFiles {
+    /// The files for `-o output`.
+    pub fn for_output(output: &Path) -> ImageFiles {
+        let png = output
+            .extension()
+            .and_then(|e| e.to_str())
+            .is_some_and(|e| e.eq_ignore_ascii_case("png"));
+        let exr = if png {
+            output.with_extension("exr")
+        } else {
+            output.to_path_buf()
+        };
+        ImageFiles {
+            png: exr.with_extension("png"),
+            exr,
+        }
+    }
+
+    /// Writes `img` to both, the PNG at `exposure` stops.
+    pub fn write(
+        &self,
+        img: &crate::film::Image,
+        exposure: f32,
+    ) -> Result<(), crate::film::ImageError> {
+        img.write_exr(&self.exr)?;
+        img.write_png(&self.png, exposure)
+    }
+}
+
+impl std::fmt::Display for ImageFiles {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "output: {} and {}",
+            self.exr.display(),
+            self.png.display()
+        )
+    }
+}

@@ -53,6 +53,20 @@ pub struct ExportStats {
     pub geometry_bytes: usize,
 }
 
+impl ExportStats {
+    /// What was written, in one phrase ("3 meshes, 4 instances, …").
+    pub fn describe(&self) -> String {
+        format!(
+            "{} meshes, {} instances, {} materials, {} textures, {} of geometry",
+            self.meshes,
+            self.instances,
+            self.materials,
+            self.textures,
+            crate::report::mib(self.geometry_bytes as u64)
+        )
+    }
+}
+
 /// How a texture's values are encoded in its PNG.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 enum Role {

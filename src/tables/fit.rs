@@ -869,3 +869,103 @@ mod determinism {
         assert_eq!(one, two);
     }
 }
+
+/// What `aggtool tables check` reports: each table's fit error.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct CheckReport {
+    /// Per table.
+    pub tables: Vec<CheckResult>,
+}
+
+/// Settings of the table check (`aggtool tables check`).
+#[derive(Clone, Copy, Debug)]
+pub struct CheckSettings {
+    /// Random parameter points per table.
+    pub points: usize,
+    /// Monte Carlo samples per strategy per ground-truth direction.
+    pub samples: u32,
+}
+
+impl Default for CheckSettings {
+    fn default() -> Self {
+        CheckSettings {
+            points: 64,
+            samples: 512,
+        }
+    }
+}
+
+/// Checks the tables of `file` (the embedded ones when `None`) as [`check`] does.
+pub fn check_file(
+    file: Option<&std::path::Path>,
+    settings: CheckSettings,
+) -> anyhow::Result<CheckReport> {
+    use anyhow::Context;
+    let owned;
+    let t = match file {
+        Some(f) => {
+            let bytes = std::fs::read(f).with_context(|| format!("cannot read {}", f.display()))?;
+            owned = Tables::from_bytes(&bytes).with_context(|| f.display().to_string())?;
+            &owned
+        }
+        None => Tables::embedded(),
+    };
+    Ok(CheckReport {
+        tables: check(t, settings.points, settings.samples),
+    })
+}
+
+impl std::fmt::Display for CheckReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{:<6} {:>7} {:>9} {:>9}  metric",
+            "table", "points", "RMSE", "worst"
+        )?;
+        for c in &self.tables {
+            write!(
+                f,
+                "\n{:<6} {:>7} {:>9.4} {:>9.4}  {}",
+                c.table, c.points, c.rmse, c.worst, c.metric
+            )?;
+        }
+        Ok(())
+    }
+}
+
+/// What `aggtool tables build` reports: the file written.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct BuildReport {
+    /// The table file.
+    pub output: String,
+    /// Its size.
+    pub bytes: usize,
+    /// Seconds of the fit.
+    pub seconds: f64,
+}
+
+/// Fits every table ([`build`]) and writes the table file `output` atomically.
+pub fn build_file(
+    settings: BuildSettings,
+    output: &std::path::Path,
+    progress: crate::util::Progress,
+) -> anyhow::Result<BuildReport> {
+    let t0 = std::time::Instant::now();
+    let bytes = build(settings, progress).to_bytes();
+    crate::util::atomic::write_bytes_atomic(output, &bytes).map_err(crate::report::output)?;
+    Ok(BuildReport {
+        output: output.display().to_string(),
+        bytes: bytes.len(),
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
+
+impl std::fmt::Display for BuildReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "output: {} ({} bytes) in {:.1} s",
+            self.output, self.bytes, self.seconds
+        )
+    }
+}
