@@ -331,10 +331,11 @@ pub struct LodScene {
 /// The box a walk through level grid `g` is clipped to, for a source whose bounds are
 /// [`lo`, `hi`] ([`LodScene`]'s `clip`): those bounds snapped outwards to the grid's voxels,
 /// one voxel more on each side against rounding, padded by [`crate::spatial::VOXEL_PAD`] and
-/// kept inside the cube; the cube itself when the bounds are missing or not finite.
+/// kept inside the cube (a flat source, such as a plane, still gets a box a voxel or more
+/// thick); the cube itself when the bounds are missing (a point) or not finite.
 fn clip_box(g: &Grid, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
     let (cube_lo, cube_hi) = g.bounds();
-    if !(lo.is_finite() && hi.is_finite() && lo.cmplt(hi).all()) {
+    if !(lo.is_finite() && hi.is_finite() && lo.cmple(hi).all() && lo != hi) {
         return (cube_lo, cube_hi);
     }
     let s = g.voxel_size();
@@ -767,4 +768,49 @@ pub fn trace_batch_with(
             let r = trace(c, &mut rng);
             o.copy_from_slice(&[r.radiance.x, r.radiance.y, r.radiance.z, r.transmittance]);
         });
+}
+
+#[cfg(test)]
+mod clip_tests {
+    use super::clip_box;
+    use crate::spatial::Grid;
+    use glam::Vec3;
+
+    /// The clip box holds the source's bounds with a voxel to spare, stays in the cube, is a
+    /// voxel or more thick for a flat source, and is the cube where the bounds are missing.
+    #[test]
+    fn clip_boxes_hold_the_source() {
+        let g = Grid {
+            origin: Vec3::new(-1.0, 0.0, 2.0),
+            size: 4.0,
+            res: 16,
+        };
+        let (cube_lo, cube_hi) = g.bounds();
+        let s = g.voxel_size();
+        let (lo, hi) = (Vec3::new(-0.3, 0.6, 2.9), Vec3::new(1.1, 1.7, 3.3));
+        let (clo, chi) = clip_box(&g, lo, hi);
+        assert!(
+            clo.cmple(lo - s).all() && chi.cmpge(hi + s).all(),
+            "{clo} {chi}"
+        );
+        assert!(clo.cmpge(cube_lo).all() && chi.cmple(cube_hi).all());
+        assert!(
+            (chi - clo).cmplt(cube_hi - cube_lo).any(),
+            "no tighter than the cube"
+        );
+        // A plane: flat in y.
+        let (plo, phi) = clip_box(&g, Vec3::new(0.0, 1.0, 3.0), Vec3::new(1.0, 1.0, 4.0));
+        assert!(
+            phi.y - plo.y >= 2.0 * s && plo.y < 1.0 && phi.y > 1.0,
+            "{plo} {phi}"
+        );
+        // Missing (a point, as files without bounds read), not finite, or outside the cube.
+        for (a, b) in [
+            (Vec3::ZERO, Vec3::ZERO),
+            (Vec3::splat(f32::NAN), Vec3::ONE),
+            (Vec3::splat(50.0), Vec3::splat(60.0)),
+        ] {
+            assert_eq!(clip_box(&g, a, b), (cube_lo, cube_hi), "{a} {b}");
+        }
+    }
 }
