@@ -26,7 +26,6 @@
 
 pub mod cases;
 pub mod estimate;
-pub mod ltc;
 
 use std::f32::consts::FRAC_1_PI;
 
@@ -38,8 +37,8 @@ use crate::math::sg::COSINE_SHARPNESS;
 use crate::math::sggx::{Sggx, SggxDensity};
 use crate::math::sphere_maps::{equal_area_sphere_to_square, grid_cell};
 use crate::math::{finite_or_zero, finite_vec_or_zero, unit_or_zero};
+use crate::tables::ltc::LuneTable;
 use crate::tables::Tables;
-use ltc::LuneTable;
 
 /// One lobe of the surface normal distribution.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -20,6 +20,7 @@
 //! Lookups interpolate (multi-)linearly between grid nodes and clamp outside the domain.
 
 pub mod fit;
+pub mod ltc;
 
 use std::sync::OnceLock;
 
@@ -137,7 +138,7 @@ pub struct Tables {
     pub m4: Table,
     pub m5: Table,
     /// S of Eq. 21 tabulated from M4 (not stored: derived on load).
-    pub lune: crate::absdf::ltc::LuneTable,
+    pub lune: ltc::LuneTable,
 }
 
 /// Errors reading a table file.
@@ -265,7 +266,7 @@ impl Tables {
 
     /// The five tables, with what is derived from them.
     pub fn new(m1: Table, m2: Table, m3: Table, m4: Table, m5: Table) -> Tables {
-        let lune = crate::absdf::ltc::LuneTable::new(&m4);
+        let lune = ltc::LuneTable::new(&m4);
         Tables {
             m1,
             m2,
