@@ -12,7 +12,8 @@
 
 mod common;
 
-use aggtool::runtime::{Cone, Lights, LodScene, TraceSettings};
+use aggtool::lights::Lights;
+use aggtool::runtime::{Cone, LodScene, TraceSettings};
 use glam::Vec3;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {

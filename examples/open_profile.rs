@@ -18,7 +18,8 @@ use std::path::Path;
 use std::time::Instant;
 
 use aggtool::film::Camera;
-use aggtool::runtime::{Cone, Lights, LodScene, TraceSettings};
+use aggtool::lights::Lights;
+use aggtool::runtime::{Cone, LodScene, TraceSettings};
 use glam::{Vec2, Vec3};
 
 /// VmRSS and VmHWM in MiB, or zeros where /proc is absent.

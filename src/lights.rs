@@ -1,6 +1,6 @@
 //! Lights: an environment (constant or equirectangular map, importance sampled) and an
 //! optional sun (a directional light given by its irradiance). The reference renderer and the
-//! LoD runtime (as [`crate::runtime::Lights`]) light with the same implementation; it depends
+//! LoD runtime light with this one implementation; it depends
 //! on [`crate::math`] alone (and [`crate::film::Image`] for the convenience constructor).
 //!
 //! The map is evaluated exactly as Mitsuba 3's `envmap` does (probed with Mitsuba 3.9: texel

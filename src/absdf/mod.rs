@@ -209,8 +209,7 @@ fn lune_alpha(macro_alpha: Vec2, micro_alpha: f32) -> f32 {
     (micro_alpha.min(macro_alpha.x) * micro_alpha.min(macro_alpha.y)).sqrt()
 }
 
-use crate::bsdf::Bsdf;
-pub use crate::bsdf::BsdfSample;
+use crate::bsdf::{Bsdf, BsdfSample};
 
 /// The factorized ABSDF of one voxel, with every ω-independent table lookup done once.
 #[derive(Clone, Debug)]

@@ -180,7 +180,7 @@ pub fn demo(output: &Path, settings: &DemoSettings, progress: Progress) -> Resul
     .zip(&captions)
     .map(|(img, c)| with_caption(img, w, h, &[&c[0], &c[1]], 1))
     .collect();
-    crate::film::image::side_by_side(
+    crate::film::side_by_side(
         &picture,
         &panels.iter().map(|p| p.0.as_slice()).collect::<Vec<_>>(),
         w,

@@ -30,7 +30,7 @@ use anyhow::{Context, Result};
 use serde::Serialize;
 
 use crate::bake::{bake_to_file, BakeSettings};
-use crate::film::image::write_rgb8_png;
+use crate::film::write_rgb8_png;
 use crate::film::Image;
 use crate::format::Aggregate;
 use crate::render::compare::{compare, difference_image};
