@@ -7,11 +7,12 @@ use std::process::ExitCode;
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 
+use aggtool::film::Image;
 use aggtool::gen::{self, GenSettings};
 use aggtool::import::{self, ImportOptions};
 use aggtool::render::compare::{compare, difference_image};
 use aggtool::render::reference::{self, ReferenceSettings};
-use aggtool::render::{Image, View};
+use aggtool::render::View;
 use aggtool::scene::Scene;
 use aggtool::trace::Accel;
 use aggtool::util::TerminalProgress;
@@ -471,7 +472,8 @@ fn tables_cmd(action: TablesAction) -> Result<()> {
 }
 
 fn absdf_plot(case: &str, output: &Path, samples: u32, slice: u32, exposure: f32) -> Result<()> {
-    use aggtool::absdf::cases::{compare_case, plot_slices, CASES};
+    use aggtool::absdf::cases::{compare_case, CASES};
+    use aggtool::eval::plot::plot_slices;
     let t = aggtool::tables::Tables::embedded();
     let names: Vec<&str> = if case == "all" {
         CASES.to_vec()
@@ -486,7 +488,7 @@ fn absdf_plot(case: &str, output: &Path, samples: u32, slice: u32, exposure: f32
         let (diff, scale) = difference_image(&ours, &gt, None);
         // Side by side: ground truth | factored | difference.
         let path = output.join(format!("absdf-{name}.png"));
-        aggtool::film::image::side_by_side(
+        aggtool::film::side_by_side(
             &path,
             &[
                 &gt.to_srgb8(exposure),
@@ -1011,7 +1013,7 @@ fn run_assembly_lod(
             .unwrap_or(1);
         let (rgb, h, legend) =
             aggtool::assembly::lod::level_map_picture(&map, camera.width, camera.height, levels);
-        aggtool::film::image::write_rgb8_png(path, camera.width, h, &rgb)?;
+        aggtool::film::write_rgb8_png(path, camera.width, h, &rgb)?;
         println!(
             "level map: {} (what the cone through each pixel's centre meets first: mesh, or the \
              aggregate's level L0 = finest; share of pixels): {}",
