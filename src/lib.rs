@@ -17,7 +17,7 @@
 //! - [`bsdf`]: the surface material model of the paper (Eq. 11);
 //! - [`absdf`]: the factorized aggregated BSDF of a voxel (Eq. 7–23) with sampling;
 //! - [`trace`]: two-level BVH ray tracing (obvhs) with alpha cut-outs;
-//! - [`format`]: the `.agg` container and its FlatBuffers schema: writer, verifying zero-copy reader;
+//! - [`format`](mod@format): the `.agg` container and its FlatBuffers schema: writer, verifying zero-copy reader;
 //! - [`bake`]: the sparse voxel hierarchy, per-voxel statistics and visibility, streamed to a file;
 //! - [`inspect`]: what a file holds (`aggtool inspect`), its settings as the bake's own;
 //! - [`film`]: the camera, images, the stratified sampler and the one image loop both renderers
@@ -29,6 +29,8 @@
 //! - [`eval`]: the quality and speed studies (our LoD against the reference and the
 //!   alternatives: cube primitives, an exponential volume, a meshopt-simplified mesh);
 //! - [`assembly`]: manifests of instanced assets, rendered with the runtime and the reference.
+
+#![deny(missing_docs)]
 
 // One module per group: rustfmt sorts the modules of a group, and this order is the pipeline's.
 
@@ -54,7 +56,6 @@ pub mod absdf;
 
 pub mod trace;
 
-#[deny(missing_docs)]
 pub mod format;
 
 pub mod bake;
@@ -65,12 +66,10 @@ pub mod film;
 
 pub mod lights;
 
-#[deny(missing_docs)]
 pub mod runtime;
 
 pub mod render;
 
 pub mod eval;
 
-#[deny(missing_docs)]
 pub mod assembly;

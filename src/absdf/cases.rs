@@ -117,7 +117,9 @@ pub fn sphere_grid(res: u32) -> Vec<Vec3> {
 /// Comparison of the factored ABSDF with the ground truth on a case.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct CaseReport {
+    /// The case's name (one of [`CASES`]).
     pub case: String,
+    /// SGGX lobes the estimate fitted (Eq. 8).
     pub lobes: usize,
     /// RMSE over (ω_i, ω_o) pairs of an equal-area grid, luminance.
     pub rmse: f32,

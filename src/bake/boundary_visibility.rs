@@ -21,6 +21,7 @@ use crate::trace::{Accel, Ray};
 /// is an any-hit query. (A 3D DDA over the sparse grid spent most of the bake stepping
 /// through empty voxels on the rays that miss.)
 pub struct PrimitiveLevel {
+    /// The grid of the level.
     pub grid: Grid,
     /// In the BVH's primitive order.
     prims: Vec<TruncatedEllipsoid>,
@@ -66,10 +67,12 @@ impl PrimitiveLevel {
         }
     }
 
+    /// Number of primitives.
     pub fn len(&self) -> usize {
         self.prims.len()
     }
 
+    /// Whether the level has no primitive.
     pub fn is_empty(&self) -> bool {
         self.prims.is_empty()
     }

@@ -45,7 +45,7 @@
 //! refuse, Eq. 3 pairs only directions on one side), a piece of a wall η ≈ 1 (V̂ is already
 //! its outer side's visibility: a partly shaded wall keeps its shadow), and a blurred horizon
 //! is lifted back towards the 1 of the exposed side. The
-//! scalar it replaces, E[v]²/E[v²] over (sample, side) pairs, gave every wall 1/2 and so twice
+//! scalar it replaces, E\[v\]²/E\[v²\] over (sample, side) pairs, gave every wall 1/2 and so twice
 //! the light in its partial shadows: grass-trees-tall 64³ 0.0210 → 0.0169 RMSE with this fit,
 //! building-small-a 0.0244 either way (`examples/shading_noise`, see the README).
 
@@ -116,8 +116,8 @@ pub const AIV_DENOISE_CANDIDATES: [f32; 4] = [0.0, 0.25, 0.5, 1.0];
 /// estimate used ([`AivEstimate`]). A cell's value is the
 /// average of the smallest enclosing block of cells (itself first) that at least `min_rays`
 /// rays reached; `min_rays` 0 chooses per voxel, by cross-validation, among such blocks and
-/// spherical caps ([`cross_validated_bandwidth`], [`AIV_BANDWIDTHS`]), and `denoise` the shrinkage's strength
-/// likewise ([`cross_validated_denoise`]). With 1, cells no ray reached still take
+/// spherical caps (`cross_validated_bandwidth`, [`AIV_BANDWIDTHS`]), and `denoise` the shrinkage's strength
+/// likewise (`cross_validated_denoise`). With 1, cells no ray reached still take
 /// the average of the smallest enclosing block that some ray reached: a finest-level voxel
 /// traces 16 samples × 16 rays = 256 rays over 32² cells, and filling the other 3/4 with the
 /// voxel's mean over the whole sphere pulled every outward-facing cell of a wall from 1 towards
@@ -319,7 +319,9 @@ fn cell_sums(rays: &[AivRay], res: u32, fold: Option<u8>) -> CellSums {
 /// [`CentredWindows`]: crate::math::sphere_maps::CentredWindows
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Bandwidth {
+    /// Fewest rays a cell's estimate rests on.
     pub min_rays: u32,
+    /// Gather from a neighbourhood centred on the cell rather than an enclosing block.
     pub cap: bool,
 }
 

@@ -23,8 +23,9 @@ use crate::tables::Tables;
 /// One point of a plot.
 #[derive(Clone, Debug)]
 pub struct Point {
-    /// The cost (x) and the error (y).
+    /// The cost (x).
     pub x: f64,
+    /// The error (y).
     pub y: f64,
     /// Written beside the point.
     pub label: String,

@@ -129,6 +129,7 @@ pub fn shrink(details: &mut [[f32; 3]], sigma: f32, n: usize) -> usize {
 /// A node of the sparse quadtree (depth-first preorder).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Node {
+    /// The three detail coefficients (horizontal, vertical, diagonal) of the node's 2×2 block.
     pub details: [f32; 3],
     /// Bit q set: child quadrant q (0 top-left, 1 top-right, 2 bottom-left, 3 bottom-right)
     /// is present.
@@ -140,7 +141,9 @@ pub struct Node {
 /// The implicit sparse quadtree of a truncated map.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SparseHaar {
+    /// Side N of the map in cells (a power of two).
     pub n: u32,
+    /// The scaling coefficient c (the map's mean is c / N).
     pub scaling: f32,
     /// Preorder; empty when every detail is zero (a constant map).
     pub nodes: Vec<Node>,
@@ -366,7 +369,9 @@ pub const Q_MAX_SUBTREE: u32 = 4095;
 /// bits 12–15. Per pixel the error is at most 3 · depth / (2 · 254): 0.035 on a 64² map.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct QNode {
+    /// The three details in fixed point.
     pub q: [i8; 3],
+    /// Subtree count (bits 0–11) and child mask (bits 12–15).
     pub links: u16,
 }
 

@@ -592,7 +592,7 @@ pub struct PixelSamples<'a> {
     pub sample: u32,
 }
 
-/// [`trace_batch_with`] with each cone's first [`STRATIFIED_DIMENSIONS`] numbers stratified
+/// [`trace_batch_with`] with each cone's first [`crate::film::STRATIFIED_DIMENSIONS`] numbers stratified
 /// over its pixel's samples ([`Stratified`], seeded by [`crate::film::pixel_seed`] as the image
 /// loop's); the numbers after them come from stream `pixels[i]` of a seed of `seed` and the
 /// sample, so that passes are independent. Cones beyond `at.pixels` (or `rgba`) are left
