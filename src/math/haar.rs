@@ -358,7 +358,7 @@ pub fn validate_tree(n: u32, len: usize, node: impl Fn(usize) -> Node) -> Result
 /// normalisation h / s is a half-difference of quadrant means, within ±1/2 for a map in
 /// [0, 1], so ±127 spans exactly the range a visibility needs. 16 bits were measured too (the
 /// maple at 64³: 4e-5 at most); 8 bits give 0.012 at most and 0.002 RMS, far below the
-/// maps' Monte Carlo noise, for 6 bytes a node instead of 8 (examples/requantize.rs).
+/// maps' Monte Carlo noise, for 6 bytes a node instead of 8 (tools/src/bin/requantize.rs).
 pub const Q_DETAIL: f32 = 254.0;
 
 /// Most nodes a quantized subtree count (12 bits) holds: a full tree of a 64² map has 1365.

@@ -121,7 +121,7 @@ pub enum Shading {
         /// (and weigh it by 1/W): still unbiased, and a cone grazing the aggregate's fringe is
         /// shaded as often as a ray of the reference renderer hits there. Off by default: it
         /// saves 10–19% of a 64² render's CPU time but raises the noise variance 2.4–5× on the
-        /// quality study's scenes (`examples/shading_noise.rs`), a loss at equal time too.
+        /// quality study's scenes (`tools/src/bin/shading_noise.rs`), a loss at equal time too.
         roulette: bool,
     },
 }

@@ -3,14 +3,14 @@
 //! Python module and runs this for the Rust figure).
 //!
 //! ```text
-//! cargo run --release --example cones_bench -- FILE.agg CONES.f32 [--repeat 5]
+//! cargo run --release -p aggtool-tools --bin cones_bench -- FILE.agg CONES.f32 [--repeat 5]
 //! ```
 //!
 //! CONES.f32: little-endian f32, seven per cone (origin, direction, aperture). Cone i draws
 //! stream i of seed 1, as `agg_trace_cones` and `Scene.trace` do. Prints the best of the
 //! repeats.
 
-mod common;
+use aggtool_tools as common;
 
 use aggtool::lights::Lights;
 use aggtool::runtime::{Cone, LodScene, TraceSettings};
