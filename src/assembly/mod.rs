@@ -8,7 +8,7 @@ pub mod hybrid;
 pub mod lod;
 pub mod manifest;
 pub mod mesh;
-pub mod opened;
+mod opened;
 
 pub use hybrid::Representation;
 pub use lod::{level_map, render, Assembly, AssemblyError, Drawn, FirstHit};

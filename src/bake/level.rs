@@ -14,7 +14,7 @@ use super::primitive::fit_ellipsoid_bounding;
 use super::sampling::{pieces_by_voxel, sample_voxel};
 use super::visibility::{aiv_map, aiv_rays_per_cell, exposed_weight, map_noise_sigma};
 use crate::absdf::estimate::{estimate, usable, EstimateSettings, SurfaceSample};
-use crate::format::level::{FaceData, LevelData, VoxelData};
+use crate::format::{FaceData, LevelData, VoxelData};
 use crate::math::haar::{forward, shrink, truncate, SparseHaar};
 use crate::scene::Scene;
 use crate::spatial::{demorton3, morton3, Ellipsoid, Face, Grid, UVec3Key};

@@ -27,11 +27,11 @@
 mod aggregate_generated;
 pub mod effects;
 pub mod encode;
-pub mod level;
+mod level;
 pub mod part;
 pub mod quantize;
 pub mod read;
-pub mod settings;
+pub(crate) mod settings;
 
 pub use aggregate_generated::aggtool::format as fb;
 pub use level::{FaceData, LevelData, VoxelData};

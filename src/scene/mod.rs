@@ -6,8 +6,8 @@
 
 pub mod export;
 pub mod flatten;
-pub mod material;
-pub mod texture;
+mod material;
+mod texture;
 
 use std::path::PathBuf;
 
