@@ -79,7 +79,7 @@ pub struct LevelReport {
     pub abv_bandwidth: [u64; ABV_BANDWIDTHS.len()],
     /// Bytes of the level's blocks in the file.
     pub bytes: u64,
-    /// Records and coefficients written, by kind.
+    /// What the level stores (voxels, faces, effects), counted while encoding.
     pub counts: Counts,
 }
 
@@ -119,7 +119,7 @@ pub struct BakeReport {
     pub bytes: u64,
     /// The settings baked with (recorded in the file).
     pub settings: BakeSettings,
-    /// One report per level, coarsest first.
+    /// One report per level, finest first.
     pub levels: Vec<LevelReport>,
     /// Wall-clock seconds per stage, over all levels.
     pub seconds: StageSeconds,
@@ -127,7 +127,7 @@ pub struct BakeReport {
     pub total_seconds: f64,
     /// Visibility rays traced (AIV and ABV).
     pub rays: u64,
-    /// Visibility rays per wall-clock second.
+    /// Visibility rays per wall-clock second of the voxel and face stages.
     pub rays_per_second: f64,
     /// Bytes per component of the file (keys, records, lobes, moments, AIV and ABV trees).
     pub components: ComponentBytes,
