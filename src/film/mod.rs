@@ -1,9 +1,9 @@
 //! Images and the one image loop every renderer uses: the pinhole [`Camera`], linear RGB
 //! [`Image`]s with EXR and PNG I/O, and [`render_image`], which the reference path tracer and
-//! the LoD runtime both render through. The same stratified pixel sampling, the same seed
-//! scheme (one random stream per pixel, so images do not depend on the thread count), the same
-//! progress reports and the same [`ImageStats`], so that equal-spp figures compare like with
-//! like.
+//! the LoD runtime both render through, with the LoD's [`Stratified`] sampler over a pixel's
+//! samples. The same stratified pixel sampling, the same seed scheme (one random stream per
+//! pixel, so images do not depend on the thread count), the same progress reports and the same
+//! [`ImageStats`], so that equal-spp figures compare like with like.
 
 mod camera;
 mod image;
