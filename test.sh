@@ -24,6 +24,9 @@ export AGGTOOL_BPY_VENV="$BPY_VENV"
 echo "== cargo test"
 cargo test
 
+echo "== tools/ (the measurement probes build; docs/src/performance.md runs them)"
+cargo build -p aggtool-tools
+
 echo "== C ABI: the committed header matches cbindgen's (integrations/c)"
 cargo test -p aggtool-capi
 

@@ -1,9 +1,9 @@
 #!/usr/bin/env python3
-"""The bindings' overhead: the same cones traced through the Rust API (examples/cones_bench.rs),
+"""The bindings' overhead: the same cones traced through the Rust API (tools/src/bin/cones_bench.rs),
 the C ABI (ctypes on target/release/libaggtool_capi.so) and the Python module (a wheel built by
 maturin --release), best of --repeat runs each, as cones per second and as ratios.
 
-    cargo build --release --example cones_bench -p aggtool -p aggtool-capi
+    cargo build --release -p aggtool-tools --bin cones_bench && cargo build --release -p aggtool-capi
     (cd integrations/python && maturin build --release -o /tmp/aggwheel)
     pip install --target /tmp/aggsite /tmp/aggwheel/aggtool-*.whl
     PYTHONPATH=/tmp/aggsite python3 benches/bindings.py FILE.agg [--cones 262144] [--repeat 5]
@@ -76,7 +76,7 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         f = Path(tmp) / "cones.f32"
         cones.astype("<f4").tofile(f)
-        exe = ROOT / "target" / "release" / "examples" / "cones_bench"
+        exe = ROOT / "target" / "release" / "cones_bench"
         line = subprocess.run([str(exe), a.agg, str(f), "--repeat", str(a.repeat)],
                               capture_output=True, text=True, check=True).stdout.strip()
     t_rust = float(line.split(" in ")[1].split(" s")[0])

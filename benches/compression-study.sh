@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The compression study (issue 16): for every asset under ../shared/assets (or those given after
 # `--`), one bake at RES in the uncompressed layout (`--lossless --compression-level 0`: format
-# 1.3's floats), rewritten by examples/requantize into format 1.4's quantized layout (stored
+# 1.3's floats), rewritten by tools/src/bin/requantize.rs into format 1.4's quantized layout (stored
 # uncompressed) and into 1.5's (quantized, blocks compressed at the default level); prints a
 # Markdown table of bytes (file and finest level), the ratios, the seconds the rewriting took
 # (the compression's share of a bake), the asset's geometry bytes (`aggtool info --json`:
@@ -9,15 +9,15 @@
 # the compressed aggregate against a 1024-spp reference at RES² pixels (256 spp each, same seed:
 # the difference is what compression changes).
 #
-#   cargo build --release --bin aggtool --example requantize && benches/compression-study.sh RES [-- ASSET ...]
+#   cargo build --release -p aggtool -p aggtool-tools --bin aggtool --bin requantize && benches/compression-study.sh RES [-- ASSET ...]
 #
 # Bakes go to $KEEP (kept) or a temporary folder (removed).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bin=target/release/aggtool
-rq=target/release/examples/requantize
+rq=target/release/requantize
 assets=../shared/assets
-[ -x "$bin" ] && [ -x "$rq" ] || { echo "build first: cargo build --release --bin aggtool --example requantize" >&2; exit 1; }
+[ -x "$bin" ] && [ -x "$rq" ] || { echo "build first: cargo build --release -p aggtool -p aggtool-tools --bin aggtool --bin requantize" >&2; exit 1; }
 [ -d "$assets" ] || { echo "skipped: $assets is absent" >&2; exit 0; }
 res=${1:-64}; shift || true
 picked=()

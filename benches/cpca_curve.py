@@ -1,11 +1,11 @@
 #!/usr/bin/env python3
 """The clustered-PCA curve (issue 16, paper Table 4's "1 CPCA Rep." row): for each aggregate,
-examples/cpca_probe.rs over clusters × representatives, the bytes per map of CPCA (8-bit
+tools/src/bin/cpca_probe.rs over clusters × representatives, the bytes per map of CPCA (8-bit
 weights, fixed-point representative trees) against its RMS error per map cell, beside the
 bytes of the stored trees (float, and format 1.4's 6-byte nodes: 6/20 of the float bytes).
 Writes table.md and, where matplotlib is installed, cpca_curve.png.
 
-    cargo build --release --example cpca_probe
+    cargo build --release -p aggtool-tools --bin cpca_probe
     python3 benches/cpca_curve.py A-13.agg [B-13.agg ...] -o DIR      # runs the probe
     python3 benches/cpca_curve.py --from probe-output.txt -o DIR      # parses a saved run
 
@@ -44,7 +44,7 @@ def main():
     if a.source:
         text = Path(a.source).read_text()
     else:
-        probe = Path(__file__).resolve().parents[1] / "target/release/examples/cpca_probe"
+        probe = Path(__file__).resolve().parents[1] / "target/release/cpca_probe"
         out = []
         for f in a.aggs:
             for c, ra, rb in GRID:

@@ -10,8 +10,9 @@
 
 use std::path::PathBuf;
 
+use aggtool::film::Stratified;
 use aggtool::math::rng::Pcg32;
-use aggtool::runtime::{Cone, LodScene, Stratified, TraceSettings};
+use aggtool::runtime::{Cone, LodScene, TraceSettings};
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use glam::Vec2;
 

@@ -15,7 +15,8 @@ mod common;
 use std::path::PathBuf;
 
 use aggtool::bsdf::Bsdf;
-use aggtool::runtime::{Cone, LodScene, Sampler, TraceSettings};
+use aggtool::math::sampling::Sampler;
+use aggtool::runtime::{Cone, LodScene, TraceSettings};
 use glam::{Vec2, Vec3};
 
 /// The host's own random numbers: a 64-bit xorshift*, one stream per pixel.

@@ -66,6 +66,7 @@ const MIN_COS: f32 = 1e-7;
 /// Eq. 11 at one surface point, in the local shading frame (normal = +z).
 #[derive(Clone, Copy, Debug)]
 pub struct BaseBsdf {
+    /// The material parameters (base colour β^c, metallic β^m, α, β^s, F90).
     pub params: SurfaceParams,
     alpha: f32,
 }

@@ -30,17 +30,19 @@ pub struct InspectedSettings {
 pub struct LevelSummary {
     /// Resolution (voxels per axis).
     pub res: u32,
-    /// Non-empty voxels and boundary faces stored.
+    /// Non-empty voxels stored.
     pub voxels: u64,
+    /// Boundary faces stored (with an ABV map).
     pub faces: u64,
-    /// Blocks of voxels and of faces.
+    /// Blocks of voxels.
     pub voxel_blocks: usize,
+    /// Blocks of faces.
     pub face_blocks: usize,
     /// Bytes stored in the file (compressed blocks as stored).
     pub bytes: u64,
-    /// Bytes of the blocks once inflated (format 1.5), and `inflated_bytes / bytes` (1 when
-    /// nothing is compressed).
+    /// Bytes of the blocks once inflated (format 1.5).
     pub inflated_bytes: u64,
+    /// `inflated_bytes / bytes` (1 when nothing is compressed).
     pub compression_ratio: f64,
     /// Bytes per component (payloads, without FlatBuffers headers and padding).
     pub components: ComponentBytes,
@@ -65,8 +67,9 @@ pub struct Summary {
     pub source: String,
     /// The source asset's bounds (min, max).
     pub bounds: [[f32; 3]; 2],
-    /// Version and CRC-32 of the ABSDF tables the file must be evaluated with.
+    /// Version of the ABSDF tables the file must be evaluated with.
     pub tables_version: u32,
+    /// CRC-32 of the tables' bytes.
     pub tables_crc32: u32,
     /// The bake's settings.
     pub settings: InspectedSettings,

@@ -1,6 +1,6 @@
 //! Lights: an environment (constant or equirectangular map, importance sampled) and an
 //! optional sun (a directional light given by its irradiance). The reference renderer and the
-//! LoD runtime (as [`crate::runtime::Lights`]) light with the same implementation; it depends
+//! LoD runtime light with this one implementation; it depends
 //! on [`crate::math`] alone (and [`crate::film::Image`] for the convenience constructor).
 //!
 //! The map is evaluated exactly as Mitsuba 3's `envmap` does (probed with Mitsuba 3.9: texel
@@ -34,7 +34,9 @@ pub struct LightSample {
 /// Environment lighting.
 #[derive(Clone, Debug)]
 pub enum Environment {
+    /// Uniform radiance from every direction.
     Constant(Vec3),
+    /// An equirectangular map, importance sampled.
     Map(EnvMap),
 }
 
@@ -169,12 +171,15 @@ impl EnvMap {
             + (t(x0, y0 + 1) * (1.0 - fx) + t(x1, y0 + 1) * fx) * fy
     }
 
+    /// Radiance arriving from direction `dir` (towards the light), bilinear as Mitsuba's `envmap`.
     #[inline]
     pub fn eval(&self, dir: Vec3) -> Vec3 {
         let uv = dir_to_equirect(self.world_to_map * dir);
         self.lookup(Vec2::new(self.u_to_grid(uv.x), uv.y))
     }
 
+    /// A direction drawn from the map's piecewise-constant density (cells weighted by luminance
+    /// times sin θ), with its radiance and solid-angle pdf; `None` where the density is zero.
     pub fn sample(&self, u: Vec2) -> Option<LightSample> {
         let (g, _) = self.dist.sample(u);
         let uv = Vec2::new(self.grid_to_u(g.x), g.y);
@@ -192,6 +197,7 @@ impl EnvMap {
         })
     }
 
+    /// Solid-angle density of [`EnvMap::sample`] towards `dir`.
     pub fn pdf(&self, dir: Vec3) -> f32 {
         let d = self.world_to_map * dir;
         let uv = dir_to_equirect(d);
@@ -204,6 +210,7 @@ impl EnvMap {
 }
 
 impl Environment {
+    /// Radiance arriving from direction `dir`.
     #[inline]
     pub fn eval(&self, dir: Vec3) -> Vec3 {
         match self {
@@ -212,6 +219,8 @@ impl Environment {
         }
     }
 
+    /// A direction to the environment: uniform for a constant one, by the map's density
+    /// otherwise.
     pub fn sample(&self, u: Vec2) -> Option<LightSample> {
         match self {
             Environment::Constant(c) => Some(LightSample {
@@ -223,6 +232,7 @@ impl Environment {
         }
     }
 
+    /// Solid-angle density of [`Environment::sample`] towards `dir`.
     pub fn pdf(&self, dir: Vec3) -> f32 {
         match self {
             Environment::Constant(_) => uniform_sphere_pdf(),
@@ -251,7 +261,9 @@ pub struct Sun {
 /// All lights of a view.
 #[derive(Clone, Debug)]
 pub struct Lights {
+    /// The environment around the scene.
     pub environment: Environment,
+    /// An optional sun.
     pub sun: Option<Sun>,
 }
 

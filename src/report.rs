@@ -1,8 +1,10 @@
 //! What commands report and how they fail, the same for every front end: the `aggtool`
 //! command line prints a report's [`Display`](std::fmt::Display) (or, under `--json`, its
 //! [`serde::Serialize`] form as one JSON object), and a host such as the Python module can print
-//! the same. A failure is classified by [`classify`] into an [`ErrorKind`], whose
-//! [`ErrorKind::exit_code`] is the command line's exit status.
+//! the same. A failure has an [`ErrorKind`] (a [`Failure`] carries its own; the command line
+//! finds the others' from the error types of the stages that failed), whose
+//! [`ErrorKind::exit_code`] is the command line's exit status. This module sits low in the
+//! pipeline, so that every stage can say how it failed.
 //!
 //! | status | kind | meaning |
 //! | --- | --- | --- |
@@ -101,49 +103,6 @@ pub fn output(message: impl Into<String>) -> anyhow::Error {
     .into()
 }
 
-/// The kind of a failure: the first cause in its chain whose kind is known (a [`Failure`], or
-/// a write error of the image, bake, merge or export stages, or an interrupted I/O call);
-/// anything else is an input error.
-pub fn classify(e: &anyhow::Error) -> ErrorKind {
-    for cause in e.chain() {
-        if let Some(k) = kind_of(cause) {
-            return k;
-        }
-    }
-    ErrorKind::Input
-}
-
-fn kind_of(cause: &(dyn std::error::Error + 'static)) -> Option<ErrorKind> {
-    use crate::assembly::bake::AssembleError;
-    use crate::bake::pipeline::BakeError;
-    use crate::film::image::ImageError;
-    use crate::format::part::MergeError;
-    use crate::scene::export::ExportError;
-    if let Some(f) = cause.downcast_ref::<Failure>() {
-        return Some(f.kind);
-    }
-    if let Some(io) = cause.downcast_ref::<std::io::Error>() {
-        if io.kind() == std::io::ErrorKind::Interrupted {
-            return Some(ErrorKind::Interrupted);
-        }
-    }
-    match () {
-        _ if matches!(cause.downcast_ref(), Some(ImageError::Write { .. })) => {
-            Some(ErrorKind::Output)
-        }
-        _ if matches!(cause.downcast_ref(), Some(BakeError::Io { .. })) => Some(ErrorKind::Output),
-        _ if matches!(cause.downcast_ref(), Some(BakeError::Settings(_))) => Some(ErrorKind::Usage),
-        _ if matches!(cause.downcast_ref(), Some(AssembleError::Settings(_))) => {
-            Some(ErrorKind::Usage)
-        }
-        _ if matches!(cause.downcast_ref(), Some(MergeError::Io { .. })) => Some(ErrorKind::Output),
-        _ if matches!(cause.downcast_ref(), Some(ExportError::Write { .. })) => {
-            Some(ErrorKind::Output)
-        }
-        _ => None,
-    }
-}
-
 /// A failure as the command line prints it under `--json`: `{"error", "kind", "causes"}`.
 #[derive(Clone, Debug, Serialize)]
 pub struct ErrorReport {
@@ -158,9 +117,9 @@ pub struct ErrorReport {
 }
 
 impl ErrorReport {
-    /// The report of `e`, classified by [`classify`].
-    pub fn new(e: &anyhow::Error) -> ErrorReport {
-        let kind = classify(e);
+    /// The report of `e`, whose kind the caller found (the command line classifies by the
+    /// error types of the stages that failed: [`crate::assembly::classify`]).
+    pub fn new(e: &anyhow::Error, kind: ErrorKind) -> ErrorReport {
         ErrorReport {
             error: e.to_string(),
             kind,

@@ -11,7 +11,7 @@
 //!   these three exactly as a 1.3 reader does (`aggtool render` on a 32² view: RMSE 0).
 //!
 //! - `foliage-1.4.agg`: the same voxels and faces in format 1.4's quantized layout, written
-//!   from `foliage-1.3.agg` by `cargo run --example requantize -- tests/data/foliage-1.3.agg
+//!   from `foliage-1.3.agg` by `cargo run -p aggtool-tools --bin requantize -- tests/data/foliage-1.3.agg
 //!   tests/data/foliage-1.4.agg` (the bytes a quantized bake of those settings writes). Both
 //!   files also seed the fuzzer (fuzz/fuzz_targets/read_agg.rs).
 //!
@@ -216,7 +216,7 @@ fn format_1_4_quantized_file_renders_as_the_float_one() {
     }
 }
 
-/// The committed 1.5 file (`foliage-1.5.agg`: `cargo run --example requantize --
+/// The committed 1.5 file (`foliage-1.5.agg`: `cargo run -p aggtool-tools --bin requantize --
 /// tests/data/foliage-1.3.agg tests/data/foliage-1.5.agg`, the quantized layout with its blocks
 /// compressed at the default level) opens, verifies, holds exactly what the 1.4 file holds, and
 /// renders exactly as it does: compression is lossless.

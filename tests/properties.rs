@@ -4,11 +4,11 @@
 //! fail these tests).
 
 use aggtool::bsdf::{BaseBsdf, Bsdf};
+use aggtool::film::Image;
 use aggtool::lights::EnvMap;
 use aggtool::math::distribution::Distribution1D;
 use aggtool::math::microfacet::{ggx_g2, ggx_sample_vndf};
 use aggtool::math::numerics::non_finite_count;
-use aggtool::render::Image;
 use aggtool::scene::SurfaceParams;
 use glam::{Vec2, Vec3};
 use proptest::prelude::*;

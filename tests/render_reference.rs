@@ -4,11 +4,11 @@ mod common;
 
 use std::f32::consts::PI;
 
+use aggtool::film::{Camera, Image};
 use aggtool::gen::glb::{MaterialData, NodeData, SceneData};
 use aggtool::gen::shapes;
 use aggtool::lights::{Environment, Lights, Sun};
 use aggtool::render::reference::{render, ReferenceSettings};
-use aggtool::render::{Camera, Image};
 use aggtool::scene::Scene;
 use aggtool::trace::Accel;
 use aggtool::util::no_progress;

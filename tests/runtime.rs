@@ -7,6 +7,7 @@
 mod common;
 
 use aggtool::bake::{bake_to_file, BakeSettings};
+use aggtool::film::Stratified;
 use aggtool::format::Aggregate;
 use aggtool::gen::glb::{MaterialData, SceneData};
 use aggtool::gen::{generate, GenSettings};
@@ -14,9 +15,7 @@ use aggtool::lights::{Environment, Lights};
 use aggtool::math::numerics::{counting, non_finite_count};
 use aggtool::math::rng::Pcg32;
 use aggtool::render::View;
-use aggtool::runtime::{
-    Cone, LodScene, PixelSamples, PrimitiveKind, Shading, Stratified, TraceSettings,
-};
+use aggtool::runtime::{Cone, LodScene, PixelSamples, PrimitiveKind, Shading, TraceSettings};
 use aggtool::scene::Scene;
 use aggtool::util::no_progress;
 use glam::Vec3;
@@ -63,7 +62,7 @@ fn sky(l: f32) -> Lights {
 
 /// A gradient sky, so that "returns the environment" is checked per direction.
 fn gradient() -> Lights {
-    let img = aggtool::render::Image {
+    let img = aggtool::film::Image {
         width: 8,
         height: 4,
         pixels: (0..32)

@@ -1,8 +1,8 @@
 //! The validation voxels of the ABSDF (issue: flat, curved, foliage, anisotropic,
 //! orientation-varying colour, mixed roughness, metal–dielectric mixture): synthetic surface
 //! samples with known structure, their ground-truth ABSDF (direct integration of Eq. 3 over the
-//! samples) and the factored one, compared on grids of directions and plotted as 8×8 lat-long
-//! outgoing slices like paper Fig. 4.
+//! samples) and the factored one, compared on grids of directions (plotted as paper Fig. 4's 8×8 lat-long
+//! outgoing slices by `eval::plot::plot_slices`).
 
 use std::f32::consts::PI;
 
@@ -117,7 +117,9 @@ pub fn sphere_grid(res: u32) -> Vec<Vec3> {
 /// Comparison of the factored ABSDF with the ground truth on a case.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct CaseReport {
+    /// The case's name (one of [`CASES`]).
     pub case: String,
+    /// SGGX lobes the estimate fitted (Eq. 8).
     pub lobes: usize,
     /// RMSE over (ω_i, ω_o) pairs of an equal-area grid, luminance.
     pub rmse: f32,
@@ -157,39 +159,4 @@ pub fn compare_case(
         },
         app,
     ))
-}
-
-/// Fig. 4 style plot: for 8×8 incident directions (equal-area grid), the outgoing lat-long slice
-/// (`w × w/2` pixels) of f̂; returns linear RGB (width 8w, height 4w) for the ground truth and
-/// for the factored model.
-pub fn plot_slices(
-    name: &str,
-    tables: &Tables,
-    samples: u32,
-    w: u32,
-) -> Option<(crate::render::Image, crate::render::Image)> {
-    let s = case_samples(name, samples)?;
-    let app = estimate(&s, &EstimateSettings::default())?;
-    let absdf = Absdf::new(&app, tables);
-    let gt_samples: Vec<(Vec3, SurfaceParams, f32)> =
-        s.iter().map(|x| (x.normal, x.params, x.weight)).collect();
-    let h = w / 2;
-    let mut gt = crate::render::Image::new(8 * w, 8 * h);
-    let mut ours = crate::render::Image::new(8 * w, 8 * h);
-    let incident = sphere_grid(8);
-    for (k, &wi) in incident.iter().enumerate() {
-        let (ox, oy) = ((k as u32 % 8) * w, (k as u32 / 8) * h);
-        for y in 0..h {
-            for x in 0..w {
-                let wo = crate::math::spherical::equirect_to_dir(Vec2::new(
-                    (x as f32 + 0.5) / w as f32,
-                    (y as f32 + 0.5) / h as f32,
-                ));
-                let idx = ((oy + y) * 8 * w + ox + x) as usize;
-                gt.pixels[idx] = ground_truth(&gt_samples, wi, wo);
-                ours.pixels[idx] = absdf.eval(wi, wo);
-            }
-        }
-    }
-    Some((gt, ours))
 }

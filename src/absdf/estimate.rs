@@ -17,8 +17,11 @@ use crate::scene::SurfaceParams;
 /// One surface sample: unit normal, material parameters, area weight.
 #[derive(Clone, Copy, Debug)]
 pub struct SurfaceSample {
+    /// Unit shading normal n of the surface at the sample.
     pub normal: Vec3,
+    /// The base material's parameters there (Eq. 11).
     pub params: SurfaceParams,
+    /// Its share of the voxel's projected area: the sample's area weight in the estimates of Eq. 7–9.
     pub weight: f32,
 }
 

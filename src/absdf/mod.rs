@@ -26,7 +26,6 @@
 
 pub mod cases;
 pub mod estimate;
-pub mod ltc;
 
 use std::f32::consts::FRAC_1_PI;
 
@@ -38,8 +37,8 @@ use crate::math::sg::COSINE_SHARPNESS;
 use crate::math::sggx::{Sggx, SggxDensity};
 use crate::math::sphere_maps::{equal_area_sphere_to_square, grid_cell};
 use crate::math::{finite_or_zero, finite_vec_or_zero, unit_or_zero};
+use crate::tables::ltc::LuneTable;
 use crate::tables::Tables;
-use ltc::LuneTable;
 
 /// One lobe of the surface normal distribution.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -65,7 +64,7 @@ pub struct MaterialMoments {
     pub ms: f32,
     /// E[β^m].
     pub m: f32,
-    /// E[F90].
+    /// E\[F90\].
     pub f90: f32,
     /// E[β^m F90].
     pub mf90: f32,
@@ -82,7 +81,7 @@ impl MaterialMoments {
     pub fn reflectance(&self) -> Vec3 {
         (self.mc + Vec3::splat(self.s - self.ms)).max(Vec3::ZERO)
     }
-    /// The weight of F_c: E[β^m] + E[F90] − E[β^m F90] (1 in the paper).
+    /// The weight of F_c: E\[β^m\] + E\[F90\] − E\[β^m F90\] (1 in the paper).
     #[inline]
     pub fn grazing(&self) -> f32 {
         (self.m + self.f90 - self.mf90).max(0.0)
@@ -137,10 +136,15 @@ impl MaterialMoments {
 /// the sphere (Clarberg's map), one set for the diffuse and one for the specular kernel.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Moments {
+    /// The same moments in every direction.
     Constant(MaterialMoments),
+    /// Moments looked up at ω_h on the equal-area grid (Eq. 23).
     Directional {
+        /// Grid resolution: `res × res` cells over the sphere.
         res: u32,
+        /// Moments of the diffuse kernel, one per cell.
         diffuse: Vec<MaterialMoments>,
+        /// Moments of the specular kernel, one per cell.
         specular: Vec<MaterialMoments>,
     },
 }
@@ -167,9 +171,11 @@ impl Moments {
 pub struct VoxelAppearance {
     /// Up to four lobes (Eq. 8).
     pub lobes: Vec<NdfLobe>,
-    /// Mean and variance of GGX α over the surfaces.
+    /// Mean of GGX α over the surfaces.
     pub roughness_mean: f32,
+    /// Variance of α (with the mean, the roughness beta of Eq. 19 that table M2 splits into two lobes).
     pub roughness_variance: f32,
+    /// The material moments E[·] of Eq. 13 and 15, constant or directional (Eq. 23).
     pub moments: Moments,
 }
 
@@ -210,8 +216,7 @@ fn lune_alpha(macro_alpha: Vec2, micro_alpha: f32) -> f32 {
     (micro_alpha.min(macro_alpha.x) * micro_alpha.min(macro_alpha.y)).sqrt()
 }
 
-use crate::bsdf::Bsdf;
-pub use crate::bsdf::BsdfSample;
+use crate::bsdf::{Bsdf, BsdfSample};
 
 /// The factorized ABSDF of one voxel, with every ω-independent table lookup done once.
 #[derive(Clone, Debug)]
@@ -341,6 +346,8 @@ impl<'t> Absdf<'t> {
             + moments
     }
 
+    /// The ABSDF of voxel `v`: converts its lobes and moments once, with the tables' M1–M5
+    /// lookups that do not depend on the directions.
     pub fn new(v: &VoxelAppearance, tables: &'t Tables) -> Self {
         let mut lobes: Vec<NdfLobe> = v
             .lobes

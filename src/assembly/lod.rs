@@ -42,11 +42,10 @@ use obvhs::BvhBuildParams;
 
 use super::hybrid::{LazyMesh, MeshAsset, Representation};
 use super::manifest::Manifest;
-use crate::film::{Camera, Image, ImageStats};
+use crate::film::{Camera, Image, ImageStats, Stratified};
 use crate::lights::Lights;
-use crate::runtime::{
-    Cone, ConeResult, LodScene, Placement, RuntimeError, Sampler, Stratified, TraceSettings,
-};
+use crate::math::sampling::Sampler;
+use crate::runtime::{Cone, ConeResult, LodScene, Placement, RuntimeError, TraceSettings};
 use crate::spatial::box_interval;
 use crate::trace::{offset_origin, Hit as MeshHit, Ray, SurfacePoint};
 

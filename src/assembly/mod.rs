@@ -9,7 +9,7 @@ pub mod hybrid;
 pub mod lod;
 pub mod manifest;
 pub mod mesh;
-pub mod opened;
+mod opened;
 pub mod render_file;
 
 pub use hybrid::Representation;

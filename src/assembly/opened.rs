@@ -7,7 +7,8 @@ use std::path::Path;
 use glam::Vec3;
 
 use super::{is_manifest, Assembly, AssemblyError};
-use crate::runtime::{Cone, Lights, LodScene, PixelSamples, RuntimeError, TraceSettings};
+use crate::lights::Lights;
+use crate::runtime::{Cone, LodScene, PixelSamples, RuntimeError, TraceSettings};
 
 /// Why a path could not be opened.
 #[derive(Debug, thiserror::Error)]

@@ -290,7 +290,7 @@ fn render_assembly(
         };
         let (rgb, h, legend) =
             super::lod::level_map_picture(&map, camera.width, camera.height, &resolutions, &res_of);
-        crate::film::image::write_rgb8_png(p, camera.width, h, &rgb)?;
+        crate::film::write_rgb8_png(p, camera.width, h, &rgb)?;
         level_map = Some(LevelMapReport {
             path: p.display().to_string(),
             legend,

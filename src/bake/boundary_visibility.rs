@@ -21,6 +21,7 @@ use crate::trace::{Accel, Ray};
 /// is an any-hit query. (A 3D DDA over the sparse grid spent most of the bake stepping
 /// through empty voxels on the rays that miss.)
 pub struct PrimitiveLevel {
+    /// The grid of the level.
     pub grid: Grid,
     /// In the BVH's primitive order.
     prims: Vec<TruncatedEllipsoid>,
@@ -66,10 +67,12 @@ impl PrimitiveLevel {
         }
     }
 
+    /// Number of primitives.
     pub fn len(&self) -> usize {
         self.prims.len()
     }
 
+    /// Whether the level has no primitive.
     pub fn is_empty(&self) -> bool {
         self.prims.is_empty()
     }
@@ -259,7 +262,7 @@ fn window_radius(res: u32) -> u32 {
 /// inside it (first-order bias on a smooth visibility), a centred window has it at its centre
 /// (second order); blocks win along a horizon that runs on their edges.
 ///
-/// Measured with `examples/shading_noise` on 64³ bakes (default preset, RMSE of the default
+/// Measured with `tools/src/bin/shading_noise.rs` on 64³ bakes (default preset, RMSE of the default
 /// render and file, blocks → blocks and windows): fantasy_sawmill 0.0072 / 6.45 MiB →
 /// 0.0065 / 11.5, mill 0.0090 / 6.11 → 0.0084 / 10.6, barrel 0.0064 / 7.52 → 0.0055 / 13.1,
 /// fence 0.0080 / 1.04 → 0.0073 / 2.40, spiral staircase 0.0143 / 2.70 → 0.0139 / 7.35,

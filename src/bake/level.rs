@@ -14,7 +14,7 @@ use super::primitive::fit_ellipsoid_bounding;
 use super::sampling::{pieces_by_voxel, sample_voxel};
 use super::visibility::{aiv_map, aiv_rays_per_cell, exposed_weight, map_noise_sigma};
 use crate::absdf::estimate::{estimate, usable, EstimateSettings, SurfaceSample};
-use crate::format::level::{FaceData, LevelData, VoxelData};
+use crate::format::{FaceData, LevelData, VoxelData};
 use crate::math::haar::{forward, shrink, truncate, SparseHaar};
 use crate::scene::Scene;
 use crate::spatial::{demorton3, morton3, Ellipsoid, Face, Grid, UVec3Key};
@@ -30,18 +30,23 @@ pub struct LevelSettings {
     /// Fewest rays an AIV cell's estimate rests on; 0: chosen per voxel
     /// ([`super::visibility::aiv_map`]).
     pub aiv_min_rays: u32,
+    /// Resolution of the AIV map (a sphere map of this many cells a side, §6.2).
     pub aiv_res: u32,
+    /// Resolution of the ABV maps of the boundary faces (hemisphere maps, Eq. 26).
     pub abv_res: u32,
     /// Boundary-visibility rays per block of `abv_stride²` direction cells.
     pub abv_rays: u32,
+    /// Side of the block of ABV direction cells that shares `abv_rays`.
     pub abv_stride: u32,
     /// ABV cells may average a window of cells centred on them ([`super::BakeSettings::abv_windows`]).
     pub abv_windows: bool,
-    /// Fraction of wavelet coefficients kept at most, and detail energy to keep.
+    /// Fraction of wavelet coefficients kept at most.
     pub keep: f32,
+    /// Fraction of the detail energy the kept wavelet coefficients must hold (paper Table 2).
     pub energy: f32,
     /// Shrink the Monte Carlo noise out of the wavelet coefficients before truncation.
     pub denoise: bool,
+    /// How the per-voxel statistics are estimated from the surface samples (Eq. 7–10, 23).
     pub estimate: EstimateSettings,
 }
 

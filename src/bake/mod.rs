@@ -23,16 +23,19 @@ use level::LevelSettings;
 /// Settings of a whole bake (the `aggtool convert` options). Recorded in the file.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct BakeSettings {
-    /// Finest and coarsest level resolution (powers of two).
+    /// Finest level resolution (a power of two).
     pub max_res: u32,
+    /// Coarsest level resolution (a power of two).
     pub min_res: u32,
     /// Surface samples per voxel at the finest level. A level of resolution r gets
     /// `samples · (max_res / r)²` (the same density of samples per unit area, paper §7.1),
     /// capped at `max_samples`.
     pub samples: u32,
+    /// Most surface samples per voxel at any level.
     pub max_samples: u32,
-    /// Interior visibility: map resolution and rays per surface sample (paper: 16 to 64).
+    /// Interior visibility (AIV): sphere-map resolution.
     pub aiv_res: u32,
+    /// Interior-visibility rays per surface sample (paper: 16 to 64).
     pub aiv_rays: u32,
     /// The fewest rays an AIV map cell's estimate rests on (the cell pools the rays of the
     /// smallest enclosing block of cells holding that many); 0 chooses it per voxel by
@@ -40,8 +43,9 @@ pub struct BakeSettings {
     /// per-cell average of formats up to 1.5 (and of files that do not record it).
     #[serde(default = "crate::format::settings::one")]
     pub aiv_min_rays: u32,
-    /// Boundary visibility: map resolution and rays per direction cell.
+    /// Boundary visibility (ABV): hemisphere-map resolution.
     pub abv_res: u32,
+    /// Boundary-visibility rays per direction cell (Eq. 26).
     pub abv_rays: u32,
     /// Levels up to this resolution trace `abv_rays` per direction cell of each boundary face;
     /// a finer level of resolution r traces them per block of (r / abv_full_res)² cells, so
@@ -59,8 +63,9 @@ pub struct BakeSettings {
     pub ndf_lobes: u32,
     /// Directional-moment grid resolution (Eq. 23).
     pub moment_res: u32,
-    /// Wavelet truncation: fraction of coefficients kept, detail energy kept (paper Table 2).
+    /// Wavelet truncation: fraction of coefficients kept at most (paper Table 2).
     pub keep: f32,
+    /// Detail energy the kept coefficients must hold (paper Table 2).
     pub energy: f32,
     /// Shrink Monte Carlo noise out of the visibility wavelets before truncation
     /// (`math::haar::shrink`); off reproduces the paper's truncation alone.

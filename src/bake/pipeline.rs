@@ -36,36 +36,50 @@ pub const BLOCK_FACES: usize = 2048;
 /// Wall-clock seconds per stage.
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
 pub struct StageSeconds {
+    /// Voxelizing the scene (exact per-voxel areas).
     pub voxelize: f64,
+    /// Sampling, statistics and visibility of the voxels.
     pub voxels: f64,
+    /// Boundary visibility of the faces.
     pub faces: f64,
+    /// Encoding, compressing and writing blocks.
     pub write: f64,
 }
 
 /// What one level cost and holds.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct LevelReport {
+    /// Resolution of the level (voxels a side).
     pub res: u32,
+    /// Non-empty voxels.
     pub voxels: u64,
+    /// Boundary faces (with an ABV map).
     pub faces: u64,
     /// Non-empty voxels over res³.
     pub occupancy: f64,
+    /// Surface samples per voxel at this level.
     pub samples_per_voxel: u32,
     /// Boundary-visibility rays traced from each face (fewer above `abv_full_res`).
     pub abv_rays_per_face: u32,
+    /// Wall-clock seconds per stage.
     pub seconds: StageSeconds,
-    /// CPU seconds (summed over threads) of sampling + statistics and of the AIV rays.
+    /// CPU seconds (summed over threads) of sampling and statistics.
     pub cpu_statistics: f64,
+    /// CPU seconds of the AIV rays.
     pub cpu_aiv: f64,
+    /// Interior-visibility rays traced.
     pub aiv_rays: u64,
     /// Voxels per AIV bandwidth: `aiv_bandwidth[i]` voxels gather each cell's rays as
     /// [`AIV_BANDWIDTHS`]`[i]` does (chosen by cross-validation, or the setting).
     pub aiv_bandwidth: [u64; AIV_BANDWIDTHS.len()],
+    /// Boundary-visibility rays traced.
     pub abv_rays: u64,
     /// Faces per ABV bandwidth: `abv_bandwidth[i]` faces gather each cell's P⁺ rays as
     /// [`ABV_BANDWIDTHS`]`[i]` does (chosen by cross-validation).
     pub abv_bandwidth: [u64; ABV_BANDWIDTHS.len()],
+    /// Bytes of the level's blocks in the file.
     pub bytes: u64,
+    /// What the level stores (voxels, faces, effects), counted while encoding.
     pub counts: Counts,
 }
 
@@ -99,30 +113,45 @@ fn bandwidth_summary(names: &[String], counts: &[u64]) -> String {
 /// What a bake did, for the `stats:` lines and `--report`.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct BakeReport {
+    /// The file written.
     pub output: String,
+    /// Its size in bytes.
     pub bytes: u64,
+    /// The settings baked with (recorded in the file).
     pub settings: BakeSettings,
+    /// One report per level, finest first.
     pub levels: Vec<LevelReport>,
+    /// Wall-clock seconds per stage, over all levels.
     pub seconds: StageSeconds,
+    /// Wall-clock seconds of the whole bake.
     pub total_seconds: f64,
+    /// Visibility rays traced (AIV and ABV).
     pub rays: u64,
+    /// Visibility rays per wall-clock second of the voxel and face stages.
     pub rays_per_second: f64,
+    /// Bytes per component of the file (keys, records, lobes, moments, AIV and ABV trees).
     pub components: ComponentBytes,
     /// Peak resident memory of the process (Linux), bytes.
     pub peak_memory: Option<u64>,
+    /// Per effect of the appearance model, whether the file holds it and why not.
     pub effects: Vec<EffectLine>,
 }
 
 /// Why a bake failed.
 #[derive(Debug, thiserror::Error)]
 pub enum BakeError {
+    /// The settings are inconsistent (the message says which).
     #[error("invalid settings: {0}")]
     Settings(String),
+    /// Nothing to bake.
     #[error("the scene has no surface to bake (no triangles with area)")]
     Empty,
+    /// The output could not be written.
     #[error("cannot write {path}: {source}")]
     Io {
+        /// The path that failed.
         path: String,
+        /// The I/O error.
         source: std::io::Error,
     },
 }

@@ -14,7 +14,9 @@ use crate::spatial::Grid;
 /// A piece of one triangle inside one voxel.
 #[derive(Clone, Debug)]
 pub struct Piece {
+    /// Index of the scene instance the triangle belongs to.
     pub instance: u32,
+    /// Index of the triangle in its mesh.
     pub triangle: u32,
     /// The clipped polygon, world space.
     pub polygon: Vec<Vec3>,
@@ -25,9 +27,11 @@ pub struct Piece {
 /// A sampled point with everything the per-voxel statistics need.
 #[derive(Clone, Copy, Debug)]
 pub struct PointSample {
+    /// World-space position.
     pub position: Vec3,
     /// Unit geometric normal of the triangle (for offsetting rays off the surface).
     pub geometric_normal: Vec3,
+    /// Normal, material and area weight for the statistics.
     pub surface: SurfaceSample,
 }
 

@@ -14,7 +14,7 @@
 //! Eq. 30's coverage V̂(ω_o)·|A|·E|n·ω_o| is then exactly the voxel's visible projected area;
 //! with equal weights it assumes visibility independent of |n·ω|, which fails on bumpy closed
 //! surfaces (the facets that face the viewer are the visible ones). Measured with
-//! `examples/transmittance_probe` (coverage + background transmittance, 1 when consistent):
+//! `tools/src/bin/transmittance_probe.rs` (coverage + background transmittance, 1 when consistent):
 //! displaced sphere 0.88 → 0.97, mcap coral at 64³ 0.74 → 0.83, building-small-a 0.86 → 0.91,
 //! lattice 1.00 → 0.97. For any convex solid the weighted V̂ is exactly 1/2 in every direction
 //! (tested on a cube, where the area-weighted one is not).
@@ -45,9 +45,9 @@
 //! refuse, Eq. 3 pairs only directions on one side), a piece of a wall η ≈ 1 (V̂ is already
 //! its outer side's visibility: a partly shaded wall keeps its shadow), and a blurred horizon
 //! is lifted back towards the 1 of the exposed side. The
-//! scalar it replaces, E[v]²/E[v²] over (sample, side) pairs, gave every wall 1/2 and so twice
+//! scalar it replaces, E\[v\]²/E\[v²\] over (sample, side) pairs, gave every wall 1/2 and so twice
 //! the light in its partial shadows: grass-trees-tall 64³ 0.0210 → 0.0169 RMSE with this fit,
-//! building-small-a 0.0244 either way (`examples/shading_noise`, see the README).
+//! building-small-a 0.0244 either way (`tools/src/bin/shading_noise.rs`, see the README).
 
 use glam::Vec2;
 
@@ -93,7 +93,7 @@ pub struct AivEstimate {
 /// albedo moments, which is Eq. 3 with the visibility of Eq. 6 moved inside the integral for
 /// the part of it that belongs to the sample rather than to the direction. Coverage, the
 /// ellipsoid and the AIV itself keep the plain area weights. Measured at 64³ with
-/// `examples/shading_noise` (RMSE of the default render): mill 0.0116 → 0.0102, barrel
+/// `tools/src/bin/shading_noise.rs` (RMSE of the default render): mill 0.0116 → 0.0102, barrel
 /// 0.0081 → 0.0072, building-garage 0.0253 → 0.0236 (see the README).
 pub fn exposed_weight(escape: f32) -> f32 {
     escape.clamp(1e-3, 1.0)
@@ -116,8 +116,8 @@ pub const AIV_DENOISE_CANDIDATES: [f32; 4] = [0.0, 0.25, 0.5, 1.0];
 /// estimate used ([`AivEstimate`]). A cell's value is the
 /// average of the smallest enclosing block of cells (itself first) that at least `min_rays`
 /// rays reached; `min_rays` 0 chooses per voxel, by cross-validation, among such blocks and
-/// spherical caps ([`cross_validated_bandwidth`], [`AIV_BANDWIDTHS`]), and `denoise` the shrinkage's strength
-/// likewise ([`cross_validated_denoise`]). With 1, cells no ray reached still take
+/// spherical caps (`cross_validated_bandwidth`, [`AIV_BANDWIDTHS`]), and `denoise` the shrinkage's strength
+/// likewise (`cross_validated_denoise`). With 1, cells no ray reached still take
 /// the average of the smallest enclosing block that some ray reached: a finest-level voxel
 /// traces 16 samples × 16 rays = 256 rays over 32² cells, and filling the other 3/4 with the
 /// voxel's mean over the whole sphere pulled every outward-facing cell of a wall from 1 towards
@@ -319,7 +319,9 @@ fn cell_sums(rays: &[AivRay], res: u32, fold: Option<u8>) -> CellSums {
 /// [`CentredWindows`]: crate::math::sphere_maps::CentredWindows
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Bandwidth {
+    /// Fewest rays a cell's estimate rests on.
     pub min_rays: u32,
+    /// Gather from a neighbourhood centred on the cell rather than an enclosing block.
     pub cap: bool,
 }
 
@@ -380,7 +382,7 @@ pub fn ray_count(k: u32) -> String {
 /// bias is of first order in its size; a cap is centred on it (second order). Blocks win where
 /// a solid's horizon runs along their edges: the Clarberg square's quadtree has the planes x = 0
 /// and y = 0 on its edges at every level, the horizons of axis-aligned walls. Measured with
-/// `examples/shading_noise` on 64³ bakes (RMSE of the default render; blocks only → caps only
+/// `tools/src/bin/shading_noise.rs` on 64³ bakes (RMSE of the default render; blocks only → caps only
 /// → the choice among both): mill 0.0102 → 0.0092 → 0.0090, barrel 0.0070 → 0.0065 → 0.0064,
 /// spiral staircase 0.0155 → 0.0146 → 0.0143, grass-trees-tall 0.0160 → 0.0154 → 0.0149,
 /// fantasy_house_01 0.0075 → 0.0073 → 0.0074, building-small-b 0.0196 → 0.0201 → 0.0196.
@@ -394,7 +396,7 @@ pub const AIV_BANDWIDTHS: [Bandwidth; 11] =
 /// finest-level voxel traces 16 × 32 rays over 32² cells: where visibility varies little over
 /// directions (thin, scattered geometry: the lattice, foliage) a cell should pool the rays of
 /// its neighbours; where it jumps (the horizon of a solid's wall) pooling blurs the jump, and
-/// the map should stay fine. Measured with `examples/aiv_probe` (RMS of baked − traced V̂ over
+/// the map should stay fine. Measured with `tools/src/bin/aiv_probe.rs` (RMS of baked − traced V̂ over
 /// 20,000 voxel-direction pairs at 64³, blocks only): lattice 0.238 (1 ray a cell) → 0.158
 /// (8 rays) / 0.165 (chosen), displaced sphere 0.217 → 0.271 / 0.222.
 fn cross_validated_bandwidth(rays: &[AivRay], res: u32, mean: f32) -> Bandwidth {
@@ -440,7 +442,7 @@ pub fn aiv_rays_per_cell(rays: u64, res: u32) -> f32 {
 /// the other fold's rays; the least weighted squared error wins (ties to the weaker). The
 /// universal threshold σ·√(2 ln N²) assumes every cell a binomial of the map's mean; on a
 /// solid's map, 0 below the horizon and 1 above without noise, it erases the horizon's
-/// details (`examples/aiv_probe --estimators`, displaced sphere at 32³ from 256 samples ×
+/// details (`aiv_probe --estimators`, tools/src/bin/aiv_probe.rs, displaced sphere at 32³ from 256 samples ×
 /// 16 rays: RMS 0.095 raw, 0.152 shrunk).
 fn cross_validated_denoise(rays: &[AivRay], res: u32, folds: &[(Vec<f32>, u64); 2]) -> f32 {
     use crate::math::haar::{forward, inverse, shrink};

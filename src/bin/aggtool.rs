@@ -15,7 +15,7 @@ use clap::{Parser, Subcommand};
 use aggtool::assembly::{self, render_file::render_file};
 use aggtool::import::ImportOptions;
 use aggtool::render::view::ImageFiles;
-use aggtool::report::{ErrorKind, ErrorReport, Report, Written};
+use aggtool::report::{ErrorKind, ErrorReport, Failure, Report, Written};
 use aggtool::tables::fit::{self, BuildSettings};
 use aggtool::util::Progress;
 use args::{AssembleArgs, ConvertArgs, EvalArgs, GenArgs, RenderArgs, SweepArgs, ViewArgs};
@@ -266,7 +266,8 @@ fn absdf_plot(
     slice: u32,
     exposure: f32,
 ) -> Result<Written> {
-    use aggtool::absdf::cases::{compare_case, plot_slices, CASES};
+    use aggtool::absdf::cases::{compare_case, CASES};
+    use aggtool::eval::plot::plot_slices;
     use aggtool::render::compare::difference_image;
     let t = aggtool::tables::Tables::embedded();
     let names: Vec<&str> = if case == "all" {
@@ -293,7 +294,7 @@ fn absdf_plot(
             &ours.to_srgb8(exposure),
             &diff.to_srgb8(0.0),
         ];
-        aggtool::film::image::side_by_side(&path, &tiles, gt.width, gt.height)?;
+        aggtool::film::side_by_side(&path, &tiles, gt.width, gt.height)?;
         out.push(&path, format!("{name}: lobes {} rmse {:.5} (ground truth rms {:.5}, relative {:.3}); difference white = {scale:.4}", r.lobes, r.rmse, r.gt_rms, r.rmse / r.gt_rms));
     }
     Ok(out)
@@ -534,7 +535,7 @@ fn main() -> ExitCode {
             ExitCode::SUCCESS
         }
         Err(e) => {
-            let report = ErrorReport::new(&e);
+            let report = ErrorReport::new(&e, classify(&e));
             if json {
                 println!("{:#}", report.to_json());
             } else {
@@ -542,5 +543,48 @@ fn main() -> ExitCode {
             }
             ExitCode::from(report.exit_code)
         }
+    }
+}
+
+/// The kind of a failure: the first cause in its chain whose kind is known (a `Failure`, or
+/// a write error of the image, bake, merge or export stages, or an interrupted I/O call);
+/// anything else is an input error.
+fn classify(e: &anyhow::Error) -> ErrorKind {
+    for cause in e.chain() {
+        if let Some(k) = kind_of(cause) {
+            return k;
+        }
+    }
+    ErrorKind::Input
+}
+
+fn kind_of(cause: &(dyn std::error::Error + 'static)) -> Option<ErrorKind> {
+    use aggtool::assembly::bake::AssembleError;
+    use aggtool::bake::pipeline::BakeError;
+    use aggtool::film::ImageError;
+    use aggtool::format::part::MergeError;
+    use aggtool::scene::export::ExportError;
+    if let Some(f) = cause.downcast_ref::<Failure>() {
+        return Some(f.kind);
+    }
+    if let Some(io) = cause.downcast_ref::<std::io::Error>() {
+        if io.kind() == std::io::ErrorKind::Interrupted {
+            return Some(ErrorKind::Interrupted);
+        }
+    }
+    match () {
+        _ if matches!(cause.downcast_ref(), Some(ImageError::Write { .. })) => {
+            Some(ErrorKind::Output)
+        }
+        _ if matches!(cause.downcast_ref(), Some(BakeError::Io { .. })) => Some(ErrorKind::Output),
+        _ if matches!(cause.downcast_ref(), Some(BakeError::Settings(_))) => Some(ErrorKind::Usage),
+        _ if matches!(cause.downcast_ref(), Some(AssembleError::Settings(_))) => {
+            Some(ErrorKind::Usage)
+        }
+        _ if matches!(cause.downcast_ref(), Some(MergeError::Io { .. })) => Some(ErrorKind::Output),
+        _ if matches!(cause.downcast_ref(), Some(ExportError::Write { .. })) => {
+            Some(ErrorKind::Output)
+        }
+        _ => None,
     }
 }

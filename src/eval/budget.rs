@@ -36,7 +36,7 @@
 //!   (V̂(ω_o) over the crossings with the coverage oracle) plus the background's, after the
 //!   runtime's front-to-back occlusion ([`crate::runtime::Occlusion`]) where V̂(ω_o) is the
 //!   baked one (the traced V̂ already holds the occlusion);
-//! - **all** of them at once: F = J per crossing and the background 1[miss]: what remains
+//! - **all** of them at once: F = J per crossing and the background 1\[miss\]: what remains
 //!   against the reference is the LoD's own spatial averaging (a voxel's surfaces averaged over
 //!   the voxel where the pixel sees part of it) and Monte Carlo noise: if it were large, the
 //!   budget would have a hole.
@@ -63,10 +63,10 @@ use crate::format::Aggregate;
 use crate::lights::Lights;
 use crate::math::frame::Frame;
 use crate::math::rng::Pcg32;
-use crate::math::sampling::power_heuristic;
+use crate::math::sampling::{power_heuristic, Sampler};
 use crate::render::compare::compare;
 use crate::render::view::View;
-use crate::runtime::{Cone, LodScene, Occlusion, Sampler, TraceSettings, VoxelHandle};
+use crate::runtime::{Cone, LodScene, Occlusion, TraceSettings, VoxelHandle};
 use crate::scene::Scene;
 use crate::spatial::{morton3, Grid};
 use crate::trace::{offset_origin, Accel, Ray};
@@ -574,7 +574,9 @@ impl Default for BudgetSettings {
 /// One row of a scene's budget.
 #[derive(Clone, Debug, Serialize)]
 pub struct BudgetRow {
+    /// The approximation this row replaces by its ground truth (or "baked", "all").
     pub term: String,
+    /// Which approximations the row replaces by oracles.
     pub oracles: Oracles,
     /// RMSE against the reference of the image at 2 × spp (two renders of `spp`, seeds 1, 2).
     pub rmse: f64,
@@ -590,16 +592,22 @@ pub struct BudgetRow {
     pub gap_closed: f64,
     /// Mean radiance over the reference's (1 = no brightness bias).
     pub mean_ratio: f64,
+    /// Wall-clock seconds of the row's renders.
     pub seconds: f64,
 }
 
 /// A scene's budget.
 #[derive(Clone, Debug, Serialize)]
 pub struct BudgetResult {
+    /// The scene's name.
     pub scene: String,
+    /// The LoD resolution (image res² pixels).
     pub res: u32,
+    /// Samples per pixel of every row.
     pub spp: u32,
+    /// Samples per pixel of the reference.
     pub reference_spp: u32,
+    /// Oracle surface samples per voxel.
     pub samples: u32,
     /// Whether the rows are normalised ([`BudgetSettings::normalize`]).
     pub normalized: bool,
@@ -609,7 +617,9 @@ pub struct BudgetResult {
     pub runtime_default_rmse: [f64; 2],
     /// The reference renderer at `spp`: the noise floor.
     pub reference_at_spp_rmse: f64,
+    /// One row per term, baked first.
     pub rows: Vec<BudgetRow>,
+    /// The picture of the rows' images and differences.
     pub picture: PathBuf,
 }
 

@@ -56,26 +56,33 @@ impl Default for DemoSettings {
 /// What the demo did and measured.
 #[derive(Clone, Debug, Serialize)]
 pub struct DemoReport {
-    /// The generated asset and its triangles.
+    /// The generated asset.
     pub asset: PathBuf,
+    /// Triangles of the generated asset.
     pub triangles: usize,
     /// Import warnings of the generated asset (none expected).
     pub warnings: Vec<String>,
-    /// Bake wall seconds, levels and file bytes.
+    /// Bake wall seconds.
     pub bake_seconds: f64,
+    /// Levels baked.
     pub levels: usize,
+    /// Bytes of the `.agg` file.
     pub bytes: u64,
-    /// The LoD render (its `stats:` figures) and its wall seconds including opening the file.
+    /// The LoD render (its `stats:` figures).
     pub lod: ImageStats,
+    /// Wall seconds of the LoD, opening the file included.
     pub lod_seconds: f64,
-    /// The reference renderer at about the LoD's time: its spp and figures.
+    /// The reference renderer at about the LoD's time: its spp.
     pub reference_spp: u32,
+    /// The reference render's figures.
     pub reference: ImageStats,
-    /// RMSE of each against the converged reference.
+    /// RMSE of the LoD against the converged reference.
     pub lod_rmse: f64,
+    /// RMSE of the reference at that spp against the converged one.
     pub reference_rmse: f64,
-    /// The picture, and the whole demo's wall seconds.
+    /// The picture.
     pub picture: PathBuf,
+    /// Wall seconds of the whole demo.
     pub seconds: f64,
     /// Cones per pixel of the LoD.
     pub lod_spp: u32,
@@ -184,7 +191,7 @@ pub fn demo(output: &Path, settings: &DemoSettings, progress: Progress) -> Resul
     .zip(&captions)
     .map(|(img, c)| with_caption(img, w, h, &[&c[0], &c[1]], 1))
     .collect();
-    crate::film::image::side_by_side(
+    crate::film::side_by_side(
         &picture,
         &panels.iter().map(|p| p.0.as_slice()).collect::<Vec<_>>(),
         w,

@@ -31,7 +31,7 @@ use anyhow::{Context, Result};
 use serde::Serialize;
 
 use crate::bake::{bake_to_file, BakeSettings};
-use crate::film::image::write_rgb8_png;
+use crate::film::write_rgb8_png;
 use crate::film::Image;
 use crate::format::Aggregate;
 use crate::render::compare::{compare, difference_image};
@@ -80,24 +80,36 @@ impl Default for StudySettings {
 /// One method's figures on one scene at one resolution.
 #[derive(Clone, Debug, Serialize)]
 pub struct MethodResult {
+    /// The method: "ours", "cube", "volume", "mesh" or "ref@spp".
     pub method: String,
+    /// RMSE against the high-spp reference.
     pub rmse: f64,
+    /// Relative MSE against the reference.
     pub relmse: f64,
     /// Bytes the method needs for this LoD (see [`level_bytes`] and [`simplify`]).
     pub memory_bytes: u64,
+    /// Wall seconds of the method's render.
     pub render_seconds: f64,
+    /// What the method did (e.g. the simplified mesh's triangles); empty for most.
     pub note: String,
 }
 
 /// One scene at one resolution.
 #[derive(Clone, Debug, Serialize)]
 pub struct SceneResult {
+    /// The scene's name.
     pub scene: String,
+    /// The LoD resolution r (and the image's side).
     pub res: u32,
+    /// Triangles of the original asset.
     pub triangles: usize,
+    /// Wall seconds of the bake.
     pub bake_seconds: f64,
+    /// Wall seconds of the high-spp reference.
     pub reference_seconds: f64,
+    /// One result per method.
     pub methods: Vec<MethodResult>,
+    /// The picture of the images over their differences.
     pub picture: PathBuf,
 }
 
@@ -387,44 +399,57 @@ pub fn markdown_table(results: &[SceneResult]) -> String {
 /// Figures of the speed study on one scene.
 #[derive(Clone, Debug, Serialize)]
 pub struct SpeedResult {
+    /// The scene's name.
     pub scene: String,
+    /// Triangles of the asset.
     pub triangles: usize,
     /// Image side in pixels.
     pub res: u32,
     /// The bake's finest resolution.
     pub bake_res: u32,
+    /// Samples per pixel of both renders.
     pub spp: u32,
     /// Seconds the bake took (0 when an existing file was reused).
     pub bake_seconds: f64,
+    /// Bytes of the `.agg` file.
     pub agg_bytes: u64,
-    /// Whole commands at equal spp: the LoD opens the file and renders; the reference imports
-    /// the asset, builds its BVH and renders.
+    /// Whole commands at equal spp, wall seconds: the LoD opens the file and renders (the
+    /// reference imports the asset, builds its BVH and renders).
     pub lod_seconds: f64,
+    /// Whole reference command, wall seconds.
     pub reference_seconds: f64,
-    /// The render loops alone, at equal spp.
+    /// The LoD's render loop alone, at equal spp.
     pub lod_render_seconds: f64,
+    /// The reference's render loop alone.
     pub reference_render_seconds: f64,
     /// CPU seconds (user + system, all threads) of the same whole commands: the figures the
     /// ratios and the equal-time budget use, since wall time on a shared machine depends on
     /// what else runs.
     pub lod_cpu_seconds: f64,
+    /// The reference's CPU seconds.
     pub reference_cpu_seconds: f64,
     /// The levels the LoD touched (resolutions).
     pub lod_levels: Vec<u32>,
+    /// RMSE of the LoD against the converged reference.
     pub lod_rmse: f64,
+    /// RMSE of the reference at equal spp.
     pub reference_rmse: f64,
     /// Equal time: the reference's spp whose whole command takes the LoD's whole CPU time (at
-    /// least 1), its CPU time and RMSE.
+    /// least 1).
     pub equal_time_reference_spp: u32,
+    /// The equal-time reference's CPU seconds.
     pub equal_time_reference_seconds: f64,
+    /// The equal-time reference's RMSE.
     pub equal_time_reference_rmse: f64,
     /// Non-finite values counted in the LoD render (zero when healthy).
     pub lod_non_finite: u64,
     /// Peak resident memory in bytes of the whole commands `aggtool render` and `aggtool
     /// reference` at equal spp, each run as a process of its own (`None` when the study does
-    /// not run from the `aggtool` binary, as in the library's tests).
+    /// not run from the `aggtool` binary, as in the library's tests): the LoD's.
     pub lod_peak_rss: Option<u64>,
+    /// The reference's peak resident memory.
     pub reference_peak_rss: Option<u64>,
+    /// The picture of the renders and their differences.
     pub picture: PathBuf,
 }
 
@@ -487,8 +512,11 @@ fn peak_rss_of_commands(
 /// A scene for the speed study: an asset file (imported the way `aggtool reference` does) and
 /// its aggregate (baked into `dir` if missing).
 pub struct SpeedInput<'a> {
+    /// The scene's name in the table.
     pub name: &'a str,
+    /// The asset file.
     pub asset: &'a Path,
+    /// Its aggregate.
     pub agg: &'a Path,
 }
 

@@ -1,4 +1,5 @@
-//! Pareto plots for `aggtool sweep`: error against a cost, one point per setting, the presets
+//! Plots: the ABSDF's Fig. 4 slices for `aggtool absdf` ([`plot_slices`]) and the Pareto plots
+//! for `aggtool sweep`: error against a cost, one point per setting, the presets
 //! marked, the Pareto front drawn. Shapes and lines are drawn by the `plotters` crate on its
 //! bitmap backend (plotters.rs docs: `BitMapBackend::with_buffer`, `ChartBuilder`,
 //! `ChartContext::backend_coord`); text by our own 5×7 font ([`crate::render::label`]), which
@@ -7,16 +8,24 @@
 use std::path::Path;
 
 use anyhow::{anyhow, Result};
+use glam::{Vec2, Vec3};
 use plotters::prelude::*;
 
-use crate::film::image::write_rgb8_png;
+use crate::absdf::cases::{case_samples, sphere_grid};
+use crate::absdf::estimate::{estimate, EstimateSettings};
+use crate::absdf::{ground_truth, Absdf};
+use crate::bsdf::Bsdf;
+use crate::film::{write_rgb8_png, Image};
 use crate::render::label::{draw_text, line_height, text_width};
+use crate::scene::SurfaceParams;
+use crate::tables::Tables;
 
 /// One point of a plot.
 #[derive(Clone, Debug)]
 pub struct Point {
-    /// The cost (x) and the error (y).
+    /// The cost (x).
     pub x: f64,
+    /// The error (y).
     pub y: f64,
     /// Written beside the point.
     pub label: String,
@@ -259,6 +268,36 @@ pub fn pareto_plot(
     }
     write_rgb8_png(path, w, h, &rgb)?;
     Ok(())
+}
+
+/// Fig. 4 style plot: for 8×8 incident directions (equal-area grid), the outgoing lat-long slice
+/// (`w × w/2` pixels) of f̂; returns linear RGB (width 8w, height 4w) for the ground truth and
+/// for the factored model.
+pub fn plot_slices(name: &str, tables: &Tables, samples: u32, w: u32) -> Option<(Image, Image)> {
+    let s = case_samples(name, samples)?;
+    let app = estimate(&s, &EstimateSettings::default())?;
+    let absdf = Absdf::new(&app, tables);
+    let gt_samples: Vec<(Vec3, SurfaceParams, f32)> =
+        s.iter().map(|x| (x.normal, x.params, x.weight)).collect();
+    let h = w / 2;
+    let mut gt = Image::new(8 * w, 8 * h);
+    let mut ours = Image::new(8 * w, 8 * h);
+    let incident = sphere_grid(8);
+    for (k, &wi) in incident.iter().enumerate() {
+        let (ox, oy) = ((k as u32 % 8) * w, (k as u32 / 8) * h);
+        for y in 0..h {
+            for x in 0..w {
+                let wo = crate::math::spherical::equirect_to_dir(Vec2::new(
+                    (x as f32 + 0.5) / w as f32,
+                    (y as f32 + 0.5) / h as f32,
+                ));
+                let idx = ((oy + y) * 8 * w + ox + x) as usize;
+                gt.pixels[idx] = ground_truth(&gt_samples, wi, wo);
+                ours.pixels[idx] = absdf.eval(wi, wo);
+            }
+        }
+    }
+    Some((gt, ours))
 }
 
 #[cfg(test)]

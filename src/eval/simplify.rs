@@ -26,11 +26,15 @@ pub fn scene_bytes(scene: &Scene) -> usize {
 /// What [`simplify_to_budget`] did.
 #[derive(Clone, Debug)]
 pub struct Simplified {
+    /// The simplified scene.
     pub scene: Scene,
-    /// Geometry bytes before and after.
+    /// Geometry bytes before.
     pub bytes_before: usize,
+    /// Geometry bytes after.
     pub bytes_after: usize,
+    /// Triangles before.
     pub triangles_before: usize,
+    /// Triangles after.
     pub triangles_after: usize,
     /// The mesh already fitted the budget and was left as it is.
     pub unchanged: bool,

@@ -44,7 +44,9 @@ use crate::util::Progress;
 /// [`BakeSettings::with_field`] names it) and its values, each applied alone over the base.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Vary {
+    /// The field's name (dashes as underscores).
     pub name: String,
+    /// The values, each a row.
     pub values: Vec<String>,
 }
 
@@ -101,10 +103,13 @@ pub enum RowKind {
 /// A row to bake: its label (`preset=NAME` or `NAME=VALUE`) and settings.
 #[derive(Clone, Debug)]
 pub struct PlannedRow {
+    /// `preset=NAME` or `NAME=VALUE`.
     pub label: String,
+    /// A preset or a varied setting.
     pub kind: RowKind,
     /// Whether this is the base preset's row.
     pub base: bool,
+    /// The settings to bake.
     pub settings: BakeSettings,
 }
 
@@ -113,9 +118,11 @@ pub struct PlannedRow {
 pub struct Row {
     /// `preset=NAME` or `NAME=VALUE`.
     pub label: String,
+    /// A preset or a varied setting.
     pub kind: RowKind,
     /// The base preset's row.
     pub base: bool,
+    /// The settings baked.
     pub settings: BakeSettings,
     /// Hash of everything that decides the figures (see the module documentation), hex.
     pub hash: String,
@@ -128,8 +135,9 @@ pub struct Row {
     pub bake_cpu_seconds: f64,
     /// Rays the bake traced.
     pub bake_rays: u64,
-    /// File bytes, and bytes per component (payloads; headers and padding are the rest).
+    /// File bytes.
     pub bytes: u64,
+    /// Bytes per component.
     pub components: ComponentBytes,
     /// Wall seconds of the LoD render loop (the file opened lazily just before).
     pub render_seconds: f64,
@@ -139,13 +147,15 @@ pub struct Row {
     pub render_cpu_seconds: f64,
     /// Levels the render touched (resolutions).
     pub levels_used: Vec<u32>,
-    /// Against the reference.
+    /// RMSE against the reference.
     pub rmse: f64,
+    /// Relative MSE against the reference.
     pub relmse: f64,
     /// Non-finite values counted in the render (zero when healthy).
     pub non_finite: u64,
-    /// The LoD image (PNG) and the aggregate, relative to the sweep folder.
+    /// The LoD image (PNG), relative to the sweep folder.
     pub image: String,
+    /// The aggregate, relative to the sweep folder.
     pub aggregate: String,
 }
 
@@ -183,7 +193,9 @@ pub enum RowEvent<'a> {
     /// Taken from `rows/LABEL.json` (an earlier sweep) or from an earlier row of equal
     /// settings (`same_as`).
     Reused {
+        /// The row reused.
         row: &'a Row,
+        /// The label of the earlier row of equal settings, if it came from one.
         same_as: Option<&'a str>,
     },
     /// The reference was rendered (seconds) or reused (`None`).
@@ -193,15 +205,23 @@ pub enum RowEvent<'a> {
 /// The whole sweep: what `table.json` holds.
 #[derive(Clone, Debug, Serialize)]
 pub struct SweepReport {
+    /// The asset swept.
     pub asset: String,
+    /// Its triangles.
     pub triangles: usize,
+    /// Image side in pixels.
     pub res: u32,
+    /// Cones per pixel of the LoD renders.
     pub spp: u32,
+    /// Samples per pixel of the reference.
     pub reference_spp: u32,
+    /// The base preset's name.
     pub base: String,
+    /// One row per preset and varied value.
     pub rows: Vec<Row>,
-    /// Files written, relative to the sweep folder.
+    /// Files written, relative to the sweep folder: the Markdown table.
     pub table_md: String,
+    /// The Pareto plots (PNG).
     pub plots: Vec<String>,
 }
 

@@ -11,21 +11,37 @@ use crate::util::write_atomic;
 /// Errors reading or writing images.
 #[derive(Debug, thiserror::Error)]
 pub enum ImageError {
+    /// The file could not be read or decoded.
     #[error("cannot read image {path}: {message}")]
-    Read { path: PathBuf, message: String },
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
+    /// The file could not be encoded or written.
     #[error("cannot write image {path}: {message}")]
-    Write { path: PathBuf, message: String },
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
 }
 
 /// A linear RGB image, row-major, row 0 at the top.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Image {
+    /// Width in pixels.
     pub width: u32,
+    /// Height in pixels.
     pub height: u32,
+    /// Linear RGB radiance, `width × height`, row by row.
     pub pixels: Vec<Vec3>,
 }
 
 impl Image {
+    /// A black image of `width × height` pixels.
     pub fn new(width: u32, height: u32) -> Self {
         Image {
             width,
@@ -34,6 +50,7 @@ impl Image {
         }
     }
 
+    /// The pixel at column `x`, row `y` (from the top).
     #[inline]
     pub fn get(&self, x: u32, y: u32) -> Vec3 {
         self.pixels[(y * self.width + x) as usize]

@@ -1,15 +1,17 @@
 //! Images and the one image loop every renderer uses: the pinhole [`Camera`], linear RGB
 //! [`Image`]s with EXR and PNG I/O, and [`render_image`], which the reference path tracer and
-//! the LoD runtime both render through. The same stratified pixel sampling, the same seed
-//! scheme (one random stream per pixel, so images do not depend on the thread count), the same
-//! progress reports and the same [`ImageStats`], so that equal-spp figures compare like with
-//! like.
+//! the LoD runtime both render through, with the LoD's [`Stratified`] sampler over a pixel's
+//! samples. The same stratified pixel sampling, the same seed scheme (one random stream per
+//! pixel, so images do not depend on the thread count), the same progress reports and the same
+//! [`ImageStats`], so that equal-spp figures compare like with like.
 
-pub mod camera;
-pub mod image;
+mod camera;
+mod image;
+mod stratified;
 
 pub use camera::Camera;
-pub use image::{Image, ImageError};
+pub use image::{side_by_side, write_rgb8_png, Image, ImageError};
+pub use stratified::{Stratified, STRATIFIED_DIMENSIONS};
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
@@ -91,7 +93,7 @@ pub struct Sample<'a> {
     /// Rays traced for this sample (the renderer adds to it).
     pub rays: &'a mut u64,
     /// The sample's index in its pixel, 0..spp: with `pixel_seed`, what a sampler stratified
-    /// over the pixel's samples draws from ([`crate::runtime::Stratified`]); the reference
+    /// over the pixel's samples draws from ([`Stratified`]); the reference
     /// renderer draws everything from `rng`.
     pub index: u32,
     /// A seed of the pixel's own (from the render seed and the pixel index, not from `rng`).

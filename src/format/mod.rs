@@ -19,16 +19,19 @@
 //! a bake holds one block at a time. [`Writer`] writes through a temporary file and renames
 //! it into place; [`Aggregate`] maps a file (memmap2), verifies it, and reads it zero-copy.
 
+// flatc's output: its doc comments are the schema's, written for readers of the schema (E[c]
+// is an expectation, not a link).
 #[allow(clippy::all, unused_imports, dead_code, non_snake_case, mismatched_lifetime_syntaxes, missing_docs)]
+#[allow(rustdoc::broken_intra_doc_links)]
 #[rustfmt::skip]
 mod aggregate_generated;
 pub mod effects;
 pub mod encode;
-pub mod level;
+mod level;
 pub mod part;
 pub mod quantize;
 pub mod read;
-pub mod settings;
+pub(crate) mod settings;
 
 pub use aggregate_generated::aggtool::format as fb;
 pub use level::{FaceData, LevelData, VoxelData};

@@ -9,13 +9,18 @@ use serde_json::{json, Value};
 /// Indexed triangle geometry with per-vertex normals and optional UVs.
 #[derive(Clone, Debug, Default)]
 pub struct MeshData {
+    /// Vertex positions.
     pub positions: Vec<Vec3>,
+    /// Unit vertex normals.
     pub normals: Vec<Vec3>,
+    /// Vertex UVs: one per position, or none.
     pub uvs: Vec<Vec2>,
+    /// Triangle list: three vertex indices a triangle.
     pub indices: Vec<u32>,
 }
 
 impl MeshData {
+    /// Number of triangles.
     pub fn triangle_count(&self) -> usize {
         self.indices.len() / 3
     }
@@ -49,9 +54,13 @@ impl MeshData {
 /// A material of a generated scene.
 #[derive(Clone, Debug)]
 pub struct MaterialData {
+    /// The glTF material's name.
     pub name: String,
+    /// Base colour factor β^c (linear RGBA).
     pub base_color: [f32; 4],
+    /// Metallic factor β^m.
     pub metallic: f32,
+    /// Perceptual roughness (α = roughness²).
     pub roughness: f32,
     /// KHR_materials_specular specularFactor; `None` leaves the extension out (factor 1).
     pub specular_factor: Option<f32>,
@@ -62,6 +71,7 @@ pub struct MaterialData {
 }
 
 impl MaterialData {
+    /// An opaque material without texture or specular extension.
     pub fn new(name: &str, rgb: [f32; 3], metallic: f32, roughness: f32) -> Self {
         MaterialData {
             name: name.into(),
@@ -79,16 +89,22 @@ impl MaterialData {
 /// (translation, rotation, scale per instance).
 #[derive(Clone, Debug)]
 pub struct NodeData {
+    /// Index of the mesh in [`SceneData::meshes`].
     pub mesh: usize,
+    /// The node's local-to-world matrix.
     pub matrix: Mat4,
+    /// EXT_mesh_gpu_instancing placements (translation, rotation, scale), empty for one placement by `matrix`.
     pub gpu_instances: Vec<(Vec3, Quat, Vec3)>,
 }
 
 /// A generated scene: meshes of (primitive geometry, material index) lists.
 #[derive(Clone, Debug, Default)]
 pub struct SceneData {
+    /// Meshes, each a list of primitives: geometry and an index into `materials`.
     pub meshes: Vec<Vec<(MeshData, usize)>>,
+    /// The materials.
     pub materials: Vec<MaterialData>,
+    /// The nodes placing the meshes.
     pub nodes: Vec<NodeData>,
 }
 
@@ -288,7 +304,7 @@ const UNSIGNED_INT: u32 = 5125;
 
 /// Encodes the scene as GLB bytes. With `quantize`, positions are stored as normalized SHORT
 /// in each primitive's bounds (the node matrix undoes it), normals as normalized BYTE and UVs as
-/// normalized UNSIGNED_SHORT where they lie in [0,1] (KHR_mesh_quantization).
+/// normalized UNSIGNED_SHORT where they lie in [0, 1] (KHR_mesh_quantization).
 pub fn to_glb(scene: &SceneData, quantize: bool) -> Vec<u8> {
     let mut bin = Bin {
         data: Vec::new(),

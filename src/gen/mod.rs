@@ -40,6 +40,7 @@ pub struct GenSettings {
     /// Make every material Lambertian (metallic 0, specularFactor 0), for checks against other
     /// renderers that implement only diffuse reflection exactly.
     pub lambertian: bool,
+    /// Seed of the generator's random numbers: equal settings give equal bytes.
     pub seed: u64,
 }
 

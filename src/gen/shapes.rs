@@ -7,7 +7,7 @@ use glam::{Vec2, Vec3};
 use super::glb::MeshData;
 
 /// A grid of `nu × nv` quads on the parametric surface `f(u, v) -> (position, normal)` over
-/// [0,1]², with UVs (u, v).
+/// [0, 1]², with UVs (u, v).
 pub fn param_surface(nu: usize, nv: usize, f: impl Fn(f32, f32) -> (Vec3, Vec3)) -> MeshData {
     let mut m = MeshData::default();
     for j in 0..=nv {

@@ -19,26 +19,53 @@ pub use self::images::decode_texture;
 /// Errors of the import stage.
 #[derive(Debug, thiserror::Error)]
 pub enum ImportError {
+    /// The file could not be read.
     #[error("cannot read {path}: {source}")]
     Io {
+        /// The file.
         path: PathBuf,
+        /// The I/O error.
         #[source]
         source: std::io::Error,
     },
+    /// The extension is none of the formats imported.
     #[error("{path}: unsupported file type (expected .gltf, .glb or .obj)")]
-    UnsupportedFormat { path: PathBuf },
+    UnsupportedFormat {
+        /// The file.
+        path: PathBuf,
+    },
+    /// An element of the file is invalid and cannot be skipped.
     #[error("{path}: {element}: {message}")]
     Invalid {
+        /// The file.
         path: PathBuf,
+        /// The element (e.g. `mesh 3 primitive 0`).
         element: String,
+        /// What is wrong with it.
         message: String,
     },
+    /// The file does not parse as its format.
     #[error("{path}: {message}")]
-    Parse { path: PathBuf, message: String },
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The parser's message.
+        message: String,
+    },
+    /// Nothing with area is left to render or bake.
     #[error("{path}: the scene has no usable triangles")]
-    Empty { path: PathBuf },
+    Empty {
+        /// The file.
+        path: PathBuf,
+    },
+    /// A warning under [`ImportOptions::strict`].
     #[error("{path}: {warning} (--strict)")]
-    Strict { path: PathBuf, warning: String },
+    Strict {
+        /// The file.
+        path: PathBuf,
+        /// The warning that became an error.
+        warning: String,
+    },
 }
 
 /// Import settings.

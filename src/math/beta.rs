@@ -24,7 +24,12 @@ pub enum RoughnessDistribution {
     /// All surfaces have this α.
     Constant(f32),
     /// Beta(a, b) on [0, 1].
-    Beta { a: f32, b: f32 },
+    Beta {
+        /// Shape parameter a (> 0).
+        a: f32,
+        /// Shape parameter b (> 0).
+        b: f32,
+    },
 }
 
 impl RoughnessDistribution {
@@ -47,6 +52,7 @@ impl RoughnessDistribution {
         }
     }
 
+    /// Mean roughness μ.
     pub fn mean(&self) -> f32 {
         match *self {
             RoughnessDistribution::Constant(m) => m,
@@ -54,6 +60,7 @@ impl RoughnessDistribution {
         }
     }
 
+    /// Variance of the roughness.
     pub fn variance(&self) -> f32 {
         match *self {
             RoughnessDistribution::Constant(_) => 0.0,

@@ -2,7 +2,7 @@
 
 use glam::Vec3;
 
-/// sRGB transfer function (IEC 61966-2-1), encoded value in [0,1] to linear.
+/// sRGB transfer function (IEC 61966-2-1), encoded value in [0, 1] to linear.
 #[inline]
 pub fn srgb_to_linear(c: f32) -> f32 {
     if c <= 0.04045 {
@@ -12,7 +12,7 @@ pub fn srgb_to_linear(c: f32) -> f32 {
     }
 }
 
-/// Linear to sRGB-encoded, input clamped to [0,1].
+/// Linear to sRGB-encoded, input clamped to [0, 1].
 #[inline]
 pub fn linear_to_srgb(c: f32) -> f32 {
     let c = if c.is_finite() {

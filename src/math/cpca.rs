@@ -30,7 +30,9 @@ pub struct CpcaSettings {
 /// One cluster: its mean and its representatives (orthonormal, by decreasing singular value).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Cluster {
+    /// The cluster's mean vector.
     pub mean: Vec<f32>,
+    /// Its representatives: orthonormal directions, by decreasing singular value.
     pub reps: Vec<Vec<f32>>,
 }
 
@@ -38,9 +40,13 @@ pub struct Cluster {
 /// representatives (`weights[i].len() == clusters[assign[i]].reps.len()`).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Cpca {
+    /// Dimension of the vectors.
     pub dim: usize,
+    /// The clusters.
     pub clusters: Vec<Cluster>,
+    /// For each input vector, the index of its cluster.
     pub assign: Vec<u32>,
+    /// For each input vector, its projection weights on its cluster's representatives.
     pub weights: Vec<Vec<f32>>,
 }
 

@@ -1,9 +1,9 @@
-//! Piecewise-constant distributions on [0,1] and [0,1]², sampled by inversion (pbrt-v4's
+//! Piecewise-constant distributions on [0, 1] and [0, 1]², sampled by inversion (pbrt-v4's
 //! `PiecewiseConstant1D/2D`). Used for environment-map importance sampling.
 
 use glam::Vec2;
 
-/// A piecewise-constant density on [0,1] with `n` equal cells.
+/// A piecewise-constant density on [0, 1] with `n` equal cells.
 #[derive(Clone, Debug)]
 pub struct Distribution1D {
     func: Vec<f32>,
@@ -49,20 +49,22 @@ impl Distribution1D {
         }
     }
 
+    /// Number of bins.
     pub fn len(&self) -> usize {
         self.func.len()
     }
 
+    /// Whether it has no bin.
     pub fn is_empty(&self) -> bool {
         self.func.is_empty()
     }
 
-    /// Integral of the (unnormalised) function over [0,1].
+    /// Integral of the (unnormalised) function over [0, 1].
     pub fn integral(&self) -> f32 {
         self.integral
     }
 
-    /// Samples x in [0,1); returns (x, pdf(x), cell index).
+    /// Samples x in [0, 1); returns (x, pdf(x), cell index).
     pub fn sample(&self, u: f32) -> (f32, f32, usize) {
         let n = self.func.len();
         // Largest i with cdf[i] <= u.
@@ -97,7 +99,7 @@ impl Distribution1D {
     }
 }
 
-/// A piecewise-constant density on [0,1]² from a row-major `width × height` grid of weights:
+/// A piecewise-constant density on [0, 1]² from a row-major `width × height` grid of weights:
 /// a marginal over rows and one conditional per row.
 #[derive(Clone, Debug)]
 pub struct Distribution2D {
@@ -106,6 +108,7 @@ pub struct Distribution2D {
 }
 
 impl Distribution2D {
+    /// The density of the `width × height` grid of non-negative `weights` (row-major).
     pub fn new(weights: &[f32], width: usize, height: usize) -> Self {
         assert_eq!(weights.len(), width * height, "weight grid size");
         let conditional: Vec<Distribution1D> = (0..height)
@@ -126,7 +129,7 @@ impl Distribution2D {
         }
     }
 
-    /// Samples (x, y) in [0,1)²; returns the point and its density.
+    /// Samples (x, y) in [0, 1)²; returns the point and its density.
     pub fn sample(&self, u: Vec2) -> (Vec2, f32) {
         let (y, pdf_y, row) = self.marginal.sample(u.y);
         let (x, pdf_x, _) = self.conditional[row].sample(u.x);

@@ -5,8 +5,11 @@ use glam::Vec3;
 /// An orthonormal basis whose `z` axis is a given unit normal.
 #[derive(Clone, Copy, Debug)]
 pub struct Frame {
+    /// First tangent.
     pub x: Vec3,
+    /// Second tangent (`z × x`).
     pub y: Vec3,
+    /// The normal.
     pub z: Vec3,
 }
 

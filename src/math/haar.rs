@@ -129,6 +129,7 @@ pub fn shrink(details: &mut [[f32; 3]], sigma: f32, n: usize) -> usize {
 /// A node of the sparse quadtree (depth-first preorder).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Node {
+    /// The three detail coefficients (horizontal, vertical, diagonal) of the node's 2×2 block.
     pub details: [f32; 3],
     /// Bit q set: child quadrant q (0 top-left, 1 top-right, 2 bottom-left, 3 bottom-right)
     /// is present.
@@ -140,7 +141,9 @@ pub struct Node {
 /// The implicit sparse quadtree of a truncated map.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SparseHaar {
+    /// Side N of the map in cells (a power of two).
     pub n: u32,
+    /// The scaling coefficient c (the map's mean is c / N).
     pub scaling: f32,
     /// Preorder; empty when every detail is zero (a constant map).
     pub nodes: Vec<Node>,
@@ -355,7 +358,7 @@ pub fn validate_tree(n: u32, len: usize, node: impl Fn(usize) -> Node) -> Result
 /// normalisation h / s is a half-difference of quadrant means, within ±1/2 for a map in
 /// [0, 1], so ±127 spans exactly the range a visibility needs. 16 bits were measured too (the
 /// maple at 64³: 4e-5 at most); 8 bits give 0.012 at most and 0.002 RMS, far below the
-/// maps' Monte Carlo noise, for 6 bytes a node instead of 8 (examples/requantize.rs).
+/// maps' Monte Carlo noise, for 6 bytes a node instead of 8 (tools/src/bin/requantize.rs).
 pub const Q_DETAIL: f32 = 254.0;
 
 /// Most nodes a quantized subtree count (12 bits) holds: a full tree of a 64² map has 1365.
@@ -366,7 +369,9 @@ pub const Q_MAX_SUBTREE: u32 = 4095;
 /// bits 12–15. Per pixel the error is at most 3 · depth / (2 · 254): 0.035 on a 64² map.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct QNode {
+    /// The three details in fixed point.
     pub q: [i8; 3],
+    /// Subtree count (bits 0–11) and child mask (bits 12–15).
     pub links: u16,
 }
 

@@ -18,7 +18,7 @@ pub mod special;
 pub mod sphere_maps;
 pub mod spherical;
 
-pub use glam::{Vec2, Vec3};
+use glam::Vec3;
 
 pub use numerics::{finite_or_zero, finite_vec_or_zero};
 

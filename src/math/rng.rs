@@ -30,6 +30,7 @@ impl Pcg32 {
         r
     }
 
+    /// 32 uniformly random bits (PCG-XSH-RR).
     #[inline]
     pub fn next_u32(&mut self) -> u32 {
         let old = self.state;
@@ -47,6 +48,7 @@ impl Pcg32 {
         (self.next_u32() >> 8) as f32 * (1.0 / 16_777_216.0)
     }
 
+    /// Two numbers uniform in [0, 1).
     #[inline]
     pub fn next_2d(&mut self) -> glam::Vec2 {
         let a = self.next_f32();

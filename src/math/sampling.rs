@@ -1,12 +1,37 @@
 //! Sampling warps from the unit square, each with its pdf and its inverse (pbrt's triples).
 //! Round-trip tests sit at the bottom; chi-square tests against the pdfs are in
-//! `crate::testing::chi2` users.
+//! [`crate::validation::chi2`]'s users. [`Sampler`] is the source of the uniform numbers the
+//! warps take.
 
 use std::f32::consts::{FRAC_PI_2, FRAC_PI_4, PI};
 
 use glam::{Vec2, Vec3};
 
+use super::rng::Pcg32;
 use super::safe_sqrt;
+
+/// A source of uniform random numbers, the one interface every estimator in the crate draws
+/// from: the reference path tracer, the LoD runtime (a host passes its own sampler) and the
+/// image loop's stratified sampler (`film::Stratified`).
+pub trait Sampler {
+    /// A number in [0, 1).
+    fn next_1d(&mut self) -> f32;
+    /// Two numbers in [0, 1)².
+    fn next_2d(&mut self) -> Vec2 {
+        Vec2::new(self.next_1d(), self.next_1d())
+    }
+}
+
+impl Sampler for Pcg32 {
+    #[inline]
+    fn next_1d(&mut self) -> f32 {
+        self.next_f32()
+    }
+    #[inline]
+    fn next_2d(&mut self) -> Vec2 {
+        Pcg32::next_2d(self)
+    }
+}
 
 /// Shirley–Chiu concentric map from [0,1)² to the unit disk.
 #[inline]

@@ -32,6 +32,7 @@ impl Sg {
         }
     }
 
+    /// Its value `a · exp(κ (μ·ω − 1))` in direction `w`.
     #[inline]
     pub fn eval(&self, w: Vec3) -> f32 {
         self.amplitude * (self.sharpness * (self.axis.dot(w) - 1.0)).exp()

@@ -24,11 +24,17 @@ use super::safe_sqrt;
 /// An SGGX matrix, stored as its six distinct entries.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Sggx {
+    /// S_xx.
     pub xx: f32,
+    /// S_yy.
     pub yy: f32,
+    /// S_zz.
     pub zz: f32,
+    /// S_xy (= S_yx).
     pub xy: f32,
+    /// S_xz (= S_zx).
     pub xz: f32,
+    /// S_yz (= S_zy).
     pub yz: f32,
 }
 
@@ -70,6 +76,7 @@ impl Sggx {
         Self::from_frame_roughness(Mat3::from_cols(f.x, f.y, f.z), Vec2::splat(alpha))
     }
 
+    /// The symmetric 3×3 matrix S.
     pub fn matrix(&self) -> Mat3 {
         Mat3::from_cols(
             Vec3::new(self.xx, self.xy, self.xz),
@@ -346,7 +353,9 @@ impl SggxDensity {
 /// `absdf::Absdf::diffuse_numerator`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LobeShape {
+    /// ∫D(n) dn: twice the ellipsoid's area over its projected area along z (2 flat, 4 sphere).
     pub mass: f32,
+    /// Diagonal of the normalised second moment E[n nᵀ] (entries sum to 1).
     pub second: Vec3,
 }
 

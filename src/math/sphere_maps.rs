@@ -11,7 +11,7 @@ use super::safe_sqrt;
 use super::sampling::{concentric_disk_to_square, square_to_concentric_disk};
 
 /// Clarberg 2008, "Fast Equal-Area Mapping of the (Hemi)Sphere using SIMD": the square
-/// [0,1]² folds like an octahedron onto the sphere; every cell of a regular grid on the square
+/// [0, 1]² folds like an octahedron onto the sphere; every cell of a regular grid on the square
 /// covers the same solid angle (4π / cells). The centre of the square is +z, its corners −z.
 pub fn equal_area_square_to_sphere(p: Vec2) -> Vec3 {
     let u = 2.0 * p.x - 1.0;
@@ -136,6 +136,8 @@ pub struct BlockPyramid {
 }
 
 impl BlockPyramid {
+    /// The pyramid of the per-cell sums `sum`, weights `weight` and ray counts `count` of a
+    /// `res × res` map.
     pub fn new(sum: &[f64], weight: &[f64], count: &[u32], res: u32) -> Self {
         debug_assert_eq!(sum.len(), (res * res) as usize);
         debug_assert_eq!(weight.len(), sum.len());

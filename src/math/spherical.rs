@@ -10,7 +10,7 @@ use glam::{Vec2, Vec3};
 
 use super::safe_acos;
 
-/// Direction to equirectangular (u, v) in [0,1)×[0,1].
+/// Direction to equirectangular (u, v) in [0, 1)×[0, 1].
 #[inline]
 pub fn dir_to_equirect(d: Vec3) -> Vec2 {
     let mut u = d.x.atan2(-d.z) * (0.5 / PI);

@@ -12,9 +12,13 @@ use crate::film::Image;
 /// Comparison figures.
 #[derive(Clone, Copy, Debug, Serialize, PartialEq)]
 pub struct Comparison {
+    /// Root-mean-square error over all pixels and channels.
     pub rmse: f64,
+    /// Mean relative squared error, (a − b)² / (b² + 0.01) per channel, b the reference.
     pub relmse: f64,
+    /// Width of both images.
     pub width: u32,
+    /// Height of both images.
     pub height: u32,
 }
 

@@ -8,6 +8,4 @@ pub mod label;
 pub mod reference;
 pub mod view;
 
-pub use crate::film::{Camera, Image};
-pub use crate::lights::Lights;
 pub use view::View;

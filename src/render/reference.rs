@@ -13,7 +13,7 @@ use crate::lights::Lights;
 use crate::math::frame::Frame;
 use crate::math::rng::Pcg32;
 use crate::math::sampling::power_heuristic;
-use crate::runtime::Sampler;
+use crate::math::sampling::Sampler;
 use crate::scene::Scene;
 use crate::trace::{offset_origin, Accel, Ray, SurfacePoint};
 use crate::util::Progress;

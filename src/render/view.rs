@@ -26,25 +26,37 @@ use serde::{Deserialize, Serialize};
 /// Errors reading a view file.
 #[derive(Debug, thiserror::Error)]
 pub enum ViewError {
+    /// The view file could not be read.
     #[error("cannot read view file {path}: {source}")]
     Io {
+        /// The view file.
         path: PathBuf,
+        /// The I/O error.
         #[source]
         source: std::io::Error,
     },
+    /// The view file is not a valid view (JSON, fields or values).
     #[error("{path}: {message}")]
-    Invalid { path: PathBuf, message: String },
+    Invalid {
+        /// The view file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
 }
 
 /// A colour given as one number or three.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(untagged)]
 pub enum Rgb {
+    /// Grey: the same value in the three channels.
     Scalar(f32),
+    /// Linear red, green, blue.
     Rgb([f32; 3]),
 }
 
 impl Rgb {
+    /// The colour as linear RGB.
     pub fn to_vec3(self) -> Vec3 {
         match self {
             Rgb::Scalar(s) => Vec3::splat(s),
@@ -69,36 +81,51 @@ fn default_spp() -> u32 {
     64
 }
 
+/// The view's pinhole camera, as the file states it.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct CameraDesc {
+    /// Position of the camera.
     pub eye: [f32; 3],
+    /// The point it looks at.
     pub target: [f32; 3],
+    /// The up direction (default +Y).
     #[serde(default = "default_up")]
     pub up: [f32; 3],
+    /// Vertical field of view in degrees (default 40).
     #[serde(default = "default_fov")]
     pub fov_y_deg: f32,
+    /// Image width in pixels (default 256).
     #[serde(default = "default_size")]
     pub width: u32,
+    /// Image height in pixels (default 256).
     #[serde(default = "default_size")]
     pub height: u32,
 }
 
+/// The view's environment, as the file states it.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(untagged)]
 pub enum EnvironmentDesc {
+    /// The same radiance from every direction.
     Constant {
+        /// The radiance.
         constant: Rgb,
     },
+    /// An equirectangular map (Mitsuba 3's convention).
     Map {
+        /// The .exr or .hdr file, relative to the view file's folder.
         path: PathBuf,
+        /// Scale of the map's radiance (default 1).
         #[serde(default = "default_one")]
         intensity: f32,
+        /// Rotation about +Y, degrees.
         #[serde(default)]
         rotation_deg: f32,
     },
 }
 
+/// The view's sun, as the file states it.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct SunDesc {
@@ -112,14 +139,20 @@ pub struct SunDesc {
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct View {
+    /// Format version of the view file (1).
     pub version: u32,
+    /// The camera.
     pub camera: CameraDesc,
+    /// The environment; with no sun either, a constant white one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub environment: Option<EnvironmentDesc>,
+    /// An optional sun.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sun: Option<SunDesc>,
+    /// Samples per pixel (default 64).
     #[serde(default = "default_spp")]
     pub spp: u32,
+    /// Seed of the render's random numbers (default 0).
     #[serde(default)]
     pub seed: u64,
 }

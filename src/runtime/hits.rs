@@ -61,7 +61,7 @@ pub const OCCLUSION_ONSET: f32 = 0.75;
 /// behind their own weights, which already count it. Once the surfaces met cover the whole
 /// cone, nothing behind them counts and the walk stops. S counts the exact weights whichever
 /// weights the walk yields, so that shading every hit and the reservoir's picks (which see
-/// only bounds of |B|_ω, [`Weights::Bound`]) estimate the same attenuated sum; the exact |B|_ω
+/// only bounds of |B|_ω, `Weights::Bound`) estimate the same attenuated sum; the exact |B|_ω
 /// of a primitive crossing its voxel is the price.
 ///
 /// Measured on the quality study's 40 assets (`aggtool eval ASSETS --res 32,64 --agg-dir`

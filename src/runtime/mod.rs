@@ -9,7 +9,8 @@
 //!   towards any direction), the ray parameter, and the coverage weight V̂(ω_o)·|A|_ω/|B|_ω of
 //!   Eq. 30; once the walk is over, [`Hits::transmittance`] is the background's weight, the ABV
 //!   of the face where the cone entered the aggregate (Eq. 26; 1 when it met no primitive). A
-//!   host that does its own lighting shades the hits with its own code and sampler.
+//!   host that does its own lighting shades the hits with its own code and sampler (any
+//!   [`crate::math::sampling::Sampler`]).
 //! - **Shading**: [`LodScene::trace`] does Algorithm 1 with those pieces and the runtime's own
 //!   [`Lights`]: the voxels' contributions L_o·V̂(ω_o)·|A|_ω/|B|_ω summed (order-independent),
 //!   L_o from light and ABSDF samples combined by MIS with the AIV standing in for shadow rays,
@@ -40,11 +41,13 @@ use glam::{Vec2, Vec3};
 
 use crate::absdf::Absdf;
 use crate::bsdf::{Bsdf, BsdfSample};
+use crate::film::Stratified;
 use crate::format::{Aggregate, FormatError};
+use crate::lights::Lights;
 use crate::math::rng::Pcg32;
+use crate::math::sampling::Sampler;
 use crate::spatial::Grid;
 
-pub use crate::lights::{EnvMap, Environment, LightSample, Lights, Sun};
 pub use cache::{default_budget, BlockCache, CacheStats};
 pub use hits::{Hit, Hits, Occlusion, OCCLUSION_ONSET};
 pub use shade::{shade, Placement};
@@ -89,96 +92,6 @@ impl Cone {
     }
 }
 
-/// The random numbers the runtime draws: a host passes its own sampler.
-pub trait Sampler {
-    /// A number in [0, 1).
-    fn next_1d(&mut self) -> f32;
-    /// Two numbers in [0, 1)².
-    fn next_2d(&mut self) -> Vec2 {
-        Vec2::new(self.next_1d(), self.next_1d())
-    }
-}
-
-/// The sampler of one sample of a pixel: its first [`STRATIFIED_DIMENSIONS`] numbers (each call
-/// of [`Sampler::next_1d`] or [`Sampler::next_2d`] one dimension) are padded low-discrepancy
-/// points of the sample's index, one sequence a dimension with its own nonlinear shuffle of the
-/// index and its own digital shift ([`crate::math::lowdiscrepancy::shifted_2d`], seeded by the
-/// pixel and the dimension; Owen-scrambling the values too cost 10–20% of a cone), so that the
-/// pixel's samples stratify the choices a cone makes first (which hit a reservoir shades, the
-/// light sample, the ABSDF sample); the numbers after them come from `inner`. Each number alone
-/// is uniform, so every estimate stays unbiased; what falls is its variance over the pixel.
-pub struct Stratified<'a, S: Sampler + ?Sized> {
-    inner: &'a mut S,
-    index: u32,
-    seed: u32,
-    dimension: u32,
-}
-
-/// The dimensions [`Stratified`] stratifies: the reservoir's pick, then two light and ABSDF
-/// sample sets (3 dimensions each).
-pub const STRATIFIED_DIMENSIONS: u32 = 7;
-
-impl<'a, S: Sampler + ?Sized> Stratified<'a, S> {
-    /// Sample `index` of the pixel of `seed`, drawing from `inner` past the stratified
-    /// dimensions.
-    pub fn new(inner: &'a mut S, index: u32, seed: u32) -> Self {
-        Stratified {
-            inner,
-            index,
-            seed,
-            dimension: 0,
-        }
-    }
-
-    /// The scramble seeds of the next stratified dimension (one 64-bit hash of the pixel's
-    /// seed and the dimension, and a multiple of it), or `None` past them.
-    #[inline]
-    fn next_dimension(&mut self) -> Option<[u32; 3]> {
-        if self.dimension >= STRATIFIED_DIMENSIONS {
-            return None;
-        }
-        self.dimension += 1;
-        let h = crate::math::rng::mix64(((self.seed as u64) << 32) | self.dimension as u64);
-        let g = h.wrapping_mul(0x9e37_79b9_7f4a_7c15);
-        Some([h as u32, (h >> 32) as u32, (g >> 32) as u32])
-    }
-}
-
-impl<'a> Stratified<'a, Pcg32> {
-    /// The sampler of one sample of the shared image loop ([`crate::film::Sample`]).
-    pub fn of_sample<'b>(s: &'a mut crate::film::Sample<'b>) -> Stratified<'a, Pcg32> {
-        Stratified::new(s.rng, s.index, s.pixel_seed)
-    }
-}
-
-impl<S: Sampler + ?Sized> Sampler for Stratified<'_, S> {
-    #[inline]
-    fn next_1d(&mut self) -> f32 {
-        match self.next_dimension() {
-            Some([a, b, _]) => crate::math::lowdiscrepancy::shifted_1d(self.index, [a, b]),
-            None => self.inner.next_1d(),
-        }
-    }
-    #[inline]
-    fn next_2d(&mut self) -> Vec2 {
-        match self.next_dimension() {
-            Some(seeds) => crate::math::lowdiscrepancy::shifted_2d(self.index, seeds),
-            None => self.inner.next_2d(),
-        }
-    }
-}
-
-impl Sampler for Pcg32 {
-    #[inline]
-    fn next_1d(&mut self) -> f32 {
-        self.next_f32()
-    }
-    #[inline]
-    fn next_2d(&mut self) -> Vec2 {
-        Pcg32::next_2d(self)
-    }
-}
-
 /// What stands for a voxel's geometry.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum PrimitiveKind {
@@ -208,7 +121,7 @@ pub enum Shading {
         /// (and weigh it by 1/W): still unbiased, and a cone grazing the aggregate's fringe is
         /// shaded as often as a ray of the reference renderer hits there. Off by default: it
         /// saves 10–19% of a 64² render's CPU time but raises the noise variance 2.4–5× on the
-        /// quality study's scenes (`examples/shading_noise.rs`), a loss at equal time too.
+        /// quality study's scenes (`tools/src/bin/shading_noise.rs`), a loss at equal time too.
         roulette: bool,
     },
 }
@@ -724,7 +637,7 @@ pub struct PixelSamples<'a> {
     pub sample: u32,
 }
 
-/// [`trace_batch_with`] with each cone's first [`STRATIFIED_DIMENSIONS`] numbers stratified
+/// [`trace_batch_with`] with each cone's first [`crate::film::STRATIFIED_DIMENSIONS`] numbers stratified
 /// over its pixel's samples ([`Stratified`], seeded by [`crate::film::pixel_seed`] as the image
 /// loop's); the numbers after them come from stream `pixels[i]` of a seed of `seed` and the
 /// sample, so that passes are independent. Cones beyond `at.pixels` (or `rgba`) are left

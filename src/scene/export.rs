@@ -32,8 +32,15 @@ pub const EXPORT_VERSION: u32 = 1;
 /// Why an export failed.
 #[derive(Debug, thiserror::Error)]
 pub enum ExportError {
+    /// The file could not be written.
     #[error("cannot write {path}: {message}")]
-    Write { path: PathBuf, message: String },
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
+    /// Nothing to export.
     #[error("the scene has no triangles to export")]
     Empty,
 }

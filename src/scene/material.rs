@@ -14,6 +14,7 @@ use crate::math::microfacet::clamp_alpha;
 /// How the base colour's alpha is used.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum AlphaMode {
+    /// The surface exists everywhere (alpha ignored).
     Opaque,
     /// Cut-out: the surface exists where alpha ≥ cutoff (glTF MASK; BLEND is imported as MASK
     /// at 0.5 with a warning).
@@ -41,6 +42,7 @@ impl UvTransform {
         UvTransform(t * r * sc)
     }
 
+    /// The transformed texture coordinates of `uv`.
     #[inline]
     pub fn apply(&self, uv: Vec2) -> Vec2 {
         self.0.transform_point2(uv)
@@ -52,16 +54,20 @@ impl UvTransform {
 pub struct TextureRef {
     /// Index into [`crate::scene::Scene::textures`].
     pub texture: u32,
+    /// The transform applied to the coordinates before the lookup.
     pub transform: UvTransform,
 }
 
 /// Material parameters as stored (factors and textures).
 #[derive(Clone, Debug)]
 pub struct Material {
+    /// The material's name in the asset, for messages.
     pub name: String,
     /// Linear RGB base colour and alpha (factor; multiplied by the texture).
     pub base_color: Vec4,
+    /// Base colour texture (sRGB decoded to linear), multiplied by `base_color`.
     pub base_color_texture: Option<TextureRef>,
+    /// Metallic factor β^m (Eq. 11).
     pub metallic: f32,
     /// glTF perceptual roughness; GGX α is its square.
     pub perceptual_roughness: f32,
@@ -71,6 +77,7 @@ pub struct Material {
     pub specular_factor: f32,
     /// Its alpha channel multiplies `specular_factor`.
     pub specular_texture: Option<TextureRef>,
+    /// How alpha cuts the surface out.
     pub alpha_mode: AlphaMode,
 }
 
@@ -94,9 +101,9 @@ impl Default for Material {
 /// Evaluated parameters of Eq. 11 at one surface point.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SurfaceParams {
-    /// β^c, linear RGB in [0,1].
+    /// β^c, linear RGB in [0, 1].
     pub base_color: Vec3,
-    /// β^m in [0,1].
+    /// β^m in [0, 1].
     pub metallic: f32,
     /// GGX α, clamped to [`crate::math::microfacet::ALPHA_MIN`, 1].
     pub alpha: f32,

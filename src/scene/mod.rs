@@ -6,8 +6,8 @@
 
 pub mod export;
 pub mod flatten;
-pub mod material;
-pub mod texture;
+mod material;
+mod texture;
 
 use std::path::PathBuf;
 
@@ -21,12 +21,14 @@ pub use texture::{Texture, WrapMode};
 pub struct Mesh {
     /// Where it came from, for messages: `"mesh 'Leaves' primitive 0"`.
     pub name: String,
+    /// Object-space vertex positions.
     pub positions: Vec<Vec3>,
     /// Shading normals (unit length), or empty when the asset has none: geometric normals are
     /// used then.
     pub normals: Vec<Vec3>,
     /// First texture coordinate set, or empty.
     pub uvs: Vec<Vec2>,
+    /// Triangles as three indices into `positions`.
     pub triangles: Vec<[u32; 3]>,
     /// Index into [`Scene::materials`].
     pub material: u32,
@@ -75,9 +77,13 @@ pub struct Instance {
 /// An imported scene.
 #[derive(Clone, Debug, Default)]
 pub struct Scene {
+    /// The meshes, each stored once.
     pub meshes: Vec<Mesh>,
+    /// Their placements in the world.
     pub instances: Vec<Instance>,
+    /// The materials meshes refer to.
     pub materials: Vec<Material>,
+    /// The textures materials refer to.
     pub textures: Vec<Texture>,
     /// Non-fatal problems met while importing (skipped elements, ignored features).
     pub warnings: Vec<String>,

@@ -5,20 +5,29 @@ use glam::{Vec2, Vec4};
 /// glTF sampler wrap modes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum WrapMode {
+    /// Coordinates wrap around (the glTF default).
     #[default]
     Repeat,
+    /// Coordinates wrap around, every other repeat mirrored.
     MirroredRepeat,
+    /// Coordinates clamp to the edge texels.
     ClampToEdge,
 }
 
 /// A texture: `width × height` texels, row 0 at the top (v = 0), linear values.
 #[derive(Clone, Debug)]
 pub struct Texture {
+    /// The image's name or URI in the asset, for messages.
     pub name: String,
+    /// Width in texels.
     pub width: u32,
+    /// Height in texels.
     pub height: u32,
+    /// Linear RGBA texels, row by row.
     pub texels: Vec<Vec4>,
+    /// Wrap mode along u.
     pub wrap_s: WrapMode,
+    /// Wrap mode along v.
     pub wrap_t: WrapMode,
 }
 

@@ -11,8 +11,8 @@
 pub mod dda;
 pub mod ellipsoid;
 pub mod face;
-pub mod grid;
-pub mod morton;
+mod grid;
+mod morton;
 
 pub use dda::Dda;
 pub use ellipsoid::{

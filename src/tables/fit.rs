@@ -566,9 +566,11 @@ pub fn build(settings: BuildSettings, progress: crate::util::Progress) -> Tables
 /// interpolation error is included).
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct CheckResult {
+    /// The table checked (M1–M5).
     pub table: String,
     /// What `rmse` measures (best 0).
     pub metric: String,
+    /// Random parameter points checked.
     pub points: usize,
     /// RMS over the points of the per-point error.
     pub rmse: f32,

@@ -14,12 +14,13 @@
 //! kernel's mass is a separate factor (∫SG for M1, M5 for M3), and are fitted by
 //! `scale · D_sggx(·; R, α+)`: the scale is a third channel beyond the paper's two, because a
 //! unit SGGX lobe's mass grows with roughness while convolution with a normalised kernel keeps
-//! it (see [`fit::fit_convolution`]). M2 is parameterised by (μ, ν) in [0,1]² rather than the unbounded beta shape
+//! it (see [`fit::fit_convolution`]). M2 is parameterised by (μ, ν) in [0, 1]² rather than the unbounded beta shape
 //! parameters (a, b), which supplemental Eq. 2 relates one to one.
 //!
 //! Lookups interpolate (multi-)linearly between grid nodes and clamp outside the domain.
 
 pub mod fit;
+pub mod ltc;
 
 use std::sync::OnceLock;
 
@@ -30,17 +31,20 @@ const MAGIC: &[u8; 8] = b"AGGTABLE";
 /// A table over a regular grid on a box domain, with `channels` values per node.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Table {
+    /// The table's name (M1–M5).
     pub name: String,
     /// Nodes per axis.
     pub dims: Vec<u32>,
     /// Domain per axis: (first node, last node).
     pub domain: Vec<(f32, f32)>,
+    /// Values per node.
     pub channels: u32,
     /// Node values, the first axis varying fastest, channels innermost.
     pub data: Vec<f32>,
 }
 
 impl Table {
+    /// A table of zeros with `dims` nodes per axis over `domain`.
     pub fn new(name: &str, dims: &[u32], domain: &[(f32, f32)], channels: u32) -> Self {
         let n: usize = dims.iter().map(|&d| d as usize).product();
         Table {
@@ -73,6 +77,7 @@ impl Table {
         p
     }
 
+    /// Number of nodes.
     pub fn node_count(&self) -> usize {
         self.dims.iter().map(|&d| d as usize).product()
     }
@@ -131,22 +136,30 @@ impl Table {
 /// All five tables, and what is derived from them.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Tables {
+    /// SGGX ⊛ SG of sharpness κ → (α⁺x, α⁺y, scale), for diffuse sampling (§7.3, Eq. 14).
     pub m1: Table,
+    /// Roughness beta (μ, ν) → two GGX lobes (m1, α1, α2) (Eq. 19).
     pub m2: Table,
+    /// SGGX ⊛ GGX of roughness α → (α⁺x, α⁺y, scale) (Eq. 20).
     pub m3: Table,
+    /// GGX roughness α → inverse LTC scale 1/s (S of Eq. 21).
     pub m4: Table,
+    /// GGX roughness α → ∫ D_mic over the sphere (Eq. 21).
     pub m5: Table,
     /// S of Eq. 21 tabulated from M4 (not stored: derived on load).
-    pub lune: crate::absdf::ltc::LuneTable,
+    pub lune: ltc::LuneTable,
 }
 
 /// Errors reading a table file.
 #[derive(Debug, thiserror::Error)]
 pub enum TableError {
+    /// The file does not start with the tables' magic bytes.
     #[error("not an aggtool table file (bad magic)")]
     Magic,
+    /// The file's version is not this build's.
     #[error("table file version {0} is not supported (this build reads version {TABLES_VERSION})")]
     Version(u32),
+    /// The file ends early or holds inconsistent sizes.
     #[error("table file is truncated or malformed: {0}")]
     Malformed(String),
 }
@@ -201,6 +214,7 @@ impl Tables {
         out
     }
 
+    /// Reads the tables from their binary file (`tables/aggtool-tables.bin`'s layout).
     pub fn from_bytes(b: &[u8]) -> Result<Tables, TableError> {
         let mut r = Reader { b, p: 0 };
         if r.take(8).map_err(|_| TableError::Magic)? != MAGIC {
@@ -265,7 +279,7 @@ impl Tables {
 
     /// The five tables, with what is derived from them.
     pub fn new(m1: Table, m2: Table, m3: Table, m4: Table, m5: Table) -> Tables {
-        let lune = crate::absdf::ltc::LuneTable::new(&m4);
+        let lune = ltc::LuneTable::new(&m4);
         Tables {
             m1,
             m2,

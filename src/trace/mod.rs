@@ -26,13 +26,18 @@ use crate::scene::Scene;
 /// A ray `origin + t · dir` for t in [tmin, tmax].
 #[derive(Clone, Copy, Debug)]
 pub struct Ray {
+    /// Origin.
     pub origin: Vec3,
+    /// Direction (not necessarily unit: `t` is in its units).
     pub dir: Vec3,
+    /// Start of the interval searched.
     pub tmin: f32,
+    /// End of the interval searched.
     pub tmax: f32,
 }
 
 impl Ray {
+    /// A ray over t in [0, ∞).
     pub fn new(origin: Vec3, dir: Vec3) -> Self {
         Ray {
             origin,
@@ -41,6 +46,7 @@ impl Ray {
             tmax: f32::INFINITY,
         }
     }
+    /// The point at parameter `t`.
 
     #[inline]
     pub fn at(&self, t: f32) -> Vec3 {
@@ -56,6 +62,7 @@ impl Ray {
 /// The closest hit of a ray.
 #[derive(Clone, Copy, Debug)]
 pub struct Hit {
+    /// Ray parameter of the hit.
     pub t: f32,
     /// Index into [`Scene::instances`].
     pub instance: u32,
@@ -68,12 +75,15 @@ pub struct Hit {
 /// Geometry at a hit point, in world space.
 #[derive(Clone, Copy, Debug)]
 pub struct SurfacePoint {
+    /// World-space position.
     pub p: Vec3,
     /// Unit geometric normal (orientation of the triangle's winding).
     pub ng: Vec3,
     /// Unit shading normal: interpolated vertex normals, or `ng` when the mesh has none.
     pub ns: Vec3,
+    /// First texture coordinates, interpolated (zero when the mesh has none).
     pub uv: Vec2,
+    /// Index into [`Scene::materials`].
     pub material: u32,
 }
 
@@ -111,9 +121,13 @@ struct InstanceXf {
 /// Build statistics.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct AccelStats {
+    /// Bottom-level BVHs built (one for the meshes placed once, one per instanced mesh).
     pub blas_count: usize,
+    /// Entries of the top level (instanced placements and the merged world-space BLAS).
     pub tlas_entries: usize,
+    /// Triangles stored over all BLASes.
     pub stored_triangles: usize,
+    /// Wall seconds of the build.
     pub build_seconds: f64,
 }
 
@@ -124,6 +138,7 @@ pub struct Accel<'s> {
     tlas: Option<CwBvh>,
     entries: Vec<TlasEntry>,
     xf: Vec<InstanceXf>,
+    /// Build statistics.
     pub stats: AccelStats,
 }
 
@@ -305,6 +320,7 @@ impl<'s> Accel<'s> {
         }
     }
 
+    /// The scene the BVH was built over.
     pub fn scene(&self) -> &'s Scene {
         self.scene
     }

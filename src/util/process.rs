@@ -39,8 +39,9 @@ pub struct Measured {
     pub max_rss: u64,
     /// Whether it exited with status 0.
     pub success: bool,
-    /// What it printed on stdout and stderr.
+    /// What it printed on stdout.
     pub stdout: String,
+    /// What it printed on stderr.
     pub stderr: String,
 }
 

@@ -130,6 +130,7 @@ impl JsonProgress<std::io::Stderr> {
 }
 
 impl<W: std::io::Write + Send> JsonProgress<W> {
+    /// JSON progress lines written to `writer`.
     pub fn new(writer: W) -> Self {
         JsonProgress {
             state: Mutex::new((writer, String::new(), 0)),

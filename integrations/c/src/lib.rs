@@ -22,7 +22,8 @@ use std::path::Path;
 
 use aggtool::assembly::Opened;
 use aggtool::bsdf::Bsdf;
-use aggtool::runtime::{Cone, EnvMap, Environment, Lights, LodScene, Sun, TraceSettings};
+use aggtool::lights::{EnvMap, Environment, Lights, Sun};
+use aggtool::runtime::{Cone, LodScene, TraceSettings};
 use glam::{Vec2, Vec3};
 
 /// The version of this ABI: a host compiled against a header of another version must not

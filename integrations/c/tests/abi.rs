@@ -173,7 +173,7 @@ fn cones_and_hits_agree_with_the_rust_api() {
             aggtool::runtime::LodScene::open(std::path::Path::new(path.to_str().unwrap())).unwrap();
         let r = rust.trace(
             &aggtool::runtime::Cone::new(cone.origin.into(), cone.dir.into(), cone.aperture),
-            &aggtool::runtime::Lights::constant(glam::Vec3::ONE),
+            &aggtool::lights::Lights::constant(glam::Vec3::ONE),
             &Default::default(),
             &mut aggtool::math::rng::Pcg32::new(5, 0),
         );
@@ -304,7 +304,7 @@ fn a_manifest_opens_and_traces_as_the_library_does() {
         let mut want = vec![0f32; out.len()];
         lib.trace_batch(
             &rc,
-            &aggtool::runtime::Lights::constant(glam::Vec3::ONE),
+            &aggtool::lights::Lights::constant(glam::Vec3::ONE),
             &aggtool::runtime::TraceSettings::default(),
             9,
             &mut want,
@@ -336,7 +336,7 @@ fn a_manifest_opens_and_traces_as_the_library_does() {
         lib.trace_batch_stratified(
             &rc,
             at,
-            &aggtool::runtime::Lights::constant(glam::Vec3::ONE),
+            &aggtool::lights::Lights::constant(glam::Vec3::ONE),
             &aggtool::runtime::TraceSettings::default(),
             9,
             &mut want,

@@ -22,9 +22,8 @@ use std::path::PathBuf;
 
 use aggtool::assembly::Opened;
 use aggtool::bsdf::Bsdf;
-use aggtool::runtime::{
-    Cone, EnvMap, Environment, Lights as RtLights, LodScene, Sun, TraceSettings,
-};
+use aggtool::lights::{EnvMap, Environment, Lights as RtLights, Sun};
+use aggtool::runtime::{Cone, LodScene, TraceSettings};
 use glam::Vec2;
 use glam::Vec3;
 use numpy::{

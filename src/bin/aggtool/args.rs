@@ -308,7 +308,7 @@ pub struct BakeArgs {
     #[arg(long)]
     pub compression_level: Option<i32>,
     /// No clustered PCA of the visibility. Accepted and ignored: CPCA was measured
-    /// (examples/cpca_probe.rs) and does not pay on the quantized, truncated trees, so no
+    /// (tools/src/bin/cpca_probe.rs) and does not pay on the quantized, truncated trees, so no
     /// file stores it.
     #[arg(long)]
     pub no_cpca: bool,

@@ -4,10 +4,10 @@
 //! reservoir shading. The split the closing notes of the runtime issue quote.
 //!
 //! ```text
-//! cargo run --release --example cone_profile -- FILE.agg VIEW.json [--spp 4]
+//! cargo run --release -p aggtool-tools --bin cone_profile -- FILE.agg VIEW.json [--spp 4]
 //! ```
 
-mod common;
+use aggtool_tools as common;
 
 use std::time::Instant;
 

@@ -4,7 +4,7 @@
 //! prints where the time went per level.
 //!
 //! ```text
-//! cargo run --release --example bake_throughput -- [ASSET] [--max-res 64] [--rays 1000000]
+//! cargo run --release -p aggtool-tools --bin bake_throughput -- [ASSET] [--max-res 64] [--rays 1000000]
 //! ```
 
 use std::time::Instant;
@@ -15,7 +15,7 @@ use aggtool::math::sampling::{square_to_triangle, square_to_uniform_sphere};
 use aggtool::trace::{offset_origin, Accel, Ray};
 use rayon::prelude::*;
 
-mod common;
+use aggtool_tools as common;
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();

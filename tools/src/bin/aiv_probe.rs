@@ -2,7 +2,7 @@
 //! `aggtool eval --budget`), on random (voxel, direction) pairs of one level:
 //!
 //! ```sh
-//! cargo run --release --example aiv_probe -- ASSET ASSET.agg [LEVEL] [PAIRS] [SAMPLES] [--estimators] [--chosen]
+//! cargo run --release -p aggtool-tools --bin aiv_probe -- ASSET ASSET.agg [LEVEL] [PAIRS] [SAMPLES] [--estimators] [--chosen]
 //! ```
 //!
 //! Prints the mean and RMS of baked − traced, their correlation, the same for the baked value

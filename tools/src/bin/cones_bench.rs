@@ -3,16 +3,17 @@
 //! Python module and runs this for the Rust figure).
 //!
 //! ```text
-//! cargo run --release --example cones_bench -- FILE.agg CONES.f32 [--repeat 5]
+//! cargo run --release -p aggtool-tools --bin cones_bench -- FILE.agg CONES.f32 [--repeat 5]
 //! ```
 //!
 //! CONES.f32: little-endian f32, seven per cone (origin, direction, aperture). Cone i draws
 //! stream i of seed 1, as `agg_trace_cones` and `Scene.trace` do. Prints the best of the
 //! repeats.
 
-mod common;
+use aggtool_tools as common;
 
-use aggtool::runtime::{Cone, Lights, LodScene, TraceSettings};
+use aggtool::lights::Lights;
+use aggtool::runtime::{Cone, LodScene, TraceSettings};
 use glam::Vec3;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {

@@ -4,7 +4,7 @@
 //! and of the moments against the input.
 //!
 //! ```text
-//! cargo run --release --example requantize -- IN.agg OUT.agg [--lossless] [--bytes-only]
+//! cargo run --release -p aggtool-tools --bin requantize -- IN.agg OUT.agg [--lossless] [--bytes-only]
 //!     [--compression-level N]
 //! ```
 //!

@@ -7,10 +7,10 @@
 //! render loops' own (user + system, all threads).
 //!
 //! ```text
-//! cargo run --release --example shading_noise -- ASSET.glb ASSET.agg [--res 64] [--spp 64] [--reference-spp 1024] [--no-normalize]
+//! cargo run --release -p aggtool-tools --bin shading_noise -- ASSET.glb ASSET.agg [--res 64] [--spp 64] [--reference-spp 1024] [--no-normalize]
 //! ```
 
-mod common;
+use aggtool_tools as common;
 
 use aggtool::film::Image;
 use aggtool::render::compare::compare;

@@ -3,7 +3,7 @@
 //! figures).
 //!
 //! ```text
-//! cargo run --release --example open_profile -- FILE.agg [--size 128] [--spp 4] [--far 40]
+//! cargo run --release -p aggtool-tools --bin open_profile -- FILE.agg [--size 128] [--spp 4] [--far 40]
 //! ```
 //!
 //! Each view runs in a fresh process (this program re-executes itself with `--view near` or
@@ -12,13 +12,14 @@
 //! (default 40), where the footprint picks coarse levels. Resident memory is VmRSS and VmHWM
 //! from /proc/self/status (Linux), which counts the mapped file's pages that were touched.
 
-mod common;
+use aggtool_tools as common;
 
 use std::path::Path;
 use std::time::Instant;
 
 use aggtool::film::Camera;
-use aggtool::runtime::{Cone, Lights, LodScene, TraceSettings};
+use aggtool::lights::Lights;
+use aggtool::runtime::{Cone, LodScene, TraceSettings};
 use glam::{Vec2, Vec3};
 
 /// VmRSS and VmHWM in MiB, or zeros where /proc is absent.

@@ -2,7 +2,7 @@
 //! errors against the stored maps (no file written).
 //!
 //! ```text
-//! cargo run --release --example cpca_probe -- IN.agg [CLUSTERS REPS_AIV REPS_ABV TOL]
+//! cargo run --release -p aggtool-tools --bin cpca_probe -- IN.agg [CLUSTERS REPS_AIV REPS_ABV TOL]
 //! ```
 use aggtool::format::Aggregate;
 use aggtool::math::cpca::{cpca, CpcaSettings};

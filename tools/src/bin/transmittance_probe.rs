@@ -3,7 +3,7 @@
 //! 1 elsewhere) and of the exponential-volume baseline, against the fraction of the same rays
 //! that escape the real geometry. A bias here is a bias in every render of partial coverage.
 //!
-//!   cargo run --release --example transmittance_probe -- [SCENE] [RES]
+//!   cargo run --release -p aggtool-tools --bin transmittance_probe -- [SCENE] [RES]
 //! SCENE: a hard-case name (default lattice) or an asset path; RES: the level to probe (32);
 //! BAKE: the bake's finest resolution (RES), to probe a level that is not the finest.
 

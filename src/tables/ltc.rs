@@ -4,6 +4,8 @@
 //! cosine (Heitz et al. 2016) with inverse matrix M⁻¹ = diag(1/s, 1/s, 1) in ω_h's frame (table
 //! M4); the lune is split into two spherical triangles, each mapped by M⁻¹, clipped to the
 //! horizon and integrated against the clamped cosine in closed form (Lambert's polygon formula).
+//! Derived from M4 when the tables load, so it lives with them ([`super::Tables::lune`]); the
+//! ABSDF reads it.
 
 use std::f32::consts::PI;
 
@@ -94,7 +96,7 @@ const LUNE_A: usize = 33;
 
 impl LuneTable {
     /// The table for the LTC scales `m4` gives (α ↦ 1/s).
-    pub fn new(m4: &crate::tables::Table) -> LuneTable {
+    pub fn new(m4: &super::Table) -> LuneTable {
         let amin = crate::math::microfacet::ALPHA_MIN;
         let mut data = vec![0f32; LUNE_T * LUNE_A];
         for j in 0..LUNE_A {

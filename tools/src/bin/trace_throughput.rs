@@ -3,7 +3,7 @@
 //! shading), on the same camera rays.
 //!
 //! ```text
-//! cargo run --release --example trace_throughput -- [ASSET] [--size 512] [--spp 16]
+//! cargo run --release -p aggtool-tools --bin trace_throughput -- [ASSET] [--size 512] [--spp 16]
 //! ```
 //!
 //! Without ASSET it uses the chandelier from ../shared/assets, or a generated foliage scene
@@ -22,7 +22,7 @@ use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
 use rayon::prelude::*;
 
-mod common;
+use aggtool_tools as common;
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
