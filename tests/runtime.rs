@@ -112,6 +112,7 @@ fn empty_aggregate_is_transparent() {
         voxel_blocks: vec![],
         face_blocks: vec![],
         counts: Counts::default(),
+        voxel_keys: None,
     }];
     let ix = index(&IndexEntry {
         generator: "test",
