@@ -2048,6 +2048,10 @@ fn main() -> ExitCode {
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
+    // SIGTERM and SIGINT remove the temporary files of unfinished writes, then exit 130.
+    if let Err(e) = aggtool::util::atomic::clean_up_on_interrupt() {
+        eprintln!("warning: cannot handle SIGTERM and SIGINT: {e}");
+    }
     let cli = Cli::parse();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
