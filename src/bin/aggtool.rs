@@ -243,6 +243,15 @@ enum Command {
         #[arg(long, value_parser = parse_shard)]
         shard: Option<aggtool::format::part::Shard>,
     },
+    /// Print the bake presets (`convert --preset NAME`) with every setting of each; --json
+    /// prints the table the Python module's `aggtool.presets()` returns and the Blender
+    /// extension's preset menu reads.
+    Presets {
+        /// One JSON object on stdout: {"default", "fields", "presets": [{"name", "summary",
+        /// "settings"}]}.
+        #[arg(long)]
+        json: bool,
+    },
     /// Join the part files of a sharded bake (`convert --shard I/N`) into the .agg a
     /// one-machine bake writes, byte for byte; refuses missing, duplicate or mismatched parts
     /// and then writes nothing.
@@ -510,7 +519,7 @@ struct BakeArgs {
     /// coarser truncation), default, high (twice the samples and the AIV rays, two ABV rays
     /// per cell, centred ABV windows), max (the paper's ablation control: 4 lobes, no
     /// truncation, quantization or compression). Flags given beside it override it.
-    #[arg(long, default_value = "default", value_parser = ["draft", "default", "high", "max"])]
+    #[arg(long, default_value = "default", value_parser = clap::builder::PossibleValuesParser::new(aggtool::bake::Preset::ALL.map(aggtool::bake::Preset::name)))]
     preset: String,
     /// Finest level resolution (a power of two); levels halve down to --min-res [preset
     /// default: 256; draft 64].
@@ -1576,6 +1585,14 @@ fn run(cli: Cli) -> Result<()> {
                 strict,
                 progress_json,
             )
+        }
+        Command::Presets { json } => {
+            let table = aggtool::bake::PresetTable::new();
+            match json {
+                true => println!("{}", serde_json::to_string_pretty(&table)?),
+                false => print!("{table}"),
+            }
+            Ok(())
         }
         Command::Assemble {
             manifest,
