@@ -166,6 +166,34 @@ pub fn check_destination(path: &Path) -> std::io::Result<()> {
 mod tests {
     use super::*;
 
+    /// A temporary file is registered (absolute) from before its creation until its owner is
+    /// done with it, whether the write succeeded or failed: what the interrupt handler
+    /// removes is exactly what is being written.
+    #[test]
+    fn temporary_files_are_registered_while_written() {
+        let d = tempfile::tempdir().unwrap();
+        let out = d.path().join("f.png");
+        let mut seen = None;
+        write_atomic(&out, |tmp| {
+            seen = Some(tmp.to_path_buf());
+            assert!(live_temps().contains(&std::path::absolute(tmp).unwrap()));
+            std::fs::write(tmp, b"x").map_err(|e| e.to_string())
+        })
+        .unwrap();
+        let tmp = seen.unwrap();
+        assert!(out.exists() && !tmp.exists());
+        assert!(!live_temps().contains(&tmp));
+        let e = write_atomic(&out, |tmp| {
+            std::fs::write(tmp, b"y").unwrap();
+            Err("failed".into())
+        });
+        assert!(e.is_err() && !tmp.exists() && !live_temps().contains(&tmp));
+        let live = LiveTemp::register(d.path().join("g.tmp"));
+        assert!(live_temps().contains(&d.path().join("g.tmp")));
+        drop(live);
+        assert!(!live_temps().contains(&d.path().join("g.tmp")));
+    }
+
     #[test]
     fn a_folder_or_a_file_above_is_not_a_destination() {
         let d = tempfile::tempdir().unwrap();
