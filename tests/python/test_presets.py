@@ -93,3 +93,32 @@ def test_convert_refuses_bad_settings(aggtool_module, tmp_path):
             aggtool.bake_settings(**{name: value})
     assert not out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["plane45.glb"]
+
+
+#: Settings whose `convert` flag is not `--NAME` (the rest are, dashes for underscores).
+FLAG_OF = {"compression": "--compression-level", "denoise": "--no-denoise"}
+
+
+def test_every_setting_has_a_cli_flag_that_means_the_python_keyword(aggtool_module, table, tmp_path):
+    """The command line's flags are typed (clap) and mapped onto the library's settings by
+    hand; this keeps them the same settings as the by-name mapping Python and Blender use: a
+    flag for every setting, and the special ones (switches, renamed flags) baking the same
+    bytes as the Python keywords."""
+    aggtool = aggtool_module
+    help_text = run("convert", "--help", cwd=tmp_path)
+    for name in table["fields"]:
+        flag = FLAG_OF.get(name, "--" + name.replace("_", "-"))
+        assert f" {flag}" in help_text, f"{name}: no {flag} in convert --help"
+    run("gen", "plane45", "-o", tmp_path, "--triangles", 200, cwd=tmp_path)
+    glb = tmp_path / "plane45.glb"
+    cli, py = tmp_path / "cli.agg", tmp_path / "py.agg"
+    run("convert", glb, "-o", cli, "--preset", "draft", "--max-res", 8, "--keep", 0.2,
+        "--no-denoise", "--lossless", "--keep-all-effects", "--abv-windows", "true",
+        "--compression-level", 5, "--aiv-min-rays", 2, cwd=tmp_path)
+    overrides = dict(max_res=8, keep=0.2, denoise=False, lossless=True, keep_all_effects=True,
+                     abv_windows=True, compression=5, aiv_min_rays=2)
+    aggtool.convert(str(glb), str(py), preset="draft", **overrides)
+    assert cli.read_bytes() == py.read_bytes()
+    recorded = json.loads(run("inspect", cli, "--json", cwd=tmp_path))["settings"]
+    assert same_settings({k: recorded[k] for k in table["fields"]},
+                         aggtool.bake_settings("draft", **overrides))
