@@ -145,6 +145,192 @@ impl Preset {
     pub fn from_name(name: &str) -> Option<Preset> {
         Preset::ALL.into_iter().find(|p| p.name() == name)
     }
+
+    /// What the preset is for, in a line (for menus and `aggtool presets`).
+    pub fn summary(self) -> &'static str {
+        match self {
+            Preset::Draft => {
+                "a quick look: 64³, an eighth of the samples and rays, coarser truncation"
+            }
+            Preset::Default => "the defaults: 256³, 32 samples per voxel, 32 AIV rays",
+            Preset::High => "twice the samples and AIV rays, two ABV rays per cell, ABV windows",
+            Preset::Max => {
+                "the paper's control: 4 lobes, no truncation, quantization or compression"
+            }
+        }
+    }
+
+    /// The preset's settings ([`BakeSettings::preset`]).
+    pub fn settings(self) -> BakeSettings {
+        BakeSettings::preset(self)
+    }
+}
+
+/// One row of the [`PresetTable`]: a preset's name, its summary and its settings.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct PresetEntry {
+    /// The name `--preset` and the bindings take ([`Preset::name`]).
+    pub name: &'static str,
+    /// What it is for ([`Preset::summary`]).
+    pub summary: &'static str,
+    /// Its settings, keyed as [`BakeSettings::with_field`] names them.
+    pub settings: BakeSettings,
+}
+
+/// Every preset with its settings, cheapest first: what `aggtool presets` prints (`--json`:
+/// this struct serialised), what the Python module's `aggtool.presets()` returns and what the
+/// Blender extension's preset menu is read from, so that no binding keeps a copy.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct PresetTable {
+    /// The name of the preset used when none is named.
+    pub default: &'static str,
+    /// The setting names every preset's `settings` has ([`BakeSettings::field_names`]).
+    pub fields: Vec<String>,
+    /// Every preset, in [`Preset::ALL`]'s order.
+    pub presets: Vec<PresetEntry>,
+}
+
+impl PresetTable {
+    /// The table of [`Preset::ALL`].
+    pub fn new() -> PresetTable {
+        PresetTable {
+            default: Preset::Default.name(),
+            fields: BakeSettings::field_names(),
+            presets: Preset::ALL
+                .iter()
+                .map(|&p| PresetEntry {
+                    name: p.name(),
+                    summary: p.summary(),
+                    settings: p.settings(),
+                })
+                .collect(),
+        }
+    }
+}
+
+impl Default for PresetTable {
+    fn default() -> Self {
+        PresetTable::new()
+    }
+}
+
+impl std::fmt::Display for PresetTable {
+    /// A setting per row, a preset per column, then each preset's summary.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let values: Vec<serde_json::Map<String, serde_json::Value>> = self
+            .presets
+            .iter()
+            .map(|p| match serde_json::to_value(&p.settings) {
+                Ok(serde_json::Value::Object(m)) => m,
+                _ => serde_json::Map::new(),
+            })
+            .collect();
+        let width = self.fields.iter().map(|n| n.len()).max().unwrap_or(0);
+        write!(f, "{:width$}", "setting")?;
+        for p in &self.presets {
+            write!(f, "  {:>8}", p.name)?;
+        }
+        writeln!(f)?;
+        for name in &self.fields {
+            write!(f, "{name:width$}")?;
+            for v in &values {
+                // The settings' fractions are f32: shown as f32s (0.95, not 0.949999988).
+                let v = match v.get(name) {
+                    Some(serde_json::Value::Number(n)) if n.is_f64() => {
+                        format!("{}", n.as_f64().unwrap_or(f64::NAN) as f32)
+                    }
+                    Some(v) => v.to_string(),
+                    None => String::new(),
+                };
+                write!(f, "  {v:>8}")?;
+            }
+            writeln!(f)?;
+        }
+        writeln!(f)?;
+        for p in &self.presets {
+            let mark = if p.name == self.default {
+                " (used when none is named)"
+            } else {
+                ""
+            };
+            writeln!(f, "{}: {}{mark}", p.name, p.summary)?;
+        }
+        Ok(())
+    }
+}
+
+/// A setting's value as the command line writes it: a number, `true`/`false`, or a
+/// percentage (`1%` is 0.01); anything else stays a string (of the wrong kind for every
+/// setting).
+fn read_text(text: &str) -> serde_json::Value {
+    use serde_json::Value;
+    let text = text.trim();
+    match text.strip_suffix('%').map(|p| p.trim().parse::<f64>()) {
+        Some(Ok(p)) => serde_json::Number::from_f64(p / 100.0).map_or(Value::Null, Value::Number),
+        Some(Err(_)) => Value::String(text.to_string()),
+        None => serde_json::from_str(text).unwrap_or_else(|_| Value::String(text.into())),
+    }
+}
+
+/// A value in a message: strings as given, non-finite numbers (JSON's null) said so.
+fn shown(v: &serde_json::Value) -> String {
+    match v {
+        serde_json::Value::String(s) => s.clone(),
+        serde_json::Value::Null => "(not a finite number)".into(),
+        v => v.to_string(),
+    }
+}
+
+/// Why a setting given by name ([`BakeSettings::with_value`], [`BakeSettings::with_field`])
+/// was refused.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum SettingError {
+    /// No setting has this name.
+    #[error("unknown bake setting '{name}'; the settings are: {}", valid.join(", "))]
+    Unknown {
+        /// The name given.
+        name: String,
+        /// Every valid name ([`BakeSettings::field_names`]).
+        valid: Vec<String>,
+    },
+    /// The value is of the wrong kind for the setting (a float or a string for a count, a
+    /// number for a switch).
+    #[error("{name}={value}: expected {expected}")]
+    Type {
+        /// The setting, as serialised.
+        name: String,
+        /// The value given.
+        value: String,
+        /// What the setting takes ("an integer", "true or false", "a number").
+        expected: &'static str,
+    },
+    /// No preset has this name.
+    #[error("unknown bake preset '{name}'; the presets are: {}", valid.join(", "))]
+    UnknownPreset {
+        /// The name given.
+        name: String,
+        /// Every preset's name ([`Preset::ALL`]).
+        valid: Vec<String>,
+    },
+    /// The value is of the right kind but outside what its type holds (a negative count).
+    #[error("{name}={value}: {message}")]
+    Invalid {
+        /// The setting, as serialised.
+        name: String,
+        /// The value given.
+        value: String,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// The settings with the values given are refused by [`BakeSettings::validate`] (a
+    /// resolution not a power of two, `min_res` above `max_res`, a fraction above 1).
+    #[error("{given}: {message}")]
+    Rejected {
+        /// The values given, `name=value, ...`.
+        given: String,
+        /// [`BakeSettings::validate`]'s message, naming the setting by its flag.
+        message: String,
+    },
 }
 
 impl BakeSettings {
@@ -301,25 +487,101 @@ impl BakeSettings {
     /// percentage (`1%` is 0.01). The result is [validated](Self::validate). Errors name the
     /// valid fields for an unknown name, and the expected type for a wrong value.
     pub fn with_field(&self, name: &str, value: &str) -> Result<BakeSettings, String> {
+        self.with_value(name, &serde_json::Value::String(value.into()))
+            .map_err(|e| e.to_string())
+    }
+
+    /// These settings with the field `name` (as [`Self::with_field`] names it) set to a typed
+    /// value, as the bindings pass them: a boolean for a switch, an integer for a count or a
+    /// level, any number for a fraction; a string is read as [`Self::with_field`] reads it.
+    /// The result is [validated](Self::validate).
+    pub fn with_value(
+        &self,
+        name: &str,
+        value: &serde_json::Value,
+    ) -> Result<BakeSettings, SettingError> {
+        self.with_values(&[(name.to_string(), value.clone())])
+    }
+
+    /// These settings with every `(name, value)` set as [`Self::with_value`] sets one, in
+    /// order, then [validated](Self::validate) once, together: so `min_res=128, max_res=256`
+    /// over a 64³ preset is valid in either order. The Python module's `convert(preset,
+    /// **overrides)` goes through here ([`Self::from_preset`]).
+    pub fn with_values(
+        &self,
+        values: &[(String, serde_json::Value)],
+    ) -> Result<BakeSettings, SettingError> {
+        let mut s = self.clone();
+        for (name, value) in values {
+            s = s.assign(name, value)?;
+        }
+        s.validate().map_err(|message| SettingError::Rejected {
+            given: values
+                .iter()
+                .map(|(n, v)| format!("{}={}", n.trim().replace('-', "_"), shown(v)))
+                .collect::<Vec<_>>()
+                .join(", "),
+            message,
+        })?;
+        Ok(s)
+    }
+
+    /// A preset's settings (by its name, as `--preset` takes it) with `overrides` applied
+    /// ([`Self::with_values`]): what a binding's `convert(preset, **overrides)` bakes.
+    pub fn from_preset(
+        preset: &str,
+        overrides: &[(String, serde_json::Value)],
+    ) -> Result<BakeSettings, SettingError> {
+        let p = Preset::from_name(preset.trim()).ok_or_else(|| SettingError::UnknownPreset {
+            name: preset.to_string(),
+            valid: Preset::ALL.iter().map(|p| p.name().to_string()).collect(),
+        })?;
+        p.settings().with_values(overrides)
+    }
+
+    /// These settings with one field set, unvalidated: the name known, the value of the
+    /// field's kind (a string read as [`Self::with_field`] reads it) and within its type's
+    /// range.
+    fn assign(&self, name: &str, value: &serde_json::Value) -> Result<BakeSettings, SettingError> {
         use serde_json::Value;
         let key = name.trim().replace('-', "_");
-        let mut v = serde_json::to_value(self).map_err(|e| e.to_string())?;
+        let value = match value {
+            Value::String(text) => read_text(text),
+            v => v.clone(),
+        };
+        let invalid = |message: String| SettingError::Invalid {
+            name: key.clone(),
+            value: shown(&value),
+            message,
+        };
+        let mut v = serde_json::to_value(self).map_err(|e| invalid(e.to_string()))?;
         let Some(field) = v.as_object_mut().and_then(|m| m.get_mut(&key)) else {
-            return Err(format!(
-                "unknown bake setting '{name}'; the settings are: {}",
-                Self::field_names().join(", ")
-            ));
+            return Err(SettingError::Unknown {
+                name: name.to_string(),
+                valid: Self::field_names(),
+            });
         };
-        let value = value.trim();
-        *field = match value.strip_suffix('%').map(|p| p.trim().parse::<f64>()) {
-            Some(Ok(p)) => serde_json::json!(p / 100.0),
-            Some(Err(_)) => Value::String(value.to_string()),
-            None => serde_json::from_str(value).unwrap_or_else(|_| Value::String(value.into())),
+        // The kind the field takes is the kind of its current value.
+        let expected = match &*field {
+            Value::Bool(_) => "true or false",
+            Value::Number(n) if n.is_f64() => "a number",
+            _ => "an integer",
         };
-        let s: BakeSettings =
-            serde_json::from_value(v).map_err(|e| format!("{key}={value}: {e}"))?;
-        s.validate().map_err(|e| format!("{key}={value}: {e}"))?;
-        Ok(s)
+        let kind_ok = match (&*field, &value) {
+            (Value::Bool(_), Value::Bool(_)) => true,
+            (Value::Number(n), Value::Number(_)) if n.is_f64() => true,
+            (Value::Number(_), Value::Number(m)) => m.is_i64() || m.is_u64(),
+            _ => false,
+        };
+        if !kind_ok {
+            return Err(SettingError::Type {
+                name: key,
+                value: shown(&value),
+                expected,
+            });
+        }
+        *field = value.clone();
+        serde_json::from_value(v).map_err(|e| invalid(e.to_string()))
     }
 
     /// The settings a file recorded, as a bake names them (the inverse of [`Self::recorded`];
@@ -433,6 +695,95 @@ mod tests {
             .contains("--ndf-lobes"));
         assert!(d.with_field("keep", "many").is_err());
         assert_eq!(BakeSettings::field_names().len(), 19);
+    }
+
+    /// `with_value` takes typed values as the bindings pass them: integers for counts (a
+    /// float or a string that is not one is of the wrong kind), any number for fractions,
+    /// booleans for switches; out-of-range values are invalid, not of the wrong kind; strings
+    /// are read as `with_field` reads them. Unknown names list the valid ones.
+    #[test]
+    fn with_value_classifies_refusals() {
+        use serde_json::json;
+        let d = BakeSettings::default();
+        assert_eq!(d.with_value("max_res", &json!(64)).unwrap().max_res, 64);
+        assert_eq!(d.with_value("keep", &json!(1)).unwrap().keep, 1.0);
+        assert_eq!(d.with_value("keep", &json!("1%")).unwrap().keep, 0.01);
+        assert!(!d.with_value("denoise", &json!(false)).unwrap().denoise);
+        assert_eq!(
+            d.with_value("compression-level", &json!(0)).unwrap_err(),
+            SettingError::Unknown {
+                name: "compression-level".into(),
+                valid: BakeSettings::field_names()
+            }
+        );
+        for (name, v) in [
+            ("max_res", json!(64.0)),
+            ("max_res", json!("big")),
+            ("denoise", json!(1)),
+            ("keep", json!(true)),
+        ] {
+            assert!(
+                matches!(d.with_value(name, &v), Err(SettingError::Type { .. })),
+                "{name}={v}"
+            );
+        }
+        let e = d.with_value("max_res", &json!(-64)).unwrap_err();
+        assert!(matches!(e, SettingError::Invalid { .. }), "{e:?}");
+        assert!(e.to_string().starts_with("max_res=-64: "), "{e}");
+        for (name, v) in [
+            ("max_res", json!(48)),
+            ("ndf_lobes", json!(5)),
+            ("keep", json!(0)),
+        ] {
+            let e = d.with_value(name, &v).unwrap_err();
+            assert!(
+                matches!(e, SettingError::Rejected { .. }),
+                "{name}={v}: {e:?}"
+            );
+            assert!(e.to_string().starts_with(&format!("{name}={v}: ")), "{e}");
+        }
+        // Validated together: a finer coarsest level with a finer finest level, in any order.
+        let min = ("min_res".to_string(), json!(128));
+        let max = ("max_res".to_string(), json!(256));
+        let draft = BakeSettings::preset(Preset::Draft);
+        for pair in [[min.clone(), max.clone()], [max, min]] {
+            assert_eq!(draft.with_values(&pair).unwrap().min_res, 128);
+        }
+    }
+
+    /// The preset table has every preset in order with its settings and every field; a preset
+    /// name is parsed or refused with the list of names.
+    #[test]
+    fn preset_table() {
+        let t = PresetTable::new();
+        let names: Vec<&str> = t.presets.iter().map(|p| p.name).collect();
+        assert_eq!(names, ["draft", "default", "high", "max"]);
+        assert_eq!(t.default, "default");
+        assert_eq!(t.fields, BakeSettings::field_names());
+        for (p, e) in Preset::ALL.iter().zip(&t.presets) {
+            assert_eq!(e.settings, BakeSettings::preset(*p));
+        }
+        let text = t.to_string();
+        assert!(
+            text.contains("0.95") && text.contains("compression"),
+            "{text}"
+        );
+        let e = BakeSettings::from_preset("fast", &[])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("'fast'") && e.contains("draft, default, high, max"),
+            "{e}"
+        );
+        let s = BakeSettings::from_preset(
+            "draft",
+            &[
+                ("max_res".into(), serde_json::json!(16)),
+                ("aiv_res".into(), serde_json::json!(8)),
+            ],
+        )
+        .unwrap();
+        assert_eq!((s.max_res, s.aiv_res, s.samples), (16, 8, 4));
     }
 
     /// Every preset survives the trip through the file's record unchanged.

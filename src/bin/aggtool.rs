@@ -55,6 +55,12 @@ enum Command {
         after_help = "Example:\n  aggtool convert tree.glb --preset draft -o tree.agg --report tree.json"
     )]
     Convert(ConvertArgs),
+    /// Print the bake presets (`convert --preset NAME`) with every setting of each; --json
+    /// prints the table the Python module's `aggtool.presets()` returns and the Blender
+    /// extension's preset menu reads ({"default", "fields", "presets": [{"name", "summary",
+    /// "settings"}]}).
+    #[command(after_help = "Example:\n  aggtool presets --json")]
+    Presets,
     /// Print what an .agg file holds: header, settings, levels (by resolution), effects kept
     /// and dropped; or, for an assembly manifest (.json): assets, instances, bytes, triangles.
     #[command(after_help = "Example:\n  aggtool inspect tree.agg --json")]
@@ -354,6 +360,7 @@ fn run(command: Command, out: &Out) -> Result<Box<dyn Report>> {
             };
             Box::new(aggtool::bake::convert::convert(&a.asset, &a.settings(), p)?)
         }
+        Command::Presets => Box::new(aggtool::bake::PresetTable::new()),
         Command::Inspect { file } => Box::new(inspect::inspect_file(&file)?),
         Command::Render(a) => Box::new(render_file(&a.agg, &a.request(), &progress)?),
         Command::Assemble(a) if a.list => Box::new(assembly::bake::list(&a.manifest)?),
@@ -496,6 +503,10 @@ fn main() -> ExitCode {
     // SAFETY: restores the default action of one signal before any thread is started.
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+    // SIGTERM and SIGINT remove the temporary files of unfinished writes, then exit 130.
+    if let Err(e) = aggtool::util::atomic::clean_up_on_interrupt() {
+        eprintln!("warning: cannot handle SIGTERM and SIGINT: {e}");
     }
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,

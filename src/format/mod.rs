@@ -42,6 +42,8 @@ use std::fs::File;
 use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
+use crate::util::atomic::LiveTemp;
+
 /// The file's first eight bytes.
 pub const MAGIC: [u8; 8] = [0x89, b'A', b'G', b'G', b'\r', b'\n', 0x1a, b'\n'];
 /// The format version this build writes. Readers accept any minor of their major.
@@ -321,7 +323,7 @@ impl Header {
 /// temporary file and leaves any existing file untouched.
 pub struct Writer {
     file: Option<BufWriter<File>>,
-    tmp: PathBuf,
+    tmp: LiveTemp,
     dest: PathBuf,
     pos: u64,
     /// Zstandard level of [`Writer::write_block`] (0: blocks stored as they are).
@@ -329,11 +331,13 @@ pub struct Writer {
 }
 
 /// A temporary file beside `dest` (its folder created if needed), named after it (`fallback`
-/// when `dest` has no file name), for writes that are renamed into place when complete.
+/// when `dest` has no file name), for writes that are renamed into place when complete;
+/// registered for removal on SIGTERM and SIGINT while it lives
+/// ([`crate::util::atomic::LiveTemp`]).
 pub(crate) fn temp_beside(
     dest: &Path,
     fallback: &str,
-) -> std::io::Result<(PathBuf, BufWriter<File>)> {
+) -> std::io::Result<(LiveTemp, BufWriter<File>)> {
     let dir = dest
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
@@ -343,8 +347,8 @@ pub(crate) fn temp_beside(
         .file_name()
         .and_then(|n| n.to_str())
         .unwrap_or(fallback);
-    let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
-    let file = BufWriter::with_capacity(1 << 20, File::create(&tmp)?);
+    let tmp = LiveTemp::register(dir.join(format!(".{name}.{}.tmp", std::process::id())));
+    let file = BufWriter::with_capacity(1 << 20, File::create(tmp.path())?);
     Ok((tmp, file))
 }
 
@@ -416,7 +420,7 @@ impl Writer {
         let result = self.finish_inner(index);
         if result.is_err() {
             self.file = None;
-            let _ = std::fs::remove_file(&self.tmp);
+            let _ = std::fs::remove_file(self.tmp.path());
         }
         result
     }
@@ -437,7 +441,7 @@ impl Writer {
         let file = file.into_inner().map_err(|e| e.into_error())?;
         file.sync_all()?;
         drop(file);
-        std::fs::rename(&self.tmp, &self.dest)?;
+        std::fs::rename(self.tmp.path(), &self.dest)?;
         Ok(self.pos)
     }
 }
@@ -446,7 +450,7 @@ impl Drop for Writer {
     fn drop(&mut self) {
         // Unfinished (or failed): the temporary file goes, the destination is untouched.
         if self.file.take().is_some() {
-            let _ = std::fs::remove_file(&self.tmp);
+            let _ = std::fs::remove_file(self.tmp.path());
         }
     }
 }

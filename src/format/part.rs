@@ -181,7 +181,7 @@ impl PartMeta {
 /// [`PartWriter::finish`]; dropped unfinished, it leaves nothing).
 pub struct PartWriter {
     file: Option<BufWriter<File>>,
-    tmp: PathBuf,
+    tmp: crate::util::atomic::LiveTemp,
     dest: PathBuf,
     pos: u64,
     compression: i32,
@@ -246,7 +246,7 @@ impl PartWriter {
         let r = self.finish_inner(&meta);
         if r.is_err() {
             self.file = None;
-            let _ = std::fs::remove_file(&self.tmp);
+            let _ = std::fs::remove_file(self.tmp.path());
         }
         r
     }
@@ -266,7 +266,7 @@ impl PartWriter {
         let file = file.into_inner().map_err(|e| e.into_error())?;
         file.sync_all()?;
         drop(file);
-        std::fs::rename(&self.tmp, &self.dest)?;
+        std::fs::rename(self.tmp.path(), &self.dest)?;
         Ok(self.pos + json.len() as u64)
     }
 }
@@ -274,7 +274,7 @@ impl PartWriter {
 impl Drop for PartWriter {
     fn drop(&mut self) {
         if self.file.take().is_some() {
-            let _ = std::fs::remove_file(&self.tmp);
+            let _ = std::fs::remove_file(self.tmp.path());
         }
     }
 }

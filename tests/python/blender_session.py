@@ -5,7 +5,8 @@
 
 It installs the built extension under $BLENDER_USER_RESOURCES (set by the caller to a temporary
 folder) with Blender's own `extensions.package_install_files`, builds a small scene, runs both
-operators headless and each bad input, and writes what it measured to RESULT.json; the checks
+operators headless, each bad input and a bake with every preset (the tool's, read by the
+extension), and writes what it measured to RESULT.json; the checks
 are in test_blender.py. An exception in one part is recorded and the next part still runs."""
 import json
 import math
@@ -176,7 +177,7 @@ def bake():
     select(boxes + [empty], active=base)
     out = WORK / "bakes" / "scene.agg"
     t0 = time.perf_counter()
-    r = bpy.ops.aggtool.bake_aggregate(preset="DRAFT", filepath=str(out), **TINY)
+    r = bpy.ops.aggtool.bake_aggregate(preset="draft", filepath=str(out), **TINY)
     result["bake"] = {
         "result": sorted(r),
         "seconds": time.perf_counter() - t0,
@@ -189,11 +190,18 @@ def bake():
         "files": files_under(WORK / "bakes"),
         "expected_bounds": gltf_bounds(boxes),
     }
-    # The panel's preset fills the settings.
+    # The panel: the preset menu and its values are the tool's; a ticked setting starts from
+    # the preset's value and is the only one passed to the operator.
     s = scene.aggtool
-    s.preset = "HIGH"
-    result["panel_preset"] = {k: getattr(s, k) for k in ext.SETTINGS}
-    s.preset = "DEFAULT"
+    result["panel_menu"] = [item[0] for item in ext._preset_items(s, bpy.context)]
+    s.preset = "high"
+    s.override_max_res = True
+    result["panel_override_start"] = s.max_res
+    s.max_res = 32
+    result["panel_settings"] = {k: list(v) for k, v in ext.panel_settings(bpy.context, s).items()}
+    result["panel_operator_args"] = ext.panel_operator_args(s)
+    s.override_max_res = False
+    s.preset = "default"
 
 
 @part("preview")
@@ -281,23 +289,26 @@ def bad_input():
     # 1. Nothing exportable: a camera and an empty.
     select([cam, empty], active=empty)
     bad["no_mesh"] = op_error(lambda: bpy.ops.aggtool.bake_aggregate(
-        preset="DRAFT", filepath=str(out / "none.agg"), **TINY))
+        preset="draft", filepath=str(out / "none.agg"), **TINY))
     # 2. The binary: a preference naming a missing file; then none anywhere.
     select([base])
     prefs.aggtool_path = str(WORK / "no" / "aggtool")
     bad["binary_pref_missing"] = op_error(lambda: bpy.ops.aggtool.bake_aggregate(
-        preset="DRAFT", filepath=str(out / "nobin.agg"), **TINY))
+        preset="draft", filepath=str(out / "nobin.agg"), **TINY))
     prefs.aggtool_path = ""
     path = os.environ.get("PATH", "")
     os.environ["PATH"] = str(WORK / "empty-path")
     bad["binary_none"] = op_error(lambda: bpy.ops.aggtool.bake_aggregate(
-        preset="DRAFT", filepath=str(out / "nobin.agg"), **TINY))
+        preset="draft", filepath=str(out / "nobin.agg"), **TINY))
     os.environ["PATH"] = path
     # 3. Settings the command line refuses: its own error, nothing written.
     prefs.aggtool_path = AGGTOOL
     bad["bad_setting"] = op_error(lambda: bpy.ops.aggtool.bake_aggregate(
-        preset="DRAFT", filepath=str(out / "badres.agg"), **dict(TINY, max_res=7)))
-    # 4. The preview: an object never baked, a sidecar whose file is gone, a module folder
+        preset="draft", filepath=str(out / "badres.agg"), **dict(TINY, max_res=7)))
+    # 4. A preset the tool does not have: refused before anything is exported.
+    bad["unknown_preset"] = op_error(lambda: bpy.ops.aggtool.bake_aggregate(
+        preset="fast", filepath=str(out / "fast.agg"), **TINY))
+    # 5. The preview: an object never baked, a sidecar whose file is gone, a module folder
     #    that does not exist.
     plain = box("Plain", (0, 3, 0), (0.2, 0.2, 0.2), 0)
     select([plain])
@@ -320,8 +331,8 @@ def cancel():
     progress line arrived."""
     select(boxes, active=base)
     out = WORK / "cancel" / "big.agg"
-    job = ext.BakeJob(AGGTOOL, boxes, str(out), dict(ext.PRESETS["DEFAULT"], max_res=128,
-                                                     samples=64, aiv_rays=64))
+    job = ext.BakeJob(AGGTOOL, boxes, str(out), "default",
+                      dict(max_res=128, samples=64, aiv_rays=64), ext.preset_table())
     job.export(bpy.context)
     job.start()
     t0 = time.perf_counter()
@@ -332,6 +343,47 @@ def cancel():
     result["cancel"] = {"fraction_at_cancel": fraction, "finished_before_cancel": finished_first,
                         "returncode": job.proc.returncode, "files": files_under(out.parent),
                         "result": ext.last_bake["result"]}
+
+
+#: Overrides of every preset in the cross-binding bake (test_blender.py bakes the same
+#: exported file with them through the CLI and the Python module): the smallest finest level,
+#: so that the four presets bake in seconds; every other setting is the preset's.
+PRESET_OVERRIDES = dict(max_res=8)
+
+
+@part("presets")
+def presets():
+    """The preset table as the extension reads it, from the Python module and (the module
+    made unimportable) from the binary; then the boxes baked with every preset, keeping the
+    exact GLB each bake exported, for test_blender.py to bake through the CLI and Python."""
+    table = ext.preset_table(bpy.context)
+    prefs.module_path = str(WORK / "no-module")
+    try:
+        cli_table = ext.preset_table(bpy.context)
+    finally:
+        prefs.module_path = MODULE_DIR
+    start, bakes = ext.BakeJob.start, {}
+
+    def keeping(job):
+        kept = WORK / "presets" / job.preset / os.path.basename(job.glb)
+        kept.parent.mkdir(parents=True, exist_ok=True)
+        kept.write_bytes(Path(job.glb).read_bytes())
+        bakes[job.preset] = {"glb": str(kept)}
+        start(job)
+
+    ext.BakeJob.start = keeping
+    try:
+        for name in table["presets"]:
+            select(boxes, active=base)
+            out = WORK / "presets" / name / "blender.agg"
+            t0 = time.perf_counter()
+            r = bpy.ops.aggtool.bake_aggregate(preset=name, filepath=str(out), **PRESET_OVERRIDES)
+            bakes[name].update(result=sorted(r), agg=str(out), command=ext.last_bake["command"],
+                               seconds=time.perf_counter() - t0)
+    finally:
+        ext.BakeJob.start = start
+    result["presets"] = {"table": table, "cli_table": cli_table, "overrides": PRESET_OVERRIDES,
+                         "bakes": bakes}
 
 
 Path(RESULT).write_text(json.dumps(result, indent=1))

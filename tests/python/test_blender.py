@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from aggtool_cli import ROOT, find_aggtool, run
+from test_presets import same_settings
 
 EXTENSION = ROOT / "integrations" / "blender" / "aggtool_lod"
 SESSION = Path(__file__).with_name("blender_session.py")
@@ -141,9 +142,23 @@ def test_bake_headless(session):
     lo, hi = b["expected_bounds"]
     assert info["bounds"][0] == pytest.approx(lo, abs=1e-4) and info["bounds"][1] == pytest.approx(hi, abs=1e-4), \
         (info["bounds"], b["expected_bounds"])
-    # The panel's preset fills its settings with the preset's flags.
-    assert session["panel_preset"] == dict(max_res=512, min_res=4, samples=64, aiv_res=32, aiv_rays=64,
-                                           abv_res=64, abv_rays=2, abv_full_res=64)
+    # The command: the preset by name and the settings given explicitly, nothing else (the
+    # preset's values are the tool's).
+    c = b["command"]
+    flags = c[c.index("--preset"):c.index("--progress-json")]
+    assert flags == ["--preset", "draft", "--max-res", "16", "--samples", "8", "--aiv-res", "8",
+                     "--aiv-rays", "4", "--abv-res", "8", "--abv-full-res", "8"], c
+    # The panel: its menu is the tool's presets (the default first), its values the preset's
+    # as the tool has them; a ticked setting starts from the preset's value, and only it
+    # reaches the operator.
+    table = json.loads(run("presets", "--json", cwd=work))
+    names = [p["name"] for p in table["presets"]]
+    assert session["panel_menu"] == [table["default"]] + [n for n in names if n != table["default"]]
+    high = next(p["settings"] for p in table["presets"] if p["name"] == "high")
+    assert session["panel_override_start"] == high["max_res"]
+    assert session["panel_settings"] == {k: [32, True] if k == "max_res" else [high[k], False]
+                                         for k in session["panel_settings"]}
+    assert session["panel_operator_args"] == {"preset": "high", "max_res": 32}
 
 
 #: The preview's coverage (alpha > 0.5) against the boxes' silhouette projected by Blender's
@@ -201,6 +216,8 @@ def test_bad_input(session):
     assert "aggtool binary not found" in b["binary_pref_missing"] and "no/aggtool" in b["binary_pref_missing"], b
     assert "aggtool binary not found" in b["binary_none"] and "AGGTOOL" in b["binary_none"], b
     assert "aggtool convert failed" in b["bad_setting"] and "--max-res" in b["bad_setting"], b
+    assert "unknown bake preset 'fast'" in b["unknown_preset"] and "draft, default, high, max" in \
+        b["unknown_preset"], b
     assert "'Plain' has no aggtool_sidecar" in b["preview_no_sidecar"], b
     assert "gone.agg does not exist" in b["preview_missing_file"], b
     assert "module folder not found" in b["preview_no_module"], b
@@ -214,3 +231,39 @@ def test_cancel_kills_the_bake_and_writes_nothing(session):
     assert not c["finished_before_cancel"] and 0 < c["fraction_at_cancel"] < 1, c
     assert c["returncode"] != 0 and c["result"] == "cancelled", c
     assert c["files"] == [], c
+
+
+def test_presets_same_bytes_as_cli_and_python(session, aggtool_module):
+    """One settings source (issue 40): the extension's preset menu is the tool's table (read
+    from the Python module, or from `aggtool presets --json` without it), and every preset
+    bakes the same bytes through Blender's operator, `aggtool convert --preset` and
+    `aggtool.convert(preset=...)`, given the GLB the operator exported and the same
+    overrides."""
+    no_error(session, "presets")
+    p = session["presets"]
+    work = session["work"]
+    cli = json.loads(run("presets", "--json", cwd=work))
+    assert p["table"]["source"] == "the aggtool Python module", p["table"]["source"]
+    assert p["cli_table"]["source"].endswith("presets --json"), p["cli_table"]["source"]
+    for table in (p["table"], p["cli_table"]):
+        assert table["default"] == cli["default"]
+        assert table["presets"] == {e["name"]: {"summary": e["summary"], "settings": e["settings"]}
+                                    for e in cli["presets"]}
+    names = [e["name"] for e in cli["presets"]]
+    assert list(p["bakes"]) == names
+    overrides = p["overrides"]
+    flags = [str(a) for k, v in overrides.items() for a in ("--" + k.replace("_", "-"), v)]
+    for name in names:
+        b = p["bakes"][name]
+        assert b["result"] == ["FINISHED"], b
+        assert b["command"][b["command"].index("--preset"):-1] == ["--preset", name, *flags], b
+        glb = Path(b["glb"])
+        run("convert", glb, "-o", glb.with_name("cli.agg"), "--preset", name, *flags, cwd=work)
+        aggtool_module.convert(str(glb), str(glb.with_name("python.agg")), preset=name, **overrides)
+        blender = Path(b["agg"]).read_bytes()
+        assert glb.with_name("cli.agg").read_bytes() == blender, f"{name}: CLI and Blender differ"
+        assert glb.with_name("python.agg").read_bytes() == blender, f"{name}: Python and Blender differ"
+        settings = json.loads(run("inspect", b["agg"], "--json", cwd=work))["settings"]
+        preset = next(e["settings"] for e in cli["presets"] if e["name"] == name)
+        assert same_settings({k: settings[k] for k in preset}, dict(preset, **overrides)), name
+        assert aggtool_module.bake_settings(name, **overrides) == dict(preset, **overrides)

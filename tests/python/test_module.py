@@ -160,7 +160,7 @@ def test_convert_with_settings_and_progress(aggtool_module):
         assert calls and all(done <= total for _, done, total in calls)
         with pytest.raises(TypeError, match="max_rez"):
             aggtool.convert(str(tmp / "foliage.glb"), str(tmp / "u.agg"), max_rez=8)
-        with pytest.raises(aggtool.AggError, match="max"):
+        with pytest.raises(ValueError, match="max_res=7"):
             aggtool.convert(str(tmp / "foliage.glb"), str(tmp / "u.agg"), max_res=7)
         with pytest.raises(aggtool.AggError, match="missing.glb"):
             aggtool.convert(str(tmp / "missing.glb"))

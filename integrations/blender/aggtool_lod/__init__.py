@@ -9,6 +9,10 @@
   `aggtool` Python module from the scene camera into the image datablock "aggtool preview".
 - A panel in the 3D Viewport's sidebar, tab "aggtool": preset, settings, both operators.
 
+The presets are the tool's (`aggtool presets --json`, or `aggtool.preset_table()` from the
+Python module when it is importable): the menu lists them, the panel shows their values, and
+a bake passes `--preset NAME` and the settings the user overrode, nothing else.
+
 The binary: the add-on preference, else $AGGTOOL, else PATH. The Python module: importable
 `aggtool`, or the add-on preference naming a folder that holds it. README "Blender".
 """
@@ -23,36 +27,28 @@ import threading
 import time
 
 import bpy
-from bpy.props import EnumProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import (BoolProperty, EnumProperty, IntProperty, PointerProperty,
+                       StringProperty)
 from mathutils import Matrix, Vector
 
 #: The custom properties written on baked objects.
 SIDECAR = "aggtool_sidecar"
 BAKE_MATRIX = "aggtool_bake_matrix"
 
-#: The bake settings, named as `aggtool convert`'s flags with underscores.
+#: The bake settings the panel and the operator offer, named as the tool names them (`aggtool
+#: presets --json`, `aggtool.presets()`); each reaches `aggtool convert` as its flag
+#: (`--max-res`, ...) only when the user sets it, over the preset's value. The presets
+#: themselves, their values and the defaults are the tool's, read from it (`preset_table`).
 SETTINGS = ("max_res", "min_res", "samples", "aiv_res", "aiv_rays", "abv_res", "abv_rays",
             "abv_full_res")
 
-#: Presets as explicit flags (the command line has no --preset). "default" is `aggtool
-#: convert`'s own defaults; "draft" a seconds-long look; "high" doubles the finest level and
-#: the visibility rays; "max" goes to 1024³ with a ray per ABV cell up to 128³.
-PRESETS = {
-    "DRAFT": dict(max_res=32, min_res=4, samples=4, aiv_res=8, aiv_rays=4, abv_res=16,
-                  abv_rays=1, abv_full_res=32),
-    "DEFAULT": dict(max_res=256, min_res=4, samples=32, aiv_res=32, aiv_rays=32, abv_res=64,
-                    abv_rays=1, abv_full_res=64),
-    "HIGH": dict(max_res=512, min_res=4, samples=64, aiv_res=32, aiv_rays=64, abv_res=64,
-                 abv_rays=2, abv_full_res=64),
-    "MAX": dict(max_res=1024, min_res=4, samples=64, aiv_res=64, aiv_rays=64, abv_res=128,
-                abv_rays=4, abv_full_res=128),
-}
-PRESET_ITEMS = [
-    ("DRAFT", "Draft", "Quick look: 32³ finest level, few visibility rays"),
-    ("DEFAULT", "Default", "aggtool convert's defaults: 256³ finest level"),
-    ("HIGH", "High", "512³ finest level, twice the visibility rays"),
-    ("MAX", "Max", "1024³ finest level, the most visibility rays (slow, large)"),
-]
+#: Read tables of presets, by where they came from (the module's file, or the binary and its
+#: modification time), so that the menu does not run the tool at every redraw.
+_tables = {}
+
+#: The preset menu's items as last built: Blender needs the strings of a dynamic enum's
+#: items kept alive by the add-on.
+_preset_menu = []
 
 #: Blender's Z-up world to glTF's Y-up, as the glTF exporter converts (export_yup):
 #: (x, y, z) -> (x, z, -y). The .agg is in the exported glTF's space.
@@ -149,19 +145,73 @@ def import_module(context):
 # Bake
 
 
-def bake_settings(op):
-    """The operator's flags: the preset's, overridden by every setting given explicitly."""
-    settings = dict(PRESETS[op.preset])
-    for key in SETTINGS:
-        if op.properties.is_property_set(key):
-            settings[key] = getattr(op, key)
-    return settings
+def _normalised(table, source):
+    """`aggtool presets --json`'s object as {"default", "presets": {name: {"summary",
+    "settings"}}} in the tool's order, with where it came from."""
+    presets = {p["name"]: {"summary": p.get("summary", ""), "settings": dict(p["settings"])}
+               for p in table["presets"]}
+    if table["default"] not in presets or not all(k in p["settings"] for p in presets.values()
+                                                  for k in SETTINGS):
+        raise AggtoolError(f"the bake presets from {source} lack a setting this add-on "
+                           f"offers ({', '.join(SETTINGS)}): a newer add-on needs a newer tool")
+    return {"default": table["default"], "presets": presets, "source": source}
 
 
-def convert_flags(settings):
-    flags = []
-    for key in SETTINGS:
-        flags += ["--" + key.replace("_", "-"), str(settings[key])]
+def preset_table(context=None):
+    """The tool's bake presets: from the aggtool Python module if it is importable
+    (`aggtool.preset_table()`), else from the binary (`aggtool presets --json`). The add-on
+    keeps no copy, so a preset name bakes the same file here as on the command line.
+    AggtoolError when neither can be read."""
+    context = context or bpy.context
+    errors = []
+    try:
+        module = import_module(context)
+        key = ("module", getattr(module, "__file__", ""))
+        if key not in _tables:
+            _tables[key] = _normalised(module.preset_table(), "the aggtool Python module")
+        return _tables[key]
+    except (AggtoolError, AttributeError) as e:
+        errors.append(str(e))
+    binary = find_aggtool(context)
+    try:
+        key = ("cli", binary, os.path.getmtime(binary))
+    except OSError as e:
+        raise AggtoolError(f"cannot read the bake presets from {binary}: {e}") from None
+    if key not in _tables:
+        try:
+            r = subprocess.run([binary, "presets", "--json"], capture_output=True, text=True,
+                               timeout=60)
+            if r.returncode != 0:
+                raise AggtoolError(r.stderr.strip() or f"exit status {r.returncode}")
+            _tables[key] = _normalised(json.loads(r.stdout), f"{binary} presets --json")
+        except (OSError, ValueError, KeyError, TypeError, subprocess.TimeoutExpired,
+                AggtoolError) as e:
+            raise AggtoolError(f"cannot read the bake presets from {binary} (`aggtool presets "
+                               f"--json`): {e}; nor from the Python module: {errors[0]}") \
+                from None
+    return _tables[key]
+
+
+def resolve_preset(table, name):
+    """The preset's name as the tool spells it (any case; empty: the tool's default);
+    AggtoolError naming the presets there are."""
+    name = (name or "").strip().lower() or table["default"]
+    if name not in table["presets"]:
+        raise AggtoolError(f"unknown bake preset '{name}'; aggtool's presets are: "
+                           f"{', '.join(table['presets'])}")
+    return name
+
+
+def operator_overrides(op):
+    """The settings given explicitly to the operator: the user's overrides of the preset."""
+    return {key: getattr(op, key) for key in SETTINGS if op.properties.is_property_set(key)}
+
+
+def convert_flags(preset, overrides):
+    """`aggtool convert`'s flags: the preset by name, then each override as its flag."""
+    flags = ["--preset", preset]
+    for key, value in overrides.items():
+        flags += ["--" + key.replace("_", "-"), str(value)]
     return flags
 
 
@@ -197,11 +247,16 @@ class BakeJob:
     finished file is moved into place with one rename, so a cancelled or failed bake leaves
     nothing behind (convert itself also writes atomically)."""
 
-    def __init__(self, binary, objects, output, settings):
+    def __init__(self, binary, objects, output, preset, overrides, table):
         self.binary = binary
         self.objects = [o.name for o in objects]
         self.output = os.path.abspath(output)
-        self.settings = settings
+        self.preset = resolve_preset(table, preset)
+        self.overrides = dict(overrides)
+        #: What the tool will bake with (for the progress estimate only; the tool applies
+        #: the preset and the overrides itself).
+        self.settings = dict(table["presets"][self.preset]["settings"], **self.overrides)
+        settings = self.settings
         self.proc = None
         self.lines = queue.Queue()
         self.stderr = []
@@ -237,7 +292,7 @@ class BakeJob:
 
     def start(self):
         self.command = [self.binary, "convert", self.glb, "-o", self.tmp_agg,
-                        *convert_flags(self.settings), "--progress-json"]
+                        *convert_flags(self.preset, self.overrides), "--progress-json"]
         last_bake.clear()
         last_bake.update(command=self.command, progress=[], parsed=self.parsed,
                          output=self.output, result=None)
@@ -325,23 +380,42 @@ def store_sidecar(job):
             obj[BAKE_MATRIX] = [v for row in obj.matrix_world for v in row]
 
 
-def _setting_props(cls_annotations):
-    defaults = PRESETS["DEFAULT"]
-    hints = {
-        "max_res": ("Max resolution", "Finest level resolution (a power of two)", 1, 4096),
-        "min_res": ("Min resolution", "Coarsest level resolution (a power of two)", 1, 4096),
-        "samples": ("Samples", "Surface samples per voxel at the finest level", 1, 1 << 20),
-        "aiv_res": ("AIV resolution", "Interior-visibility map resolution per voxel", 2, 256),
-        "aiv_rays": ("AIV rays", "Interior-visibility rays per surface sample", 1, 1 << 16),
-        "abv_res": ("ABV resolution", "Boundary-visibility map resolution per face", 2, 256),
-        "abv_rays": ("ABV rays", "Boundary-visibility rays per direction cell", 1, 1 << 16),
-        "abv_full_res": ("ABV full resolution", "Finer levels share boundary-visibility rays "
-                         "among blocks of cells", 1, 4096),
-    }
+#: The settings' names, descriptions and ranges in the UI (their values are the tool's).
+SETTING_HINTS = {
+    "max_res": ("Max resolution", "Finest level resolution (a power of two)", 1, 4096),
+    "min_res": ("Min resolution", "Coarsest level resolution (a power of two)", 1, 4096),
+    "samples": ("Samples", "Surface samples per voxel at the finest level", 1, 1 << 20),
+    "aiv_res": ("AIV resolution", "Interior-visibility map resolution per voxel", 2, 256),
+    "aiv_rays": ("AIV rays", "Interior-visibility rays per surface sample", 1, 1 << 16),
+    "abv_res": ("ABV resolution", "Boundary-visibility map resolution per face", 2, 256),
+    "abv_rays": ("ABV rays", "Boundary-visibility rays per direction cell", 1, 1 << 16),
+    "abv_full_res": ("ABV full resolution", "Finer levels share boundary-visibility rays "
+                     "among blocks of cells", 1, 4096),
+}
+
+
+def _setting_props(cls_annotations, update=None):
+    """An IntProperty per setting. Its default is only the bottom of its range: a setting
+    reaches the tool only when set (the operator) or ticked (the panel), the rest is the
+    preset's, which the tool holds."""
     for key in SETTINGS:
-        name, desc, lo, hi = hints[key]
-        cls_annotations[key] = IntProperty(name=name, description=desc, default=defaults[key],
-                                           min=lo, max=hi)
+        name, desc, lo, hi = SETTING_HINTS[key]
+        cls_annotations[key] = IntProperty(name=name, description=desc + " (unset: the "
+                                           "preset's)", default=lo, min=lo, max=hi)
+
+
+def _preset_items(self, context):
+    """The preset menu, read from the tool (the default preset first: a dynamic enum's
+    default is its first item)."""
+    global _preset_menu
+    try:
+        table = preset_table(context)
+        names = [table["default"]] + [n for n in table["presets"] if n != table["default"]]
+        items = [(n, n.capitalize(), table["presets"][n]["summary"]) for n in names]
+    except AggtoolError as e:
+        items = [("default", "Default", f"aggtool's presets could not be read: {e}")]
+    _preset_menu = items
+    return items
 
 
 class AGGTOOL_OT_bake_aggregate(bpy.types.Operator):
@@ -351,8 +425,10 @@ class AGGTOOL_OT_bake_aggregate(bpy.types.Operator):
     bl_label = "Bake LoD Aggregate"
     bl_options = {"REGISTER"}
 
-    preset: EnumProperty(name="Preset", items=PRESET_ITEMS, default="DEFAULT",
-                         description="Bake settings; settings given explicitly override it")
+    preset: StringProperty(name="Preset", default="",
+                           description="An aggtool bake preset (`aggtool presets`); empty: "
+                                       "the tool's default. Settings given explicitly "
+                                       "override it")
     filepath: StringProperty(name="Output", subtype="FILE_PATH",
                              description="The .agg to write; empty: the output folder of the "
                                          "aggtool settings + the active object's name")
@@ -379,7 +455,8 @@ class AGGTOOL_OT_bake_aggregate(bpy.types.Operator):
         active = context.active_object if context.active_object in objects else objects[0]
         output = bpy.path.abspath(self.filepath) if self.filepath \
             else default_output(context, active.name)
-        job = BakeJob(binary, objects, output, bake_settings(self))
+        job = BakeJob(binary, objects, output, self.preset, operator_overrides(self),
+                      preset_table(context))
         try:
             job.export(context)
         except BaseException:
@@ -648,20 +725,53 @@ class AGGTOOL_OT_render_preview(bpy.types.Operator):
 # Settings and panel
 
 
-def _apply_preset(self, context):
-    for key, value in PRESETS[self.preset].items():
-        setattr(self, key, value)
+def _override_toggled(key):
+    """The update of the panel's override tick of `key`: ticked, the value starts from the
+    preset's (as the tool has it)."""
+    def update(self, context):
+        if getattr(self, "override_" + key):
+            try:
+                table = preset_table(context)
+                preset = table["presets"][resolve_preset(table, self.preset)]
+            except AggtoolError:
+                return
+            setattr(self, key, preset["settings"][key])
+    return update
+
+
+def panel_settings(context, settings):
+    """The panel's bake settings as {setting: (value, overridden)}: the preset's values
+    from the tool, and the user's ticked overrides."""
+    table = preset_table(context)
+    values = table["presets"][resolve_preset(table, settings.preset)]["settings"]
+    return {key: (getattr(settings, key), True) if getattr(settings, "override_" + key)
+            else (values[key], False) for key in SETTINGS}
+
+
+def panel_operator_args(settings):
+    """The bake operator's arguments from the panel: the preset and the ticked overrides
+    alone."""
+    args = {"preset": settings.preset}
+    args.update({key: getattr(settings, key) for key in SETTINGS
+                 if getattr(settings, "override_" + key)})
+    return args
 
 
 class AggtoolSettings(bpy.types.PropertyGroup):
-    preset: EnumProperty(name="Preset", items=PRESET_ITEMS, default="DEFAULT",
-                         update=_apply_preset,
-                         description="Fills the bake settings below")
+    preset: EnumProperty(name="Preset", items=_preset_items, default=0,
+                         description="aggtool's bake preset (read from the tool); ticked "
+                                     "settings below override it")
     output_dir: StringProperty(name="Output folder", default="//aggtool", subtype="DIR_PATH",
                                description="Where bakes are written, as OBJECT.agg")
     preview_samples: IntProperty(name="Preview samples", default=4, min=1, max=4096,
                                  description="Cones per pixel of the preview")
     _setting_props(__annotations__)
+    for _key in SETTINGS:
+        __annotations__["override_" + _key] = BoolProperty(
+            name="Override", default=False, update=_override_toggled(_key),
+            description=f"Bake with this {SETTING_HINTS[_key][0].lower()} instead of the "
+                        "preset's")
+    del _key
 
 
 class AGGTOOL_PT_panel(bpy.types.Panel):
@@ -675,13 +785,23 @@ class AGGTOOL_PT_panel(bpy.types.Panel):
         layout = self.layout
         layout.prop(s, "preset")
         col = layout.column(align=True)
-        for key in SETTINGS:
-            col.prop(s, key)
+        try:
+            shown = panel_settings(context, s)
+        except AggtoolError as e:
+            shown = None
+            col.label(text=str(e), icon="ERROR")
+        for key in SETTINGS if shown else ():
+            row = col.row(align=True)
+            row.prop(s, "override_" + key, text="")
+            value, overridden = shown[key]
+            if overridden:
+                row.prop(s, key)
+            else:
+                row.label(text=f"{SETTING_HINTS[key][0]}: {value}")
         layout.prop(s, "output_dir")
         op = layout.operator(AGGTOOL_OT_bake_aggregate.bl_idname, icon="RENDER_STILL")
-        op.preset = s.preset
-        for key in SETTINGS:
-            setattr(op, key, getattr(s, key))
+        for key, value in panel_operator_args(s).items():
+            setattr(op, key, value)
         obj = context.active_object
         if obj is not None and SIDECAR in obj:
             layout.label(text=str(obj[SIDECAR]), icon="FILE")

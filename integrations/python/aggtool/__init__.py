@@ -3,6 +3,7 @@
     import aggtool, numpy as np
     scene = aggtool.open("tree.agg")
     rgba = scene.trace(origins, directions, aperture=0.002, lights=aggtool.Lights(), seed=1)
+    aggtool.convert("tree.glb", "tree.agg", preset="draft", max_res=32)  # as `aggtool convert`
 
 `aggtool.format` is the schema's generated FlatBuffers reader (flatc --python), which works
 without the native module (see integrations/python/agg_info.py); everything else comes from
@@ -15,9 +16,12 @@ try:
         Lights,
         Scene,
         __version__,
+        bake_settings,
         cache_stats,
         convert,
         open,
+        preset_table,
+        presets,
         set_cache_mib,
     )
 except ImportError as _e:  # only the generated reader: the native module is not built here

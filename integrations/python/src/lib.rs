@@ -13,7 +13,11 @@
 //!   numpy arrays with the GIL released;
 //! - `aggtool.Lights(constant=(1, 1, 1), sun_direction=None, sun_irradiance=None)` and
 //!   `.set_environment(pixels (H, W, 3) float32, intensity=1, rotation_deg=0)`;
-//! - `aggtool.convert(source, output=None, progress=None, **settings)` → output path.
+//! - `aggtool.convert(source, output=None, preset="default", progress=None, **overrides)` →
+//!   output path; `aggtool.presets()` → {name: {setting: value}}, `aggtool.preset_table()`
+//!   (what `aggtool presets --json` prints) and
+//!   `aggtool.bake_settings(preset="default", **overrides)` → {setting: value}, from the
+//!   library's one preset table and settings mapping (`aggtool::bake`).
 //!
 //! Errors are `aggtool.AggError` (a `ValueError`) naming the file and the reason; wrong
 //! dtypes and shapes are `TypeError`/`ValueError` from the argument checks.
@@ -715,54 +719,132 @@ fn cache_stats(py: Python<'_>) -> PyResult<Bound<'_, pyo3::types::PyDict>> {
     Ok(d)
 }
 
-/// Bakes `source` (.gltf, .glb or .obj) into an aggregate at `output` (default: the source's
-/// path with `.agg`) and returns the output path. Settings as keyword arguments, named as
-/// `aggtool convert`'s flags with underscores (max_res, min_res, samples, aiv_res, aiv_rays,
-/// abv_res, abv_rays, abv_full_res, abv_windows, ndf_lobes, keep, energy, lossless). `progress`, if given,
-/// is called as progress(stage, done, total).
+/// A keyword argument of `convert` or `bake_settings` as the typed value
+/// `BakeSettings::with_value` takes: a bool, an integer (Python's or numpy's), a float, or a
+/// string read as `aggtool convert`'s flags are ("1%").
+fn setting_value(name: &str, v: &Bound<'_, PyAny>) -> PyResult<serde_json::Value> {
+    use pyo3::types::{PyBool, PyFloat, PyString};
+    use serde_json::Value;
+    // numpy's bool is not a subclass of Python's.
+    let numpy_bool = matches!(v.get_type().name()?.to_string().as_str(), "bool" | "bool_");
+    if v.is_instance_of::<PyBool>() || numpy_bool {
+        return Ok(Value::Bool(v.extract()?));
+    }
+    if v.is_instance_of::<PyFloat>() {
+        let f: f64 = v.extract()?;
+        return serde_json::Number::from_f64(f)
+            .map(Value::Number)
+            .ok_or_else(|| PyValueError::new_err(format!("{name}={f}: not a finite number")));
+    }
+    if v.is_instance_of::<PyString>() {
+        return Ok(Value::String(v.extract()?));
+    }
+    // Integers, numpy's among them (through __index__).
+    if let Ok(i) = v.extract::<i64>() {
+        return Ok(Value::from(i));
+    }
+    if let Ok(u) = v.extract::<u64>() {
+        return Ok(Value::from(u));
+    }
+    if v.hasattr("__index__")? {
+        return Err(PyValueError::new_err(format!("{name}={v}: out of range")));
+    }
+    Err(PyTypeError::new_err(format!(
+        "{name}: expected a bool, an integer, a float or a string, got {}",
+        v.get_type().name()?
+    )))
+}
+
+/// The settings of `preset` with the keyword arguments applied over them, through the one
+/// by-name mapping the command line's sweeps also use (`BakeSettings::from_preset`, which
+/// validates them together once all are set): an unknown name or a
+/// value of the wrong kind is a `TypeError`, an unknown preset or a value out of range a
+/// `ValueError`; each names what is valid.
+fn settings_of(
+    preset: &str,
+    overrides: Option<&Bound<'_, PyDict>>,
+) -> PyResult<aggtool::bake::BakeSettings> {
+    use aggtool::bake::{BakeSettings, SettingError};
+    let mut values = Vec::new();
+    if let Some(kw) = overrides {
+        for (k, v) in kw.iter() {
+            let name: String = k.extract()?;
+            let value = setting_value(&name, &v)?;
+            values.push((name, value));
+        }
+    }
+    BakeSettings::from_preset(preset, &values).map_err(|e| match e {
+        SettingError::Unknown { .. } | SettingError::Type { .. } => {
+            PyTypeError::new_err(e.to_string())
+        }
+        _ => PyValueError::new_err(e.to_string()),
+    })
+}
+
+/// A serialisable value as the Python object `json.loads` makes of it (dicts keep their
+/// order).
+fn to_python<'py>(py: Python<'py>, v: &impl serde::Serialize) -> PyResult<Bound<'py, PyAny>> {
+    let text = serde_json::to_string(v).map_err(|e| PyValueError::new_err(e.to_string()))?;
+    py.import("json")?.call_method1("loads", (text,))
+}
+
+/// The bake presets, cheapest first: {name: {setting: value}}, every setting of every preset
+/// (the names `convert` takes as keywords). The same table as `aggtool presets --json`.
 #[pyfunction]
-#[pyo3(signature = (source, output = None, progress = None, **settings))]
+fn presets<'py>(py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+    let table = aggtool::bake::PresetTable::new();
+    let d = PyDict::new(py);
+    for p in &table.presets {
+        d.set_item(p.name, to_python(py, &p.settings)?)?;
+    }
+    Ok(d.into_any())
+}
+
+/// The whole preset table, as `aggtool presets --json` prints it: {"default": name,
+/// "fields": [setting, ...], "presets": [{"name", "summary", "settings"}, ...]}, cheapest
+/// first (what the Blender extension's preset menu reads).
+#[pyfunction]
+fn preset_table(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
+    to_python(py, &aggtool::bake::PresetTable::new())
+}
+
+/// The settings `convert(source, preset=preset, **overrides)` would bake with, as a dict,
+/// checked as `convert` checks them (without baking anything).
+#[pyfunction]
+#[pyo3(signature = (preset = "default", **overrides))]
+fn bake_settings<'py>(
+    py: Python<'py>,
+    preset: &str,
+    overrides: Option<&Bound<'py, PyDict>>,
+) -> PyResult<Bound<'py, PyAny>> {
+    to_python(py, &settings_of(preset, overrides)?)
+}
+
+/// Bakes `source` (.gltf, .glb or .obj) into an aggregate at `output` (default: the source's
+/// path with `.agg`) and returns the output path: the same file `aggtool convert source -o
+/// output --preset PRESET` writes with the same settings. `preset` is one of `presets()`'s
+/// names; every other keyword overrides one setting of it, named as `presets()` names them
+/// (max_res, samples, aiv_rays, keep, lossless, compression, ...; see `bake_settings`).
+/// `progress`, if given, is called as progress(stage, done, total).
+#[pyfunction]
+#[pyo3(signature = (source, output = None, preset = "default", progress = None, **overrides))]
 fn convert(
     py: Python<'_>,
     source: PathBuf,
     output: Option<PathBuf>,
+    preset: &str,
     progress: Option<Py<PyAny>>,
-    settings: Option<&Bound<'_, PyDict>>,
+    overrides: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<PathBuf> {
-    let mut s = aggtool::bake::BakeSettings::default();
-    if let Some(kw) = settings {
-        for (k, v) in kw.iter() {
-            let key: String = k.extract()?;
-            match key.as_str() {
-                "max_res" => s.max_res = v.extract()?,
-                "min_res" => s.min_res = v.extract()?,
-                "samples" => s.samples = v.extract()?,
-                "aiv_res" => s.aiv_res = v.extract()?,
-                "aiv_rays" => s.aiv_rays = v.extract()?,
-                "abv_res" => s.abv_res = v.extract()?,
-                "abv_rays" => s.abv_rays = v.extract()?,
-                "abv_full_res" => s.abv_full_res = v.extract()?,
-                "abv_windows" => s.abv_windows = v.extract()?,
-                "ndf_lobes" => s.ndf_lobes = v.extract()?,
-                "keep" => s.keep = v.extract()?,
-                "energy" => s.energy = v.extract()?,
-                "lossless" => s.lossless = v.extract()?,
-                other => {
-                    return Err(PyTypeError::new_err(format!(
-                        "convert() got an unexpected setting {other:?}"
-                    )))
-                }
-            }
-        }
-    }
-    s.validate().map_err(agg_err)?;
+    let s = settings_of(preset, overrides)?;
     let output = output.unwrap_or_else(|| source.with_extension("agg"));
     let scene = aggtool::import::load(&source, Default::default())
         .map_err(|e| agg_err(format!("{}: {e}", source.display())))?;
+    // The file records its source's file name, as `aggtool convert` records it.
     let name = source
-        .file_stem()
+        .file_name()
         .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "asset".into());
+        .unwrap_or_default();
     let report = |stage: &str, done: u64, total: u64| {
         if let Some(cb) = &progress {
             Python::attach(|py| {
@@ -781,6 +863,9 @@ fn convert(
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(open, m)?)?;
     m.add_function(wrap_pyfunction!(convert, m)?)?;
+    m.add_function(wrap_pyfunction!(presets, m)?)?;
+    m.add_function(wrap_pyfunction!(preset_table, m)?)?;
+    m.add_function(wrap_pyfunction!(bake_settings, m)?)?;
     m.add_function(wrap_pyfunction!(set_cache_mib, m)?)?;
     m.add_function(wrap_pyfunction!(cache_stats, m)?)?;
     m.add_class::<Scene>()?;

@@ -231,7 +231,7 @@ pub struct BakeArgs {
     /// coarser truncation), default, high (twice the samples and the AIV rays, two ABV rays
     /// per cell, centred ABV windows), max (the paper's ablation control: 4 lobes, no
     /// truncation, quantization or compression). Flags given beside it override it.
-    #[arg(long, default_value = "default", value_parser = ["draft", "default", "high", "max"])]
+    #[arg(long, default_value = "default", value_parser = clap::builder::PossibleValuesParser::new(aggtool::bake::Preset::ALL.map(aggtool::bake::Preset::name)))]
     pub preset: String,
     /// Finest level resolution (a power of two); levels halve down to --min-res [preset
     /// default: 256; draft 64].
