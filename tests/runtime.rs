@@ -620,7 +620,8 @@ fn reservoir_shading_is_unbiased() {
 }
 
 /// Opening is lazy: nothing is prepared on open; a distant view prepares only coarse levels;
-/// a damaged block is found when a cone first needs its level, reported, and never read.
+/// a damaged block is found when a cone first needs it (or, in a file without the index's
+/// voxel keys, when its level is prepared), reported, and never read.
 #[test]
 fn opening_is_lazy_and_damage_is_reported() {
     let scene = generated("lattice", 2000);
@@ -651,19 +652,39 @@ fn opening_is_lazy_and_damage_is_reported() {
     let mut bad = bytes.clone();
     bad[64 + 200] ^= 0x40;
     assert!(Aggregate::from_bytes(bad.clone()).is_err());
-    let lod = LodScene::new(Aggregate::from_bytes_lazy(bad).unwrap());
+    let lod = LodScene::new(Aggregate::from_bytes_lazy(bad.clone()).unwrap());
     for l in 0..lod.level_count() {
         let _ = lod.prepare(l);
     }
+    // The levels' skeletons come from the index's voxel keys: no block is read yet.
+    assert!(lod.first_error().is_none(), "a skeleton read a block");
+    // Fine cones over the whole aggregate from near: the finest level, every block.
+    let near = Vec3::new(0.0, 0.0, 2.0) * (hi - lo).length();
+    let mut fine = |lod: &LodScene| {
+        let mut finite = true;
+        for i in 0..400 {
+            let (x, y) = ((i % 20) as f32 / 19.0, (i / 20) as f32 / 19.0);
+            let target = lo + (hi - lo) * Vec3::new(x, y, 0.5);
+            let d = (target - (c + near)).normalize();
+            let r = lod.trace(
+                &cone(c + near, d, 1e-5),
+                &lights,
+                &TraceSettings::default(),
+                &mut rng,
+            );
+            finite &= r.radiance.is_finite();
+        }
+        finite
+    };
+    assert!(fine(&lod), "a damaged block made a pixel non-finite");
     let e = lod.first_error().expect("the damage is found").to_string();
-    assert!(e.contains("level"), "{e}");
-    let r = lod.trace(
-        &cone(c + far, -far.normalize(), 1e-3),
-        &lights,
-        &TraceSettings::default(),
-        &mut rng,
-    );
-    assert!(r.radiance.is_finite());
+    assert!(e.contains("level 0") && e.contains("voxel block"), "{e}");
+    // A file without the keys (the blocks' path): preparing the level finds the damage.
+    let old = LodScene::new(Aggregate::from_bytes_lazy(bad).unwrap()).keys_from_blocks();
+    let _ = old.prepare(0);
+    let e = old.first_error().expect("the damage is found").to_string();
+    assert!(e.contains("level 0"), "{e}");
+    assert!(fine(&old));
 }
 
 /// The stratification tests' scene: a foliage bake at 16³, its lights and an 8×8 camera.
