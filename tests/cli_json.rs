@@ -57,14 +57,11 @@ fn tiny_agg(dir: &Path) {
     ));
 }
 
-#[test]
-fn json_reports_are_one_object_and_errors_too() {
-    let d = tempfile::tempdir().unwrap();
-    let p = d.path();
-    tiny_agg(p);
-    let render = [
-        "render",
-        "plane45.agg",
+/// `command INPUT` framed automatically at 8×8, 1 spp, written to `out`.
+fn tiny_view(command: &'static str, input: &'static str, out: &'static str) -> Vec<&'static str> {
+    vec![
+        command,
+        input,
         "--auto-view",
         "--width",
         "8",
@@ -73,26 +70,23 @@ fn json_reports_are_one_object_and_errors_too() {
         "--spp",
         "1",
         "-o",
-        "lod.exr",
-    ];
+        out,
+    ]
+}
+
+#[test]
+fn json_reports_are_one_object_and_errors_too() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    tiny_agg(p);
+    let render = tiny_view("render", "plane45.agg", "lod.exr");
+    let reference = tiny_view("reference", "plane45.glb", "ref.exr");
     let runs: &[&[&str]] = &[
         &["gen", "plane45", "-o", ".", "--triangles", "200"],
         &["info", "plane45.glb"],
         &["inspect", "plane45.agg"],
         &render,
-        &[
-            "reference",
-            "plane45.glb",
-            "--auto-view",
-            "--width",
-            "8",
-            "--height",
-            "8",
-            "--spp",
-            "1",
-            "-o",
-            "ref.exr",
-        ],
+        &reference,
         &["compare", "lod.exr", "ref.exr", "--diff", "d.png"],
         &["export", "plane45.glb", "-o", "exported"],
         &["flatten", "plane45.glb", "-o", "flat"],
@@ -151,20 +145,7 @@ fn quiet_prints_nothing_on_success_and_the_error_on_failure() {
     for args in [
         &["-q", "gen", "plane45", "-o", ".", "--triangles", "200"][..],
         &["inspect", "plane45.agg", "--quiet"],
-        &[
-            "render",
-            "plane45.agg",
-            "--auto-view",
-            "--width",
-            "8",
-            "--height",
-            "8",
-            "--spp",
-            "1",
-            "-o",
-            "q.exr",
-            "-q",
-        ],
+        &[tiny_view("render", "plane45.agg", "q.exr"), vec!["-q"]].concat(),
     ] {
         let o = aggtool(args, p);
         assert!(o.status.success(), "{args:?}");
