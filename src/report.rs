@@ -25,8 +25,12 @@ pub trait Report: fmt::Display {
 }
 
 impl<T: fmt::Display + Serialize> Report for T {
+    /// Through JSON text rather than `serde_json::to_value`, which widens an `f32` to the
+    /// nearest `f64` (0.95 became 0.949999988079071): written as text an `f32` is its
+    /// shortest decimal, as the Python module and the other bindings print it.
     fn to_json(&self) -> serde_json::Value {
-        serde_json::to_value(self)
+        serde_json::to_string(self)
+            .and_then(|s| serde_json::from_str(&s))
             .unwrap_or_else(|e| serde_json::json!({ "error": format!("report: {e}") }))
     }
 }
