@@ -25,14 +25,17 @@ pub trait Report: fmt::Display {
 }
 
 impl<T: fmt::Display + Serialize> Report for T {
-    /// Through JSON text rather than `serde_json::to_value`, which widens an `f32` to the
-    /// nearest `f64` (0.95 became 0.949999988079071): written as text an `f32` is its
-    /// shortest decimal, as the Python module and the other bindings print it.
     fn to_json(&self) -> serde_json::Value {
-        serde_json::to_string(self)
-            .and_then(|s| serde_json::from_str(&s))
-            .unwrap_or_else(|e| serde_json::json!({ "error": format!("report: {e}") }))
+        json_value(self).unwrap_or_else(|e| serde_json::json!({ "error": format!("report: {e}") }))
     }
+}
+
+/// `v` as a JSON value, through JSON text rather than `serde_json::to_value`, which widens an
+/// `f32` to the nearest `f64` (0.95 became 0.949999988079071): as text an `f32` is its
+/// shortest decimal. The command line and the Python module both use it, so they print the
+/// same numbers.
+pub fn json_value<T: Serialize + ?Sized>(v: &T) -> serde_json::Result<serde_json::Value> {
+    serde_json::from_str(&serde_json::to_string(v)?)
 }
 
 /// A callback for informational lines a long command says as it goes (one line a call, no

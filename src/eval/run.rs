@@ -228,7 +228,7 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
             Ok(EvalReport {
                 study: "budget",
                 table,
-                results: serde_json::to_value(&all)?,
+                results: crate::report::json_value(&all)?,
                 outputs,
             })
         }
@@ -274,7 +274,7 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
             Ok(EvalReport {
                 study: "speed",
                 table,
-                results: serde_json::to_value(&rows)?,
+                results: crate::report::json_value(&rows)?,
                 outputs,
             })
         }
@@ -318,7 +318,7 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
             Ok(EvalReport {
                 study: "quality",
                 table,
-                results: serde_json::to_value(&all)?,
+                results: crate::report::json_value(&all)?,
                 outputs,
             })
         }

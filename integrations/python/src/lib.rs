@@ -366,7 +366,7 @@ impl Scene {
         let summary = |p: &std::path::Path| -> PyResult<serde_json::Value> {
             let agg = aggtool::format::Aggregate::open(p)
                 .map_err(|e| agg_err(format!("{}: {e}", p.display())))?;
-            serde_json::to_value(aggtool::inspect::summary(&agg, p)).map_err(agg_err)
+            aggtool::report::json_value(&aggtool::inspect::summary(&agg, p)).map_err(agg_err)
         };
         let json = match &self.scene {
             Opened::Aggregate(_) => summary(&self.path)?,
