@@ -158,7 +158,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             ppm.push((s.clamp(0.0, 1.0) * 255.0 + 0.5) as u8);
         }
     }
-    aggtool::util::atomic::write_bytes_atomic(&out, &ppm)?;
+    aggtool::util::write_bytes_atomic(&out, &ppm)?;
     println!(
         "host: {} ({} levels), {size}×{size} at {spp} cones/pixel in {seconds:.2} s; mean {:.4} {:.4} {:.4}, mean coverage {:.3}; levels prepared {:?}",
         path.display(),

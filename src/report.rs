@@ -125,7 +125,7 @@ pub struct ErrorReport {
 
 impl ErrorReport {
     /// The report of `e`, whose kind the caller found (the command line classifies by the
-    /// error types of the stages that failed: [`crate::assembly::classify`]).
+    /// error types of the stages that failed).
     pub fn new(e: &anyhow::Error, kind: ErrorKind) -> ErrorReport {
         ErrorReport {
             error: e.to_string(),
@@ -208,8 +208,8 @@ impl fmt::Display for Written {
     }
 }
 
-/// Writes `contents` to `path` atomically ([`crate::util::atomic::write_bytes_atomic`]); a
+/// Writes `contents` to `path` atomically ([`crate::util::write_bytes_atomic`]); a
 /// failure is an output error naming the file.
 pub fn write_output(path: &std::path::Path, contents: impl AsRef<[u8]>) -> anyhow::Result<()> {
-    crate::util::atomic::write_bytes_atomic(path, contents.as_ref()).map_err(output)
+    crate::util::write_bytes_atomic(path, contents.as_ref()).map_err(output)
 }

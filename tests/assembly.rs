@@ -83,7 +83,7 @@ fn manifest(dir: &Path, name: &str, assets: &[(&str, &str)], inst: &[(&str, Affi
         .collect();
     let instances: Vec<_> = inst
         .iter()
-        .map(|(id, m)| serde_json::json!({ "asset": id, "matrix": assembly::manifest::matrix_json(m) }))
+        .map(|(id, m)| serde_json::json!({ "asset": id, "matrix": assembly::matrix_json(m) }))
         .collect();
     let p = dir.join(name);
     std::fs::write(
@@ -1179,7 +1179,7 @@ fn command_line_hybrid_and_no_mesh() {
         "nomesh.exr",
         "--no-mesh",
     ]);
-    let v = aggtool::render::view::View::load(&d.join("near.json")).unwrap();
+    let v = aggtool::render::View::load(&d.join("near.json")).unwrap();
     let lib = assembly::render(
         &Assembly::open(&p).unwrap(),
         &v.camera(),

@@ -38,12 +38,12 @@ fn foliage_bytes() -> Vec<u8> {
 fn view(lod: &LodScene, size: u32, spp: u32) -> View {
     let (lo, hi) = lod.bounds().unwrap();
     let mut v = View::framing(0.5 * (lo + hi), 0.5 * (hi - lo).length(), size, size, spp);
-    v.environment = Some(aggtool::render::view::EnvironmentDesc::Constant {
-        constant: aggtool::render::view::Rgb::Rgb([0.4, 0.5, 0.7]),
+    v.environment = Some(aggtool::render::EnvironmentDesc::Constant {
+        constant: aggtool::render::Rgb::Rgb([0.4, 0.5, 0.7]),
     });
-    v.sun = Some(aggtool::render::view::SunDesc {
+    v.sun = Some(aggtool::render::SunDesc {
         direction: [0.3, 1.0, 0.5],
-        irradiance: aggtool::render::view::Rgb::Scalar(2.0),
+        irradiance: aggtool::render::Rgb::Scalar(2.0),
     });
     v
 }

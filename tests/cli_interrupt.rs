@@ -1,6 +1,6 @@
 //! `aggtool convert` interrupted (issue 40's defect: SIGTERM during a convert left
 //! `.NAME.agg.PID.tmp` beside the asset). The write's temporary file is registered
-//! (`util::atomic::LiveTemp`) and the command line's handler removes it and exits with 130.
+//! (`util::LiveTemp`) and the command line's handler removes it and exits with 130.
 //! The test runs the built binary, as a user's shell or a farm's scheduler would signal it.
 
 #![cfg(unix)]
@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use common::{aggtool, ok};
 
-/// Exit status of an interrupted command (`util::atomic::INTERRUPTED_EXIT_CODE`).
+/// Exit status of an interrupted command (`util::INTERRUPTED_EXIT_CODE`).
 const INTERRUPTED: i32 = 130;
 
 /// Margins: the temporary file appears once the asset is imported (well under a second for

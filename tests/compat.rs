@@ -39,12 +39,12 @@ fn open(name: &str) -> Aggregate {
 fn render(agg: Aggregate) -> (Vec3, [Vec3; 3]) {
     let (lo, hi) = agg.bounds();
     let mut v = View::framing(0.5 * (lo + hi), 0.5 * (hi - lo).length(), 16, 16, 4);
-    v.environment = Some(aggtool::render::view::EnvironmentDesc::Constant {
-        constant: aggtool::render::view::Rgb::Rgb([0.4, 0.5, 0.7]),
+    v.environment = Some(aggtool::render::EnvironmentDesc::Constant {
+        constant: aggtool::render::Rgb::Rgb([0.4, 0.5, 0.7]),
     });
-    v.sun = Some(aggtool::render::view::SunDesc {
+    v.sun = Some(aggtool::render::SunDesc {
         direction: [0.3, 1.0, 0.5],
-        irradiance: aggtool::render::view::Rgb::Scalar(2.0),
+        irradiance: aggtool::render::Rgb::Scalar(2.0),
     });
     let lights = v.lights().unwrap();
     let lod = LodScene::new(agg);
@@ -89,7 +89,7 @@ fn format_1_3_file_still_reads_and_renders_the_same() {
         .map(|l| (agg.counts(l).voxels, agg.counts(l).faces))
         .collect();
     assert_eq!(counts, [(133, 220), (37, 80), (8, 24)]);
-    assert!(aggtool::format::read::exercise(&agg) > 0);
+    assert!(aggtool::format::exercise(&agg) > 0);
     let (mean, px) = render(agg);
     if std::env::var_os("AGGTOOL_PRINT").is_some() {
         eprintln!(
@@ -167,7 +167,7 @@ fn format_1_0_to_1_2_files_still_read_and_render_the_same() {
         let got: Vec<(u64, u64)> = (0..agg.level_count())
             .map(|l| (agg.counts(l).voxels, agg.counts(l).faces))
             .collect();
-        assert!(aggtool::format::read::exercise(&agg) > 0);
+        assert!(aggtool::format::exercise(&agg) > 0);
         let (mean, px) = render(agg);
         if print {
             eprintln!(
@@ -196,7 +196,7 @@ fn format_1_4_quantized_file_renders_as_the_float_one() {
     for l in 0..agg.level_count() {
         assert!(agg.component_bytes(l).1, "level {l} is not quantized");
     }
-    assert!(aggtool::format::read::exercise(&agg) > 0);
+    assert!(aggtool::format::exercise(&agg) > 0);
     let (mean, px) = render(agg);
     let (float_mean, float_px) = render(open("foliage-1.3.agg"));
     if std::env::var_os("AGGTOOL_PRINT").is_some() {
@@ -235,7 +235,7 @@ fn format_1_5_compressed_file_renders_as_the_1_4_one() {
         let (stored, inflated) = z.stored_and_inflated_bytes(l);
         assert!(stored < inflated, "level {l}: {stored} of {inflated} bytes");
     }
-    assert!(aggtool::format::read::exercise(&z) > 0);
+    assert!(aggtool::format::exercise(&z) > 0);
     let (mean, px) = render(z);
     let (mean4, px4) = render(q);
     assert_eq!(mean, mean4);

@@ -553,7 +553,7 @@ fn damaged_files_never_panic() {
 /// `runs` copies of `bytes` with one to four random bytes damaged, read without checksums.
 fn damage(bytes: &[u8], runs: usize) {
     let good = Aggregate::from_bytes(bytes.to_vec()).unwrap();
-    assert!(aggtool::format::read::exercise(&good) > 0);
+    assert!(aggtool::format::exercise(&good) > 0);
     let mut rng = aggtool::math::rng::Pcg32::new(7, 1);
     let (mut refused, mut read, mut lazy_read) = (0, 0, 0u32);
     for _ in 0..runs {
@@ -569,12 +569,12 @@ fn damage(bytes: &[u8], runs: usize) {
         // Read lazily (tree shapes not walked), the damage reaches the tree look-ups, which
         // must stay in bounds; a non-finite coefficient is counted there, not asserted on.
         if let Ok(a) = Aggregate::from_bytes_lazy_ignoring_checksums(b.clone()) {
-            let (n, _) = aggtool::math::numerics::counting(|| aggtool::format::read::exercise(&a));
+            let (n, _) = aggtool::math::numerics::counting(|| aggtool::format::exercise(&a));
             lazy_read += (n > 0) as u32;
         }
         match Aggregate::from_bytes_ignoring_checksums(b) {
             Ok(a) => {
-                aggtool::format::read::exercise(&a);
+                aggtool::format::exercise(&a);
                 read += 1;
             }
             Err(_) => refused += 1,
@@ -600,7 +600,7 @@ fn fuzz_regressions_never_panic() {
         let bytes = std::fs::read(entry.unwrap().path()).unwrap();
         assert!(Aggregate::from_bytes(bytes.clone()).is_err());
         if let Ok(a) = Aggregate::from_bytes_ignoring_checksums(bytes) {
-            aggtool::format::read::exercise(&a);
+            aggtool::format::exercise(&a);
         }
         n += 1;
     }

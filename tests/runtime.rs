@@ -237,12 +237,12 @@ fn volume_baseline_leaks_through_a_plane_as_beer_lambert_says() {
 fn view_of(scene: &Scene, size: u32, spp: u32) -> View {
     let (c, r) = scene.bounding_sphere();
     let mut v = View::framing(c, r, size, size, spp);
-    v.environment = Some(aggtool::render::view::EnvironmentDesc::Constant {
-        constant: aggtool::render::view::Rgb::Rgb([0.4, 0.5, 0.7]),
+    v.environment = Some(aggtool::render::EnvironmentDesc::Constant {
+        constant: aggtool::render::Rgb::Rgb([0.4, 0.5, 0.7]),
     });
-    v.sun = Some(aggtool::render::view::SunDesc {
+    v.sun = Some(aggtool::render::SunDesc {
         direction: [0.3, 1.0, 0.5],
-        irradiance: aggtool::render::view::Rgb::Scalar(2.0),
+        irradiance: aggtool::render::Rgb::Scalar(2.0),
     });
     v
 }

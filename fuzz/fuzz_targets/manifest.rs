@@ -1,4 +1,4 @@
-//! Fuzzes the assembly manifest parser (`aggtool::assembly::manifest::Manifest::parse`): any
+//! Fuzzes the assembly manifest parser (`aggtool::assembly::Manifest::parse`): any
 //! bytes must give a clean `ManifestError` or a manifest whose every instance can be read
 //! (asset index in range, a finite, invertible transform) without panicking.
 //!
@@ -12,7 +12,7 @@
 
 use std::path::Path;
 
-use aggtool::assembly::manifest::Manifest;
+use aggtool::assembly::Manifest;
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

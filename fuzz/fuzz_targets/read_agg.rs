@@ -16,6 +16,6 @@ use libfuzzer_sys::fuzz_target;
 fuzz_target!(|data: &[u8]| {
     let _ = aggtool::format::Aggregate::from_bytes(data.to_vec());
     if let Ok(agg) = aggtool::format::Aggregate::from_bytes_ignoring_checksums(data.to_vec()) {
-        aggtool::format::read::exercise(&agg);
+        aggtool::format::exercise(&agg);
     }
 });

@@ -1,20 +1,20 @@
 //! Assemblies: scenes of many instances of a few assets, read from a manifest
-//! ([`manifest`]), rendered with the LoD runtime and with the reference renderer.
+//! ([`Manifest`]), rendered with the LoD runtime and with the reference renderer.
 
 pub mod bake;
 pub mod city;
 pub mod forest;
 pub mod generate;
-pub mod hybrid;
-pub mod lod;
-pub mod manifest;
+mod hybrid;
+mod lod;
+mod manifest;
 pub mod mesh;
 mod opened;
 pub mod render_file;
 
-pub use hybrid::Representation;
-pub use lod::{level_map, render, Assembly, AssemblyError, Drawn, FirstHit};
-pub use manifest::{Asset, Manifest, ManifestError};
+pub use hybrid::*;
+pub use lod::*;
+pub use manifest::*;
 pub use opened::{OpenError, Opened};
 
 /// Whether a path names a manifest (a `.json` file) rather than an asset or an aggregate: what

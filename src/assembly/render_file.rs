@@ -10,7 +10,7 @@ use serde::Serialize;
 
 use super::{Assembly, Representation};
 use crate::film::ImageStats;
-use crate::render::view::{ImageFiles, View, ViewRequest};
+use crate::render::{ImageFiles, View, ViewRequest};
 use crate::report::{mib, usage};
 use crate::runtime::{BlockCache, CacheStats, LodScene, PrimitiveKind, TraceSettings};
 use crate::util::Progress;

@@ -72,7 +72,7 @@ pub fn convert(
     settings.bake.validate().map_err(usage)?;
     let out = settings.output_for(asset);
     for p in std::iter::once(out.as_path()).chain(settings.report.as_deref()) {
-        crate::util::atomic::check_destination(p)
+        crate::util::check_destination(p)
             .map_err(|e| crate::report::output(format!("cannot write {}: {e}", p.display())))?;
     }
     let t0 = Instant::now();
@@ -95,8 +95,7 @@ pub fn convert(
     let mut report_file = None;
     if let Some(p) = &settings.report {
         let json = serde_json::to_string_pretty(&bake)?;
-        crate::util::atomic::write_bytes_atomic(p, json.as_bytes())
-            .map_err(crate::report::output)?;
+        crate::util::write_bytes_atomic(p, json.as_bytes()).map_err(crate::report::output)?;
         report_file = Some(p.display().to_string());
     }
     Ok(ConvertReport {

@@ -9,13 +9,13 @@ pub mod boundary;
 pub mod boundary_visibility;
 pub mod convert;
 pub mod level;
-pub mod pipeline;
+mod pipeline;
 pub mod primitive;
 pub mod sampling;
 pub mod visibility;
 pub mod voxelize;
 
-pub use pipeline::{bake_shard_to_file, bake_to_file, BakeReport};
+pub use pipeline::*;
 
 use crate::absdf::estimate::EstimateSettings;
 use level::LevelSettings;

@@ -22,7 +22,7 @@ use crate::format::{VoxelData, Writer};
 use crate::scene::Scene;
 use crate::spatial::{Ellipsoid, Grid};
 use crate::trace::Accel;
-use crate::util::progress::{Progress, StageCounter};
+use crate::util::{Progress, StageCounter};
 
 /// Voxels per block: about 1 MiB of records, lobes, moments and trees inflated, the unit the
 /// runtime's block cache prepares and evicts. 4096 made a block 4 MiB prepared, and a cache
@@ -466,7 +466,7 @@ pub fn bake_to_file(
         source: e,
     };
     // Before the bake, not after it: a folder given as the output fails now.
-    crate::util::atomic::check_destination(out).map_err(io)?;
+    crate::util::check_destination(out).map_err(io)?;
     let t_start = Instant::now();
     let mut writer = Writer::create(out).map_err(io)?;
     writer.set_compression(settings.compression);
@@ -531,7 +531,7 @@ pub fn bake_shard_to_file(
         path: out.display().to_string(),
         source: e,
     };
-    crate::util::atomic::check_destination(out).map_err(io)?;
+    crate::util::check_destination(out).map_err(io)?;
     let t_start = Instant::now();
     let mut writer = PartWriter::create(out, settings.compression).map_err(io)?;
     let b = bake_levels(

@@ -14,7 +14,7 @@ use clap::{Parser, Subcommand};
 
 use aggtool::assembly::{self, render_file::render_file};
 use aggtool::import::ImportOptions;
-use aggtool::render::view::ImageFiles;
+use aggtool::render::ImageFiles;
 use aggtool::report::{ErrorKind, ErrorReport, Failure, Report, Written};
 use aggtool::tables::fit::{self, BuildSettings};
 use aggtool::util::Progress;
@@ -505,7 +505,7 @@ fn main() -> ExitCode {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
     // SIGTERM and SIGINT remove the temporary files of unfinished writes, then exit 130.
-    if let Err(e) = aggtool::util::atomic::clean_up_on_interrupt() {
+    if let Err(e) = aggtool::util::clean_up_on_interrupt() {
         eprintln!("warning: cannot handle SIGTERM and SIGINT: {e}");
     }
     let cli = match Cli::try_parse() {
@@ -571,7 +571,7 @@ fn classify(e: &anyhow::Error) -> ErrorKind {
 
 fn kind_of(cause: &(dyn std::error::Error + 'static)) -> Option<ErrorKind> {
     use aggtool::assembly::bake::AssembleError;
-    use aggtool::bake::pipeline::BakeError;
+    use aggtool::bake::BakeError;
     use aggtool::film::ImageError;
     use aggtool::format::part::MergeError;
     use aggtool::scene::export::ExportError;

@@ -65,7 +65,7 @@ use crate::math::frame::Frame;
 use crate::math::rng::Pcg32;
 use crate::math::sampling::{power_heuristic, Sampler};
 use crate::render::compare::compare;
-use crate::render::view::View;
+use crate::render::View;
 use crate::runtime::{Cone, LodScene, Occlusion, TraceSettings, VoxelHandle};
 use crate::scene::Scene;
 use crate::spatial::{morton3, Grid};

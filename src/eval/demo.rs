@@ -15,7 +15,7 @@ use crate::gen::{self, GenSettings};
 use crate::render::compare::{compare, difference_image};
 use crate::render::label::with_caption;
 use crate::render::reference::{self, ReferenceSettings};
-use crate::render::view::{EnvironmentDesc, Rgb, SunDesc, View};
+use crate::render::{EnvironmentDesc, Rgb, SunDesc, View};
 use crate::runtime::{LodScene, TraceSettings};
 use crate::trace::Accel;
 use crate::util::Progress;

@@ -36,7 +36,7 @@ use crate::film::Image;
 use crate::format::Aggregate;
 use crate::render::compare::{compare, difference_image};
 use crate::render::reference::{self, ReferenceSettings};
-use crate::render::view::{EnvironmentDesc, Rgb, SunDesc, View};
+use crate::render::{EnvironmentDesc, Rgb, SunDesc, View};
 use crate::runtime::{LodScene, PrimitiveKind, TraceSettings};
 use crate::scene::Scene;
 use crate::trace::Accel;

@@ -33,11 +33,11 @@ use crate::film::Image;
 use crate::format::encode::ComponentBytes;
 use crate::render::compare::compare;
 use crate::render::reference::{self, ReferenceSettings};
-use crate::render::view::View;
+use crate::render::View;
 use crate::runtime::{LodScene, TraceSettings};
 use crate::scene::Scene;
 use crate::trace::Accel;
-use crate::util::atomic::write_bytes_atomic;
+use crate::util::write_bytes_atomic;
 use crate::util::Progress;
 
 /// One `--vary NAME=V1,V2,...`: a [`BakeSettings`] field (as

@@ -21,7 +21,7 @@ use rayon::prelude::*;
 
 use crate::math::numerics::non_finite_count;
 use crate::math::rng::{mix64, Pcg32};
-use crate::util::progress::{Progress, StageCounter};
+use crate::util::{Progress, StageCounter};
 
 /// Tile edge of the parallel loop.
 const TILE: u32 = 16;

@@ -30,19 +30,19 @@ pub mod encode;
 mod level;
 pub mod part;
 pub mod quantize;
-pub mod read;
+mod read;
 pub(crate) mod settings;
 
 pub use aggregate_generated::aggtool::format as fb;
 pub use level::{FaceData, LevelData, VoxelData};
-pub use read::{Aggregate, AivMap, LoadedBlock, VoxelRef};
+pub use read::*;
 pub use settings::{AivWeighting, RecordedSettings};
 
 use std::fs::File;
 use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
-use crate::util::atomic::LiveTemp;
+use crate::util::LiveTemp;
 
 /// The file's first eight bytes.
 pub const MAGIC: [u8; 8] = [0x89, b'A', b'G', b'G', b'\r', b'\n', 0x1a, b'\n'];
@@ -333,7 +333,7 @@ pub struct Writer {
 /// A temporary file beside `dest` (its folder created if needed), named after it (`fallback`
 /// when `dest` has no file name), for writes that are renamed into place when complete;
 /// registered for removal on SIGTERM and SIGINT while it lives
-/// ([`crate::util::atomic::LiveTemp`]).
+/// ([`crate::util::LiveTemp`]).
 pub(crate) fn temp_beside(
     dest: &Path,
     fallback: &str,

@@ -181,7 +181,7 @@ impl PartMeta {
 /// [`PartWriter::finish`]; dropped unfinished, it leaves nothing).
 pub struct PartWriter {
     file: Option<BufWriter<File>>,
-    tmp: crate::util::atomic::LiveTemp,
+    tmp: crate::util::LiveTemp,
     dest: PathBuf,
     pos: u64,
     compression: i32,

@@ -10,7 +10,7 @@
 //!   `ALPHA_MIN` and dark colours keep their relative precision (unorm16 would not).
 //!
 //! Nothing decodes to NaN or out of range: the encoder clamps to the stored ranges, the
-//! verifier ([`crate::format::read`]) refuses any other bit pattern (non-finite or negative
+//! verifier ([`crate::format::Aggregate`]'s) refuses any other bit pattern (non-finite or negative
 //! binary16, α above one, a quaternion far from unit length), and the decoder normalises the
 //! quaternion.
 

@@ -6,6 +6,6 @@
 pub mod compare;
 pub mod label;
 pub mod reference;
-pub mod view;
+mod view;
 
-pub use view::View;
+pub use view::*;

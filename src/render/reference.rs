@@ -155,7 +155,7 @@ pub struct ReferenceReport {
     /// Peak resident memory, as a line, where the platform tells it.
     pub peak_memory: Option<String>,
     /// The files written.
-    pub output: crate::render::view::ImageFiles,
+    pub output: crate::render::ImageFiles,
 }
 
 /// Renders `scene` as `view` says and writes `files` (the PNG at `exposure` stops); `input`
@@ -163,8 +163,8 @@ pub struct ReferenceReport {
 pub fn render_to_files(
     scene: &Scene,
     input: String,
-    view: &crate::render::view::View,
-    files: &crate::render::view::ImageFiles,
+    view: &crate::render::View,
+    files: &crate::render::ImageFiles,
     exposure: f32,
     progress: Progress,
 ) -> anyhow::Result<ReferenceReport> {

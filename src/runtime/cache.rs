@@ -3,7 +3,7 @@
 //!
 //! An aggregate's levels are stored as blocks of voxels and of boundary faces (a Morton range
 //! each: at most 1024 voxels in bakes of this version, 4096 before; see
-//! `bake::pipeline::BLOCK_VOXELS`). A level keeps only its skeleton resident (the occupancy
+//! `bake::BLOCK_VOXELS`). A level keeps only its skeleton resident (the occupancy
 //! hierarchy, the bricks and the block ranges: a few bytes a voxel); a block is inflated, verified and prepared (hit and weight records, the ABSDFs of
 //! the voxels shaded) the first time a cone needs it, into a slot of its level, and stays
 //! there until the cache evicts it. Eviction is CLOCK (second chance): every access sets the

@@ -15,9 +15,9 @@ use glam::{IVec3, Vec3};
 
 use super::level::{Brick, Level, Voxels, BRICK, MAX_GRANULARITY};
 use super::{Cone, LodScene, PrimitiveKind, TraceSettings, VoxelHandle};
-use crate::spatial::dda::entry_axis;
-use crate::spatial::ellipsoid::AreaCase;
-use crate::spatial::face::entry_face;
+use crate::spatial::entry_axis;
+use crate::spatial::entry_face;
+use crate::spatial::AreaCase;
 use crate::spatial::{box_interval, box_projected_area, truncated_entry, Dda};
 
 /// A primitive the cone met.

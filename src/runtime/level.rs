@@ -25,11 +25,11 @@ use glam::{IVec3, Mat3, UVec3, Vec3};
 
 use super::cache::{BlockCache, Slot};
 use crate::absdf::Absdf;
-use crate::format::read::FaceRef;
+use crate::format::FaceRef;
 use crate::format::{Aggregate, AivMap, LoadedBlock, VoxelRef};
 use crate::math::microfacet::m5_exact;
 use crate::math::sggx::Sggx;
-use crate::spatial::ellipsoid::AreaCase;
+use crate::spatial::AreaCase;
 use crate::spatial::{morton3, Ellipsoid, Grid, TruncatedEllipsoid};
 
 /// A hasher for Morton keys: one mixing step instead of SipHash.
@@ -143,7 +143,7 @@ impl Voxels {
         // the scene, which outlives every block: `Level` empties its slots when dropped, and
         // handles borrow the scene) or in `_loaded`'s heap buffer, which does not move when
         // `Voxels` does and is dropped after the records (field order).
-        let block: crate::format::read::VoxelBlock<'static> = unsafe { std::mem::transmute(block) };
+        let block: crate::format::VoxelBlock<'static> = unsafe { std::mem::transmute(block) };
         let n = block.len();
         let mut hit = Vec::with_capacity(n);
         let mut weight = Vec::with_capacity(n);
@@ -286,7 +286,7 @@ impl Faces {
     fn prepare(loaded: LoadedBlock<'static>, cache: Arc<BlockCache>) -> Result<Faces, String> {
         let block = loaded.faces().ok_or("not a face block")?;
         // SAFETY: as for `Voxels::prepare`.
-        let block: crate::format::read::FaceBlock<'static> = unsafe { std::mem::transmute(block) };
+        let block: crate::format::FaceBlock<'static> = unsafe { std::mem::transmute(block) };
         let mut pairs: Vec<(u64, FaceRef<'static>)> = (0..block.len())
             .map(|i| {
                 let f = block.face(i);

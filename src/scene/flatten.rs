@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 
 use super::export::ExportError;
 use super::Scene;
-use crate::util::atomic::write_bytes_atomic;
+use crate::util::write_bytes_atomic;
 
 /// What [`flatten`] wrote.
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -8,16 +8,14 @@
 //! padded voxel, so the ABV is defined over exactly the rays the runtime counts as hits; the cone tracer and the volume baseline walk
 //! the same [`Dda`]. This module depends on [`crate::math`] only.
 
-pub mod dda;
-pub mod ellipsoid;
-pub mod face;
+mod dda;
+mod ellipsoid;
+mod face;
 mod grid;
 mod morton;
 
-pub use dda::Dda;
-pub use ellipsoid::{
-    ellipsoid_ray_interval, truncated_entry, Ellipsoid, TruncatedEllipsoid, VOXEL_PAD,
-};
-pub use face::{face_normal, Face, UVec3Key, FACE_DIRS};
+pub use dda::*;
+pub use ellipsoid::*;
+pub use face::*;
 pub use grid::{box_interval, box_projected_area, Grid};
 pub use morton::{demorton3, morton3};

@@ -488,7 +488,7 @@ fn fill_convolution(
     t: &mut Table,
     kernel_of: impl Fn(f32) -> Kernel + Sync,
     samples: u32,
-    progress: &crate::util::progress::StageCounter,
+    progress: &crate::util::StageCounter,
 ) {
     let nodes: Vec<Vec<f32>> = (0..t.node_count()).map(|k| t.node_params(k)).collect();
     let fitted: Vec<(Vec2, f32)> = nodes
@@ -552,7 +552,7 @@ pub fn build(settings: BuildSettings, progress: crate::util::Progress) -> Tables
         &[ar, ar, ar],
         3,
     );
-    let bar = crate::util::progress::StageCounter::new(
+    let bar = crate::util::StageCounter::new(
         progress,
         "tables",
         (m1.node_count() + m3.node_count()) as u64,
@@ -954,7 +954,7 @@ pub fn build_file(
 ) -> anyhow::Result<BuildReport> {
     let t0 = std::time::Instant::now();
     let bytes = build(settings, progress).to_bytes();
-    crate::util::atomic::write_bytes_atomic(output, &bytes).map_err(crate::report::output)?;
+    crate::util::write_bytes_atomic(output, &bytes).map_err(crate::report::output)?;
     Ok(BuildReport {
         output: output.display().to_string(),
         bytes: bytes.len(),

@@ -2,12 +2,12 @@
 //! callback (libraries never draw; the CLI does), and atomic file writes. Depends on nothing
 //! else in the crate.
 
-pub mod atomic;
+mod atomic;
 pub mod process;
-pub mod progress;
+mod progress;
 
-pub use atomic::write_atomic;
-pub use progress::{no_progress, JsonProgress, Progress, TerminalProgress};
+pub use atomic::*;
+pub use progress::*;
 
 /// CPU seconds this process has spent so far (user + system, all threads): the figure to
 /// compare on a shared machine, where wall-clock time depends on what else runs. Zero where

@@ -9,7 +9,7 @@ use clap::Args;
 use aggtool::assembly::{bake::AssembleRequest, generate::GenRequest, render_file::RenderRequest};
 use aggtool::bake::{convert::ConvertSettings, Preset};
 use aggtool::eval::{run::EvalSettings, run::Study, run::StudyScene, sweep::SweepSettings};
-use aggtool::render::view::ViewRequest;
+use aggtool::render::ViewRequest;
 
 /// `convert`'s flags.
 #[derive(Args)]

@@ -181,7 +181,7 @@ fn main() -> anyhow::Result<()> {
         let lv = agg.read_level(l);
         let mut counts = Counts::default();
         let mut voxel_blocks = Vec::new();
-        for chunk in lv.voxels.chunks(aggtool::bake::pipeline::BLOCK_VOXELS) {
+        for chunk in lv.voxels.chunks(aggtool::bake::BLOCK_VOXELS) {
             let blob = encode::voxel_block(
                 l as u32,
                 chunk,
@@ -194,7 +194,7 @@ fn main() -> anyhow::Result<()> {
             voxel_blocks.push(writer.write_block(&blob, first, last, chunk.len() as u32)?);
         }
         let mut face_blocks = Vec::new();
-        for chunk in lv.faces.chunks(aggtool::bake::pipeline::BLOCK_FACES) {
+        for chunk in lv.faces.chunks(aggtool::bake::BLOCK_FACES) {
             let blob = encode::face_block(l as u32, chunk, lossless, &mut counts, &mut sizes);
             let (first, last) = (
                 encode::face_key(&chunk[0]),
