@@ -761,7 +761,9 @@ fn gen_city_lays_out_a_kit() {
     }
     let empty = d.path().join("empty");
     std::fs::create_dir_all(&empty).unwrap();
-    let e = assembly::city::write(&d.path().join("t2"), &[empty], 4, 1).unwrap_err();
+    let e = assembly::city::write(&d.path().join("t2"), &[empty], 4, 1)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("no building"), "{e}");
     let Some(shared) = common::shared_assets("gen_city_lays_out_a_kit (the shared kits)") else {
         return;

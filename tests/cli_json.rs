@@ -121,6 +121,19 @@ fn json_reports_are_one_object_and_errors_too() {
         ),
         (&["render", "plane45.agg", "-o", "x.exr"], USAGE, "usage"),
         (&["render", "plane45.agg", "--bogus-flag"], USAGE, "usage"),
+        // A forest whose folder cannot be made (a file is in its path): an output error.
+        (
+            &[
+                "gen",
+                "forest",
+                "-o",
+                "plane45.glb/forest",
+                "--species",
+                "1",
+            ],
+            OUTPUT,
+            "output",
+        ),
     ];
     for (args, code, kind) in errors {
         let plain = aggtool(args, p);

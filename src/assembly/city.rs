@@ -77,12 +77,13 @@ pub fn write(
     kits: &[PathBuf],
     instances: usize,
     seed: u64,
-) -> Result<CityReport, String> {
-    std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+) -> anyhow::Result<CityReport> {
+    std::fs::create_dir_all(dir)
+        .map_err(|e| crate::report::output(format!("cannot create {}: {e}", dir.display())))?;
     // The kits' assets, sorted by name, with the bounds they import with.
     let mut files: Vec<PathBuf> = Vec::new();
     for k in kits {
-        let rd = std::fs::read_dir(k).map_err(|e| format!("{}: {e}", k.display()))?;
+        let rd = std::fs::read_dir(k).map_err(|e| anyhow::anyhow!("{}: {e}", k.display()))?;
         for e in rd.flatten() {
             let p = e.path();
             let ext = p
@@ -114,8 +115,8 @@ pub fn write(
         if k == Kind::Skip {
             continue;
         }
-        let scene =
-            load(f, ImportOptions::default()).map_err(|e| format!("{}: {e}", f.display()))?;
+        let scene = load(f, ImportOptions::default())
+            .map_err(|e| anyhow::anyhow!("{}: {e}", f.display()))?;
         let (lo, hi) = scene.bounds();
         if !(lo.is_finite() && hi.is_finite()) || (hi - lo).max_element() <= 0.0 {
             continue;
@@ -144,7 +145,7 @@ pub fn write(
     };
     let (roads, crossings, lots) = (pick(Kind::Road), pick(Kind::Crossing), pick(Kind::Lot));
     if lots.is_empty() {
-        return Err("the kits hold no building or prop to place".into());
+        anyhow::bail!("the kits hold no building or prop to place");
     }
     let side = (instances as f64).sqrt().ceil().max(1.0) as usize;
     let half = 0.5 * side as f32 * CELL;
@@ -189,12 +190,12 @@ pub fn write(
         .collect();
     let distinct = assets_json.len();
     let doc = serde_json::json!({ "version": 1, "assets": assets_json, "instances": placed });
-    let text = serde_json::to_string_pretty(&doc).map_err(|e| e.to_string())?;
+    let text = serde_json::to_string_pretty(&doc)?;
     let manifest = dir.join("city.json");
     crate::util::write_atomic(&manifest, |tmp| {
         std::fs::write(tmp, text.as_bytes()).map_err(|e| e.to_string())
     })
-    .map_err(|e| format!("{}: {e}", manifest.display()))?;
+    .map_err(|e| crate::report::output(format!("{}: {e}", manifest.display())))?;
     Ok(CityReport {
         manifest,
         assets: distinct,

@@ -35,17 +35,18 @@ pub fn write(
     instances: usize,
     triangles: usize,
     seed: u64,
-) -> Result<ForestReport, String> {
+) -> anyhow::Result<ForestReport> {
     if species == 0 {
-        return Err("--species must be at least 1".into());
+        return Err(crate::report::usage("--species must be at least 1"));
     }
-    std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
-    let put = |name: &str, bytes: &[u8]| -> Result<PathBuf, String> {
+    std::fs::create_dir_all(dir)
+        .map_err(|e| crate::report::output(format!("cannot create {}: {e}", dir.display())))?;
+    let put = |name: &str, bytes: &[u8]| -> anyhow::Result<PathBuf> {
         let p = dir.join(name);
         crate::util::write_atomic(&p, |tmp| {
             std::fs::write(tmp, bytes).map_err(|e| e.to_string())
         })
-        .map_err(|e| format!("{}: {e}", p.display()))?;
+        .map_err(|e| crate::report::output(format!("{}: {e}", p.display())))?;
         Ok(p)
     };
     let mut assets = Vec::with_capacity(species + 1);
@@ -60,7 +61,7 @@ pub fn write(
                 seed: seed.wrapping_add(k as u64),
             },
         )
-        .ok_or("the foliage generator is missing")?;
+        .ok_or_else(|| anyhow::anyhow!("the foliage generator is missing"))?;
         if k == 0 {
             tree_triangles = data.instanced_triangles();
         }
@@ -94,7 +95,7 @@ pub fn write(
     // generated rather than through a JSON tree).
     use std::fmt::Write as _;
     let mut text = String::with_capacity(128 * (instances + 8));
-    let assets_text = serde_json::to_string_pretty(&asset_json).map_err(|e| e.to_string())?;
+    let assets_text = serde_json::to_string_pretty(&asset_json)?;
     let _ = write!(
         text,
         "{{\n\"version\": 1,\n\"assets\": {assets_text},\n\"instances\": [\n{{\"asset\": \"ground\"}}"

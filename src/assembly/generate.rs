@@ -75,8 +75,7 @@ pub fn generate(request: &GenRequest) -> Result<Written> {
             } else {
                 r.kits.clone()
             };
-            let c = super::city::write(&r.output, &kits, r.instances, r.settings.seed)
-                .map_err(anyhow::Error::msg)?;
+            let c = super::city::write(&r.output, &kits, r.instances, r.settings.seed)?;
             let what = format!("{} pieces of {} assets", c.instances, c.assets);
             out.push(&c.manifest, what);
         }
@@ -87,8 +86,7 @@ pub fn generate(request: &GenRequest) -> Result<Written> {
                 r.instances,
                 r.settings.triangles,
                 r.settings.seed,
-            )
-            .map_err(anyhow::Error::msg)?;
+            )?;
             for a in &f.assets {
                 out.push(a, "");
             }
