@@ -374,7 +374,7 @@ pub(crate) fn reservoir_step(u: &mut f64, p: f64) -> bool {
 mod tests {
     use super::*;
     use crate::math::rng::Pcg32;
-    use crate::validation::chi2::gamma_q;
+    use crate::math::special::gamma_q;
 
     /// Candidate k's weight: zero, NaN and a range of positive weights.
     fn weight(k: usize) -> f32 {

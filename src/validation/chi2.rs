@@ -10,7 +10,7 @@ use std::f32::consts::PI;
 use glam::{Vec2, Vec3};
 
 use crate::math::rng::Pcg32;
-pub use crate::math::special::{gamma_q, ln_gamma};
+use crate::math::special::gamma_q;
 
 /// Outcome of a chi-square test.
 #[derive(Clone, Debug)]
@@ -178,6 +178,7 @@ pub fn chi2_test(
 mod tests {
     use super::*;
     use crate::math::sampling::*;
+    use crate::math::special::ln_gamma;
 
     #[test]
     fn gamma_q_known_values() {
