@@ -58,7 +58,7 @@ fn tiny_agg(dir: &Path) {
 }
 
 /// `command INPUT` framed automatically at 8×8, 1 spp, written to `out`.
-fn tiny_view(command: &'static str, input: &'static str, out: &'static str) -> Vec<&'static str> {
+fn tiny_view<'a>(command: &'a str, input: &'a str, out: &'a str) -> Vec<&'a str> {
     vec![
         command,
         input,
@@ -185,25 +185,9 @@ fn render_level_is_a_resolution() {
     let p = d.path();
     tiny_agg(p);
     let render = |level: &str, out: &str| {
-        aggtool(
-            &[
-                "render",
-                "plane45.agg",
-                "--auto-view",
-                "--width",
-                "8",
-                "--height",
-                "8",
-                "--spp",
-                "1",
-                "--level",
-                level,
-                "-o",
-                out,
-                "--json",
-            ],
-            p,
-        )
+        let mut a = tiny_view("render", "plane45.agg", out);
+        a.extend(["--level", level, "--json"]);
+        aggtool(&a, p)
     };
     // The levels are 8³ and 4³: --level 4 draws the coarse one only.
     let m = object(&render("4", "l4.exr"));
