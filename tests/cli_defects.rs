@@ -250,20 +250,9 @@ fn assemble_require_reuse_refuses_before_baking() {
         ],
         p,
     ));
-    let tiny = [
-        "--max-res",
-        "8",
-        "--min-res",
-        "4",
-        "--samples",
-        "4",
-        "--aiv-res",
-        "4",
-        "--abv-res",
-        "4",
-    ];
+    let tiny = common::tiny_bake_flags("8");
     let mut args = vec!["assemble", "f/forest.json", "--require-reuse"];
-    args.extend(tiny);
+    args.extend(&tiny);
     let err = failed(&aggtool(&args, p), INPUT);
     assert!(
         err.contains("would have had to be baked, so nothing was baked"),
@@ -277,10 +266,10 @@ fn assemble_require_reuse_refuses_before_baking() {
     }
     // Baked, then reused: --require-reuse passes.
     let mut args = vec!["assemble", "f/forest.json"];
-    args.extend(tiny);
+    args.extend(&tiny);
     ok(&aggtool(&args, p));
     let mut args = vec!["assemble", "f/forest.json", "--require-reuse"];
-    args.extend(tiny);
+    args.extend(&tiny);
     let out = ok(&aggtool(&args, p));
     assert!(out.contains("0 baked, 3 reused"), "{out}");
 }
@@ -373,7 +362,7 @@ fn gen_city_finds_its_default_kits_at_run_time() {
 fn a_png_output_keeps_its_exr_beside_it() {
     let d = tempfile::tempdir().unwrap();
     let cwd = d.path();
-    small_plane(cwd);
+    common::tiny_plane(cwd);
     ok(&aggtool(
         &[
             "reference",
@@ -418,7 +407,7 @@ fn a_png_output_keeps_its_exr_beside_it() {
 fn render_frames_as_reference_does() {
     let d = tempfile::tempdir().unwrap();
     let cwd = d.path();
-    small_plane(cwd);
+    common::tiny_plane(cwd);
     let size = [
         "--width",
         "20",
@@ -508,35 +497,6 @@ fn gen_city_lists_only_the_assets_it_places() {
         out.contains(&format!("of {} assets", m.assets.len())),
         "{out}"
     );
-}
-
-/// `plane45.glb` and its small `plane45.agg` in `cwd`.
-fn small_plane(cwd: &Path) {
-    ok(&aggtool(
-        &["gen", "plane45", "-o", ".", "--triangles", "200"],
-        cwd,
-    ));
-    ok(&aggtool(
-        &[
-            "convert",
-            "plane45.glb",
-            "--max-res",
-            "8",
-            "--min-res",
-            "4",
-            "--samples",
-            "4",
-            "--aiv-res",
-            "8",
-            "--aiv-rays",
-            "4",
-            "--abv-res",
-            "8",
-            "--abv-full-res",
-            "8",
-        ],
-        cwd,
-    ));
 }
 
 /// `eval --speed` without assets wrote an empty table (the hard cases, the default when no

@@ -5,10 +5,9 @@
 
 mod common;
 
-use std::path::Path;
 use std::process::Output;
 
-use common::{aggtool, ok};
+use common::aggtool;
 
 /// Exit statuses (documented in `aggtool --help`).
 const USAGE: i32 = 2;
@@ -25,36 +24,6 @@ fn object(o: &Output) -> serde_json::Map<String, serde_json::Value> {
             String::from_utf8_lossy(&o.stderr)
         ),
     }
-}
-
-/// A tiny bake of the 200-triangle plane: plane45.glb and plane45.agg (8³ to 4³) in `dir`.
-fn tiny_agg(dir: &Path) {
-    ok(&aggtool(
-        &["gen", "plane45", "-o", ".", "--triangles", "200"],
-        dir,
-    ));
-    ok(&aggtool(
-        &[
-            "convert",
-            "plane45.glb",
-            "-q",
-            "--max-res",
-            "8",
-            "--min-res",
-            "4",
-            "--samples",
-            "2",
-            "--aiv-res",
-            "8",
-            "--aiv-rays",
-            "2",
-            "--abv-res",
-            "8",
-            "--abv-full-res",
-            "8",
-        ],
-        dir,
-    ));
 }
 
 /// `command INPUT` framed automatically at 8×8, 1 spp, written to `out`.
@@ -78,7 +47,7 @@ fn tiny_view<'a>(command: &'a str, input: &'a str, out: &'a str) -> Vec<&'a str>
 fn json_reports_are_one_object_and_errors_too() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
-    tiny_agg(p);
+    common::tiny_plane(p);
     let render = tiny_view("render", "plane45.agg", "lod.exr");
     let reference = tiny_view("reference", "plane45.glb", "ref.exr");
     let runs: &[&[&str]] = &[
@@ -154,7 +123,7 @@ fn json_reports_are_one_object_and_errors_too() {
 fn quiet_prints_nothing_on_success_and_the_error_on_failure() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
-    tiny_agg(p);
+    common::tiny_plane(p);
     for args in [
         &["-q", "gen", "plane45", "-o", ".", "--triangles", "200"][..],
         &["inspect", "plane45.agg", "--quiet"],
@@ -183,7 +152,7 @@ fn quiet_prints_nothing_on_success_and_the_error_on_failure() {
 fn render_level_is_a_resolution() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path();
-    tiny_agg(p);
+    common::tiny_plane(p);
     let render = |level: &str, out: &str| {
         let mut a = tiny_view("render", "plane45.agg", out);
         a.extend(["--level", level, "--json"]);

@@ -30,34 +30,15 @@ fn refused(args: &[&str], dir: &Path, out: &str) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
-/// Tiny settings (COMMON.md); `max_res` 64 gives the finest level several voxel and face
-/// chunks, so that the shards interleave blocks within a level, not only across levels.
-fn tiny(max_res: &str) -> Vec<&str> {
-    vec![
-        "--max-res",
-        max_res,
-        "--min-res",
-        "4",
-        "--samples",
-        "4",
-        "--aiv-res",
-        "8",
-        "--aiv-rays",
-        "4",
-        "--abv-res",
-        "8",
-        "--abv-full-res",
-        "8",
-    ]
-}
-
 #[test]
 fn shards_merge_into_the_one_machine_bytes() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     ok(&["gen", "foliage", "--triangles", "2000", "-o", "."], d);
+    // At 64³ the finest level has several voxel and face chunks, so that the shards interleave
+    // blocks within a level, not only across levels.
     for (max_res, n) in [("16", 3u32), ("64", 4)] {
-        let t = tiny(max_res);
+        let t = common::tiny_bake_flags(max_res);
         let mut args = vec!["convert", "foliage.glb", "-o", "one.agg"];
         args.extend(&t);
         ok(&args, d);
@@ -98,7 +79,7 @@ fn merge_refuses_missing_duplicate_and_mismatched_parts() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     ok(&["gen", "foliage", "--triangles", "2000", "-o", "."], d);
-    let t = tiny("16");
+    let t = common::tiny_bake_flags("16");
     for i in 0..3 {
         let shard = format!("{i}/3");
         let out = format!("p{i}.aggpart");
@@ -246,7 +227,7 @@ fn farm_commands_one_asset_per_task_then_assemble_reuses() {
     let ids = ok(&["assemble", "f/forest.json", "--list"], d);
     let ids: Vec<&str> = ids.lines().collect();
     assert_eq!(ids.len(), 3, "{ids:?}");
-    let t = tiny("16");
+    let t = common::tiny_bake_flags("16");
     // Before the tasks, --require-reuse fails (it would bake).
     let mut args = vec!["assemble", "f/forest.json", "--require-reuse"];
     args.extend(&t);

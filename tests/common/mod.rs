@@ -23,6 +23,38 @@ pub fn ok(o: &Output) -> String {
     String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
+/// `convert`'s flags for a tiny bake, `max_res`³ down to 4³ with few samples and rays (seconds
+/// on any test asset): the one bake setting of the command-line tests.
+pub fn tiny_bake_flags(max_res: &str) -> Vec<&str> {
+    vec![
+        "--max-res",
+        max_res,
+        "--min-res",
+        "4",
+        "--samples",
+        "4",
+        "--aiv-res",
+        "8",
+        "--aiv-rays",
+        "4",
+        "--abv-res",
+        "8",
+        "--abv-full-res",
+        "8",
+    ]
+}
+
+/// The 200-triangle `plane45.glb` and its tiny bake `plane45.agg` (8³ and 4³) in `dir`.
+pub fn tiny_plane(dir: &Path) {
+    ok(&aggtool(
+        &["gen", "plane45", "-o", ".", "--triangles", "200"],
+        dir,
+    ));
+    let mut args = vec!["convert", "plane45.glb", "-q"];
+    args.extend(tiny_bake_flags("8"));
+    ok(&aggtool(&args, dir));
+}
+
 /// What a test that skips for want of `../shared/assets` prints, before its name. `.ci/run`
 /// fails when a test's output holds it while the folder is present.
 pub const SKIPPED_NO_ASSETS: &str = "SKIPPED (no ../shared/assets)";
