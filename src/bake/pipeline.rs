@@ -332,9 +332,15 @@ fn bake_levels(
         let kept_voxels = keys_prims.len() as u64;
         // The level's keys for the index, so that a reader learns its occupancy without
         // inflating every block (a shard's merge rebuilds them from the blocks).
-        let voxel_keys = shard.is_none().then(|| {
-            crate::format::encode_voxel_keys(keys_prims.iter().map(|k| k.0), settings.compression)
-        });
+        let voxel_keys = shard
+            .is_none()
+            .then(|| {
+                crate::format::encode_voxel_keys(
+                    keys_prims.iter().map(|k| k.0),
+                    settings.compression,
+                )
+            })
+            .flatten();
         let faces = sorted_boundary_faces(keys_prims.iter().map(|k| k.0), res);
         let prims = primitive_level(grid, keys_prims.into_iter());
         let bar = StageCounter::new(progress, format!("{res}³ faces"), faces.len() as u64);

@@ -81,8 +81,9 @@ pub fn compress_block(block: &[u8], level: i32) -> Option<Vec<u8>> {
 
 /// A level's voxel keys as the index stores them (`Level.voxel_keys`): the LEB128 varints of
 /// the differences of the ascending keys (the first from 0), in one Zstandard frame at
-/// `level` that states its content size.
-pub fn encode_voxel_keys(keys: impl IntoIterator<Item = u64>, level: i32) -> Vec<u8> {
+/// `level` that states its content size; `None` if Zstandard fails (the file then has no keys,
+/// and readers take them from the blocks).
+pub fn encode_voxel_keys(keys: impl IntoIterator<Item = u64>, level: i32) -> Option<Vec<u8>> {
     let mut raw = Vec::new();
     let mut prev = 0u64;
     for k in keys {
@@ -98,10 +99,10 @@ pub fn encode_voxel_keys(keys: impl IntoIterator<Item = u64>, level: i32) -> Vec
             raw.push(byte | 0x80);
         }
     }
-    let mut c = zstd::bulk::Compressor::new(level.max(1)).expect("a valid level");
-    c.include_contentsize(true).expect("a frame option");
-    c.include_checksum(false).expect("a frame option");
-    c.compress(&raw).expect("compressing to memory")
+    let mut c = zstd::bulk::Compressor::new(level.max(1)).ok()?;
+    c.include_contentsize(true).ok()?;
+    c.include_checksum(false).ok()?;
+    c.compress(&raw).ok()
 }
 
 /// The keys [`encode_voxel_keys`] stored, given how many there must be: strictly ascending,
@@ -465,20 +466,20 @@ mod voxel_keys_tests {
     fn voxel_keys_round_trip_and_refuse_damage() {
         let keys: Vec<u64> = vec![0, 1, 2, 300, 70_000, (1 << 40) + 5, (1 << 62) - 1];
         let limit = 1u64 << 62;
-        let bytes = encode_voxel_keys(keys.iter().copied(), 19);
+        let bytes = encode_voxel_keys(keys.iter().copied(), 19).unwrap();
         assert_eq!(
             decode_voxel_keys(&bytes, keys.len() as u64, limit).unwrap(),
             keys
         );
         assert_eq!(
-            decode_voxel_keys(&encode_voxel_keys([], 3), 0, limit).unwrap(),
+            decode_voxel_keys(&encode_voxel_keys([], 3).unwrap(), 0, limit).unwrap(),
             Vec::<u64>::new()
         );
         // Wrong count, a key out of range, a repeated key, a truncated or damaged frame.
         assert!(decode_voxel_keys(&bytes, 6, limit).is_err());
         assert!(decode_voxel_keys(&bytes, 8, limit).is_err());
         assert!(decode_voxel_keys(&bytes, 7, 1 << 40).is_err());
-        let repeated = encode_voxel_keys([3, 3], 3);
+        let repeated = encode_voxel_keys([3, 3], 3).unwrap();
         assert!(decode_voxel_keys(&repeated, 2, limit).is_err());
         assert!(decode_voxel_keys(&bytes[..bytes.len() - 3], 7, limit).is_err());
         assert!(decode_voxel_keys(&[], 0, limit).is_err());

@@ -546,10 +546,8 @@ pub fn merge(parts: &[PathBuf], out: &Path) -> Result<u64, MergeError> {
                 ),
             });
         }
-        e.voxel_keys = Some(super::encode_voxel_keys(
-            keys.iter().copied(),
-            metas[0].settings.compression,
-        ));
+        e.voxel_keys =
+            super::encode_voxel_keys(keys.iter().copied(), metas[0].settings.compression);
     }
     let m = &metas[0];
     let mut settings = m.settings.clone();

@@ -315,13 +315,6 @@ impl<'s> Hits<'s> {
         };
         self.level = Some(level);
         self.block = None;
-        // A coarser level's clip box holds the finer one's: the walk may now go further.
-        if let Some((_, t1)) = self
-            .scene
-            .clip_interval(self.li, &self.cone, self.inv, self.t, self.t_far)
-        {
-            self.t_end = self.t_end.max(t1);
-        }
         // Algorithm 1's line 7 asks for level li + 1 once tan(θ/2)·t/s ≥ 2^(li+1).
         self.t_switch = if self.settings.level.is_some() || self.li + 1 >= self.scene.grids.len() {
             f32::INFINITY
@@ -556,6 +549,13 @@ impl<'s> Hits<'s> {
             return false;
         };
         let at = coarse >> (2 * next.top) as i32;
+        // A coarser level's clip box holds the finer one's: the walk may now go further.
+        if let Some((_, t1)) = self
+            .scene
+            .clip_interval(self.li, &self.cone, self.inv, tc, self.t_far)
+        {
+            self.t_end = self.t_end.max(t1);
+        }
         self.enter_level(Some(at))
     }
 

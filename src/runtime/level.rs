@@ -396,8 +396,9 @@ impl<'a> Level<'a> {
             Some(Err(e)) => return Err(e.to_string()),
             None => {}
         }
-        let from_blocks = block_number.is_empty();
-        for b in (0..nv).filter(|_| from_blocks) {
+        // Files without the keys: every voxel block is read for its keys.
+        let to_read = if block_number.is_empty() { nv } else { 0 };
+        for b in 0..to_read {
             let loaded = match agg.load_voxel_block(l, b) {
                 Ok(x) => x,
                 Err(e) => {

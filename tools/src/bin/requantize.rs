@@ -209,10 +209,10 @@ fn main() -> anyhow::Result<()> {
             voxel_blocks,
             face_blocks,
             counts,
-            voxel_keys: Some(aggtool::format::encode_voxel_keys(
+            voxel_keys: aggtool::format::encode_voxel_keys(
                 lv.voxels.iter().map(|v| v.key),
                 compression,
-            )),
+            ),
         });
     }
     let (tables_version, tables_crc32) = agg.tables();
