@@ -149,19 +149,126 @@ pub enum Moments {
     },
 }
 
-impl Moments {
-    #[inline]
-    fn at(&self, w: Vec3) -> (MaterialMoments, MaterialMoments) {
-        match self {
-            Moments::Constant(m) => (*m, *m),
+/// Eq. 23's moment table as an ABSDF holds it, looked up at ω_h.
+///
+/// A voxel's ABSDF is most of what the runtime's cache holds, and its directional moments
+/// were most of the ABSDF: 2 × res² sets of eleven f32 (792 bytes at the default res = 3),
+/// where a quantized file stores them as binary16 (five halves a set for a voxel without
+/// metal, eleven with). The table keeps those halves (180 bytes) and decodes the two sets a
+/// look-up reads; moments that binary16 does not hold exactly (an unquantized file, or the
+/// bake's own estimates) stay f32, so every look-up returns the value it was given.
+#[derive(Clone, Debug)]
+enum MomentTable {
+    /// The same moments in every direction.
+    Constant(MaterialMoments),
+    /// f32 sets: the `res²` diffuse cells, then the `res²` specular cells.
+    Full {
+        res: u32,
+        sets: Box<[MaterialMoments]>,
+    },
+    /// binary16 sets in the same order, [`HALVES_DIELECTRIC`] or [`HALVES_METAL`] halves
+    /// each.
+    Half {
+        res: u32,
+        metal: bool,
+        halves: Box<[u16]>,
+    },
+}
+
+/// Halves of a set without metal: c (3), s, f90 (the metal moments are 0).
+const HALVES_DIELECTRIC: usize = 5;
+/// Halves of a set with metal: c (3), mc (3), s, ms, m, f90, mf90.
+const HALVES_METAL: usize = 11;
+
+impl MomentTable {
+    fn new(m: &Moments) -> MomentTable {
+        let (res, sets): (u32, Vec<MaterialMoments>) = match m {
+            Moments::Constant(c) => return MomentTable::Constant(*c),
             Moments::Directional {
                 res,
                 diffuse,
                 specular,
-            } => {
-                let cell = grid_cell(equal_area_sphere_to_square(w), *res) as usize;
-                (diffuse[cell], specular[cell])
+            } => (*res, diffuse.iter().chain(specular).copied().collect()),
+        };
+        let metal = sets
+            .iter()
+            .any(|m| m.mc != Vec3::ZERO || m.ms != 0.0 || m.m != 0.0 || m.mf90 != 0.0);
+        let mut halves = Vec::with_capacity(sets.len() * HALVES_METAL);
+        for m in &sets {
+            if metal {
+                halves.extend_from_slice(&[m.c.x, m.c.y, m.c.z, m.mc.x, m.mc.y, m.mc.z]);
+                halves.extend_from_slice(&[m.s, m.ms, m.m, m.f90, m.mf90]);
+            } else {
+                halves.extend_from_slice(&[m.c.x, m.c.y, m.c.z, m.s, m.f90]);
             }
+        }
+        let exact = halves
+            .iter()
+            .all(|&x| half::f16::from_f32(x).to_f32().to_bits() == x.to_bits());
+        if !exact {
+            return MomentTable::Full {
+                res,
+                sets: sets.into_boxed_slice(),
+            };
+        }
+        MomentTable::Half {
+            res,
+            metal,
+            halves: halves
+                .iter()
+                .map(|&x| half::f16::from_f32(x).to_bits())
+                .collect(),
+        }
+    }
+
+    /// The (diffuse, specular) sets of the cell holding `w`.
+    #[inline]
+    fn at(&self, w: Vec3) -> (MaterialMoments, MaterialMoments) {
+        let cell = |res: u32| grid_cell(equal_area_sphere_to_square(w), res) as usize;
+        match self {
+            MomentTable::Constant(m) => (*m, *m),
+            MomentTable::Full { res, sets } => {
+                let (i, n) = (cell(*res), (*res * *res) as usize);
+                (sets[i], sets[n + i])
+            }
+            MomentTable::Half { res, metal, halves } => {
+                let (i, n) = (cell(*res), (*res * *res) as usize);
+                let stride = if *metal {
+                    HALVES_METAL
+                } else {
+                    HALVES_DIELECTRIC
+                };
+                let set = |k: usize| {
+                    let h = |j: usize| half::f16::from_bits(halves[k * stride + j]).to_f32();
+                    if *metal {
+                        MaterialMoments {
+                            c: Vec3::new(h(0), h(1), h(2)),
+                            mc: Vec3::new(h(3), h(4), h(5)),
+                            s: h(6),
+                            ms: h(7),
+                            m: h(8),
+                            f90: h(9),
+                            mf90: h(10),
+                        }
+                    } else {
+                        MaterialMoments {
+                            c: Vec3::new(h(0), h(1), h(2)),
+                            s: h(3),
+                            f90: h(4),
+                            ..Default::default()
+                        }
+                    }
+                };
+                (set(i), set(n + i))
+            }
+        }
+    }
+
+    fn memory_bytes(&self) -> usize {
+        match self {
+            MomentTable::Constant(_) => 0,
+            MomentTable::Full { sets, .. } => std::mem::size_of_val(&**sets),
+            MomentTable::Half { halves, .. } => std::mem::size_of_val(&**halves),
         }
     }
 }
@@ -185,9 +292,9 @@ struct SpecLobe {
     weight: f32,
     sggx: Sggx,
     density: SggxDensity,
-    frame: Mat3,
-    /// Roughness of the macro lobe and of the microfacet lobe (for G).
-    macro_alpha: Vec2,
+    /// The macro lobe's index in [`Absdf`]'s lobes: its frame and roughness (for G).
+    lobe: u32,
+    /// Roughness of the microfacet lobe (for G).
     micro_alpha: f32,
     /// The lune table's roughness coordinate for S of Eq. 21, read at [`lune_alpha`].
     lune_coord: f32,
@@ -223,17 +330,17 @@ use crate::bsdf::{Bsdf, BsdfSample};
 pub struct Absdf<'t> {
     /// The tables (S of Eq. 21 is read from them at evaluation).
     tables: &'t Tables,
-    lobes: Vec<NdfLobe>,
-    unit: Vec<Sggx>,
+    lobes: Box<[NdfLobe]>,
+    unit: Box<[Sggx]>,
     /// Per lobe, for the diffuse term: 1 / mass and (mass/4)·E[n nᵀ] in world space.
-    diffuse_terms: Vec<(f32, Mat3)>,
-    spec: Vec<SpecLobe>,
+    diffuse_terms: Box<[(f32, Mat3)]>,
+    spec: Box<[SpecLobe]>,
     /// The specular lobes' total weight (they are also the specular sampling mixture).
     spec_total: f32,
     /// Diffuse sampling lobes at the fixed κ (§7.3) and their total weight.
-    diffuse_sampling: Vec<(f32, Sggx, SggxDensity)>,
+    diffuse_sampling: Box<[(f32, Sggx, SggxDensity)]>,
     diffuse_total: f32,
-    moments: Moments,
+    moments: MomentTable,
     /// Moments averaged over directions: used when ω_h is undefined (ω_i = −ω_o), so that the
     /// lookup stays symmetric in ω_i and ω_o.
     mean_moments: (MaterialMoments, MaterialMoments),
@@ -328,15 +435,10 @@ impl<'t> Absdf<'t> {
     /// Bytes this ABSDF holds, itself and on the heap (what the runtime's block cache counts
     /// for a voxel shaded).
     pub fn memory_bytes(&self) -> usize {
-        fn vec<T>(v: &Vec<T>) -> usize {
-            v.capacity() * std::mem::size_of::<T>()
+        fn vec<T>(v: &[T]) -> usize {
+            std::mem::size_of_val(v)
         }
-        let moments = match &self.moments {
-            Moments::Constant(_) => 0,
-            Moments::Directional {
-                diffuse, specular, ..
-            } => vec(diffuse) + vec(specular),
-        };
+        let moments = self.moments.memory_bytes();
         std::mem::size_of::<Self>()
             + vec(&self.lobes)
             + vec(&self.unit)
@@ -393,7 +495,7 @@ impl<'t> Absdf<'t> {
                 }
             };
         let mut spec = Vec::new();
-        for l in &lobes {
+        for (k, l) in lobes.iter().enumerate() {
             for &(m, a) in &micro {
                 if m <= 0.0 {
                     continue;
@@ -407,8 +509,7 @@ impl<'t> Absdf<'t> {
                     weight: l.weight * m * m5 * o[2].max(0.0),
                     sggx,
                     density: sggx.density(),
-                    frame: l.frame,
-                    macro_alpha: l.alpha,
+                    lobe: k as u32,
                     micro_alpha: a,
                     lune_coord: LuneTable::alpha_coord(lune_alpha(l.alpha, a)),
                 });
@@ -437,19 +538,18 @@ impl<'t> Absdf<'t> {
                 MaterialMoments::mean(specular),
             ),
         };
-        spec.shrink_to_fit();
         let spec_total = spec.iter().map(|x| x.weight).sum();
         let diffuse_total = diffuse_sampling.iter().map(|x| x.0).sum();
         Absdf {
             tables,
-            lobes,
+            lobes: lobes.into_boxed_slice(),
             unit,
             diffuse_terms,
-            spec,
+            spec: spec.into_boxed_slice(),
             spec_total,
-            diffuse_sampling,
+            diffuse_sampling: diffuse_sampling.into_boxed_slice(),
             diffuse_total,
-            moments: v.moments.clone(),
+            moments: MomentTable::new(&v.moments),
             mean_moments,
         }
     }
@@ -589,8 +689,8 @@ impl Bsdf for Absdf<'_> {
                 if s <= 0.0 {
                     continue;
                 }
-                acc +=
-                    l.weight * d * s * pair_g2(l.frame, l.macro_alpha, l.micro_alpha, wi, wo, wh);
+                let n = &self.lobes[l.lobe as usize];
+                acc += l.weight * d * s * pair_g2(n.frame, n.alpha, l.micro_alpha, wi, wo, wh);
             }
             f += fres * (0.25 * acc);
         }
@@ -682,5 +782,79 @@ pub fn ground_truth(
         finite_vec_or_zero(num / den as f32)
     } else {
         Vec3::ZERO
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The moment table returns, at every direction, the (diffuse, specular) sets of that
+    /// direction's cell bit for bit: binary16 where binary16 holds every value exactly (as in a
+    /// quantized file), f32 otherwise; dielectric and metal sets. The binary16 table is the
+    /// smaller.
+    #[test]
+    fn moment_table_returns_the_cells_sets_exactly() {
+        let res = 3u32;
+        let cells = (res * res) as usize;
+        for (metal, exact) in [(false, true), (true, true), (false, false), (true, false)] {
+            let set = |k: usize| {
+                // Binary16 holds multiples of 1/1024 below 2 exactly; 1e-4 more it does not.
+                let x = |j: usize| {
+                    ((k * 37 + j * 11) % 1500) as f32 / 1024.0 + if exact { 0.0 } else { 1e-4 }
+                };
+                let m = if metal { x(9) } else { 0.0 };
+                MaterialMoments {
+                    c: Vec3::new(x(0), x(1), x(2)),
+                    mc: Vec3::new(x(3), x(4), x(5)) * m.signum(),
+                    s: x(6),
+                    ms: x(7) * m.signum(),
+                    m,
+                    f90: x(8),
+                    mf90: x(10) * m.signum(),
+                }
+            };
+            let (diffuse, specular): (Vec<_>, Vec<_>) = (
+                (0..cells).map(set).collect(),
+                (cells..2 * cells).map(set).collect(),
+            );
+            let table = MomentTable::new(&Moments::Directional {
+                res,
+                diffuse: diffuse.clone(),
+                specular: specular.clone(),
+            });
+            assert_eq!(
+                matches!(table, MomentTable::Half { .. }),
+                exact,
+                "metal {metal}"
+            );
+            let full = 2 * cells * std::mem::size_of::<MaterialMoments>();
+            assert_eq!(
+                2 * table.memory_bytes() <= full,
+                exact,
+                "{}",
+                table.memory_bytes()
+            );
+            for i in 0..4096 {
+                let u = Vec2::new((i % 64) as f32 + 0.5, (i / 64) as f32 + 0.5) / 64.0;
+                let w = crate::math::sphere_maps::equal_area_square_to_sphere(u);
+                let cell = grid_cell(equal_area_sphere_to_square(w), res) as usize;
+                let (d, s) = table.at(w);
+                assert_eq!(
+                    (d, s),
+                    (diffuse[cell], specular[cell]),
+                    "metal {metal} exact {exact}"
+                );
+                // Bitwise: PartialEq would take −0 for 0.
+                let bits = |m: MaterialMoments| {
+                    [
+                        m.c.x, m.c.y, m.c.z, m.mc.x, m.mc.y, m.mc.z, m.s, m.ms, m.m, m.f90, m.mf90,
+                    ]
+                    .map(f32::to_bits)
+                };
+                assert_eq!(bits(d), bits(diffuse[cell]));
+                assert_eq!(bits(s), bits(specular[cell]));
+            }
+        }
     }
 }
