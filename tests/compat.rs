@@ -56,9 +56,10 @@ fn render(agg: Aggregate) -> (Vec3, [Vec3; 3]) {
         1,
         // The shading of the builds that printed the pinned values below (these tests are of
         // the format): without the per-cone normalisation added since, and with the coverage
-        // roulette that was on by default then.
+        // roulette that was on by default then, and the footprint's discrete level.
         &TraceSettings {
             normalize: false,
+            continuous_lod: false,
             shading: Shading::Reservoir {
                 picks: 1,
                 roulette: true,

@@ -443,6 +443,62 @@ fn level_selection_follows_the_footprint() {
     }
 }
 
+/// Continuous level of detail: a cone whose footprint asks for the fractional level f meets
+/// the coarser of the two neighbouring levels, ⌊f − 1/2⌋ + 1, for the fraction frac(f − 1/2) of
+/// its dithers u, and the finer one for the rest, so that the mean level over cones changes
+/// with the distance instead of jumping; the discrete choice and a forced level ignore u.
+#[test]
+fn continuous_lod_blends_neighbouring_levels() {
+    let lod = baked(&white_plane(), &small(16));
+    let n = lod.level_count();
+    assert!(n >= 3, "{n} levels");
+    let base = lod.grid(0).voxel_size();
+    let aperture = 1e-3f32;
+    let continuous = TraceSettings::default();
+    assert!(continuous.continuous_lod, "on by default");
+    let discrete = TraceSettings {
+        continuous_lod: false,
+        ..Default::default()
+    };
+    let forced = TraceSettings {
+        level: Some(1),
+        ..Default::default()
+    };
+    let dithers = 1000;
+    for f in [0.9f32, 1.3, 1.5, 1.75] {
+        // The plane from above at the distance where the footprint's level is f.
+        let t = f.exp2() * base / (0.5 * aperture).tan();
+        let c = cone(Vec3::new(0.13, t, 0.21), Vec3::NEG_Y, aperture);
+        let level_at = |s: &TraceSettings, u: f32| {
+            let h = lod.hits_dithered(&c, s, u).next().expect("the plane");
+            (h.voxel.level(), lod.fractional_level(aperture, h.t))
+        };
+        let mut coarser = 0;
+        let mut want = 0.0;
+        for i in 0..dithers {
+            let u = (i as f32 + 0.5) / dithers as f32;
+            let (l, fh) = level_at(&continuous, u);
+            let fine = (fh - 0.5).floor().max(0.0) as usize;
+            assert!(l == fine || l == fine + 1, "f {fh}, u {u}: level {l}");
+            coarser += (l == fine + 1) as u32;
+            want += (fh - 0.5).rem_euclid(1.0) / dithers as f32;
+            assert_eq!(
+                level_at(&discrete, u).0,
+                fh.floor() as usize,
+                "discrete, f {fh}"
+            );
+            assert_eq!(level_at(&forced, u).0, 1, "forced");
+        }
+        let got = coarser as f32 / dithers as f32;
+        // u is a uniform grid of 1000: the fraction is exact to 1/1000 but for the hit's own
+        // f, which the plane's voxel padding moves by a few thousandths of a level.
+        assert!(
+            (got - want).abs() < 0.01,
+            "f {f}: coarser {got}, expected {want}"
+        );
+    }
+}
+
 /// Closed geometry keeps its brightness: the lattice's rods are solids whose inner sides never
 /// see anything, so the AIV averages are at most 1/2 and their product (Eq. 25) rendered the
 /// lattice at 57% of the reference's mean radiance. With the exposure correction the mean over
@@ -496,7 +552,7 @@ fn closed_geometry_keeps_its_brightness() {
 
 /// The two layers agree: summing the traversal's hits shaded with `shade` (the host's way) is
 /// what `trace` computes with every voxel shaded, value for value with the same random
-/// numbers; and the coverage is the sum of the hits' weights.
+/// numbers (the first of them the level's dither, [`LodScene::hits_dithered`]); and the coverage is the sum of the hits' weights.
 #[test]
 fn hits_and_trace_agree() {
     let scene = generated("foliage", 4000);
@@ -516,7 +572,9 @@ fn hits_and_trace_agree() {
             let mut r1 = Pcg32::new(x, y);
             let want = lod.trace(&c, &lights, &every, &mut r1);
             let mut r2 = Pcg32::new(x, y);
-            let mut hits = lod.hits(&c, &every);
+            // trace's first number is the cone's level dither (continuous LoD).
+            let u = r2.next_f32();
+            let mut hits = lod.hits_dithered(&c, &every, u);
             let (mut sum, mut cov) = (Vec3::ZERO, 0.0f32);
             for h in &mut hits {
                 assert!(h.weight > 0.0 && h.t >= 0.0);

@@ -12,7 +12,7 @@ use crate::math::sampling::Sampler;
 /// points of the sample's index, one sequence a dimension with its own nonlinear shuffle of the
 /// index and its own digital shift ([`crate::math::lowdiscrepancy::shifted_2d`], seeded by the
 /// pixel and the dimension; Owen-scrambling the values too cost 10–20% of a cone), so that the
-/// pixel's samples stratify the choices a cone makes first (which hit a reservoir shades, the
+/// pixel's samples stratify the choices a cone makes first (its level, which hit a reservoir shades, the
 /// light sample, the ABSDF sample); the numbers after them come from `inner`. Each number alone
 /// is uniform, so every estimate stays unbiased; what falls is its variance over the pixel.
 pub struct Stratified<'a, S: Sampler + ?Sized> {
@@ -22,9 +22,9 @@ pub struct Stratified<'a, S: Sampler + ?Sized> {
     dimension: u32,
 }
 
-/// The dimensions [`Stratified`] stratifies: the reservoir's pick, then two light and ABSDF
-/// sample sets (3 dimensions each).
-pub const STRATIFIED_DIMENSIONS: u32 = 7;
+/// The dimensions [`Stratified`] stratifies: the level's dither (continuous level of detail),
+/// the reservoir's pick, then two light and ABSDF sample sets (3 dimensions each).
+pub const STRATIFIED_DIMENSIONS: u32 = 8;
 
 impl<'a, S: Sampler + ?Sized> Stratified<'a, S> {
     /// Sample `index` of the pixel of `seed`, drawing from `inner` past the stratified

@@ -123,7 +123,6 @@ pub struct Hits<'s> {
     scene: &'s LodScene,
     cone: Cone,
     inv: Vec3,
-    tan_half: f32,
     settings: TraceSettings,
     /// Where the walk of the current level ends: the ray leaves its clip box, the cube or
     /// the cone's range.
@@ -152,6 +151,9 @@ pub struct Hits<'s> {
     occlusion: Occlusion,
     /// The ray parameter from which the footprint asks for a coarser level than `li`.
     t_switch: f32,
+    /// tan(θ/2) as the level choice reads it: times 2^(u − 1/2) for the cone's dither u under
+    /// [`TraceSettings::continuous_lod`].
+    lod_tan: f32,
 }
 
 /// tan(θ/2) of a cone's aperture θ: a pixel's cone is a few milliradians wide, where the
@@ -171,8 +173,25 @@ fn half_tan(aperture: f32) -> f32 {
 impl LodScene {
     /// The primitives `cone` meets, in order (see [`Hit`]); once exhausted,
     /// [`Hits::transmittance`] is the background's weight.
+    ///
+    /// The level is the footprint's, ⌊log2(tan(θ/2)·t/s)⌋ (Algorithm 1, line 7); see
+    /// [`LodScene::hits_dithered`] for the continuous choice [`LodScene::trace`] makes.
     pub fn hits(&self, cone: &Cone, settings: &TraceSettings) -> Hits<'_> {
-        self.hits_weighted(cone, settings, Weights::Exact)
+        self.hits_weighted(cone, settings, Weights::Exact, None)
+    }
+
+    /// [`LodScene::hits`] with the level chosen stochastically between the footprint's two
+    /// neighbours (continuous level of detail): with f = log2(tan(θ/2)·t/s) the walk takes
+    /// level ⌊f + u − 1/2⌋ for the cone's dither `u` in [0, 1), so that a cone is at the
+    /// finer of the two levels with probability 1 − frac(f + 1/2) and the mean over cones
+    /// changes continuously with the distance, where ⌊f⌋ jumps a whole level at a threshold
+    /// (a camera moving through it sees the aggregate "pop"). The 1/2 keeps the mean level
+    /// where ⌊f⌋ has it on average. Ignored (the discrete choice) where
+    /// [`TraceSettings::continuous_lod`] is off or a level is forced. [`LodScene::trace`] draws
+    /// `u` as its sampler's first number: a host that walks and shades the hits itself matches
+    /// it by doing the same.
+    pub fn hits_dithered(&self, cone: &Cone, settings: &TraceSettings, u: f32) -> Hits<'_> {
+        self.hits_weighted(cone, settings, Weights::Exact, Some(u))
     }
 
     /// [`LodScene::hits`] weighing hits with `weights` (built in place: the walk's state is a
@@ -183,13 +202,20 @@ impl LodScene {
         cone: &Cone,
         settings: &TraceSettings,
         weights: Weights,
+        dither: Option<f32>,
     ) -> Hits<'_> {
         let inv = cone.dir.recip();
+        let tan_half = half_tan(cone.aperture);
+        let lod_tan = match dither {
+            Some(u) if settings.continuous_lod && settings.level.is_none() && u.is_finite() => {
+                tan_half * (u.clamp(0.0, 1.0) - 0.5).exp2()
+            }
+            _ => tan_half,
+        };
         let mut h = Hits {
             scene: self,
             cone: *cone,
             inv,
-            tan_half: half_tan(cone.aperture),
             settings: *settings,
             t_end: 0.0,
             t_far: 0.0,
@@ -209,6 +235,7 @@ impl LodScene {
             weights,
             occlusion: Occlusion::default(),
             t_switch: f32::INFINITY,
+            lod_tan,
         };
         let Some(g0) = self.grids.first().copied() else {
             return h;
@@ -303,7 +330,7 @@ impl<'s> Hits<'s> {
         let n = self.scene.grids.len();
         self.settings
             .level
-            .unwrap_or_else(|| self.scene.level_for_tan(self.tan_half, t))
+            .unwrap_or_else(|| self.scene.level_for_tan(self.lod_tan, t))
             .min(n - 1)
     }
 
@@ -319,7 +346,7 @@ impl<'s> Hits<'s> {
         self.t_switch = if self.settings.level.is_some() || self.li + 1 >= self.scene.grids.len() {
             f32::INFINITY
         } else {
-            self.scene.base * (2u64 << self.li) as f32 / self.tan_half
+            self.scene.base * (2u64 << self.li) as f32 / self.lod_tan
         };
         self.g = level.top;
         // A level of at most 4³ voxels is one brick, walked directly.

@@ -156,6 +156,11 @@ pub struct TraceSettings {
     /// ([`Occlusion`]: the hidden voxels' small baked V̂(ω_o) would otherwise mix their unlit
     /// surfaces in). Off: Eq. 30's weights as baked.
     pub normalize: bool,
+    /// Continuous level of detail: [`LodScene::trace`] chooses each cone's level between the
+    /// footprint's two neighbours with one random number of the cone
+    /// ([`LodScene::hits_dithered`]), so that a moving camera sees levels blend instead of
+    /// switching at a distance (popping). Off: the footprint's level, ⌊log2(tan(θ/2)·t/s)⌋.
+    pub continuous_lod: bool,
 }
 
 impl Default for TraceSettings {
@@ -166,6 +171,7 @@ impl Default for TraceSettings {
             primitive: PrimitiveKind::TruncatedEllipsoid,
             shading: Shading::default(),
             normalize: true,
+            continuous_lod: true,
         }
     }
 }
@@ -339,6 +345,14 @@ impl LodScene {
     #[inline]
     pub fn level_for(&self, aperture: f32, t: f32) -> usize {
         self.level_for_tan((0.5 * aperture).tan(), t)
+    }
+
+    /// log2(tan(θ/2)·t / s) for a cone of full aperture `aperture` at distance `t`: the
+    /// footprint's level before line 7's floor (negative where the cone is finer than the
+    /// finest voxels), which [`Self::level_for`] floors and clamps and continuous level of
+    /// detail ([`TraceSettings::continuous_lod`]) dithers.
+    pub fn fractional_level(&self, aperture: f32, t: f32) -> f32 {
+        ((0.5 * aperture).tan() * t / self.base).log2()
     }
 
     /// [`Self::level_for`] with tan(θ/2) precomputed.

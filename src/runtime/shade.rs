@@ -192,7 +192,10 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
         Shading::Every => Weights::Exact,
         Shading::Reservoir { .. } => Weights::Bound,
     };
-    let mut hits = scene.hits_weighted(cone, settings, weights);
+    // The level's dither (continuous LoD), drawn first: a pixel's samples stratify it.
+    // Not drawn where it would not be read (a forced level), which keeps those renders' bits.
+    let dither = (settings.continuous_lod && settings.level.is_none()).then(|| sampler.next_1d());
+    let mut hits = scene.hits_weighted(cone, settings, weights, dither);
     let mut first = f32::INFINITY;
     // The sum of the hits' weights (for `settings.normalize`): exact when every hit is
     // shaded; under reservoir shading the deterministic sum of bound weights times the mean

@@ -67,6 +67,11 @@ pub struct RenderArgs {
     /// by their sum (the runtime's default; see the book's error budget).
     #[arg(long)]
     pub no_normalize: bool,
+    /// Choose each cone's level by its footprint alone, ⌊log2(footprint / voxel)⌋, instead
+    /// of blending the two nearest levels stochastically (continuous level of detail, the
+    /// default, which keeps a moving camera from seeing levels switch).
+    #[arg(long)]
+    pub discrete_lod: bool,
     /// Assemblies: draw every instance from its aggregate. By default an instance seen
     /// finer than its aggregate's finest level is drawn from its mesh (imported when first
     /// needed), as a renderer does.
@@ -415,6 +420,7 @@ impl RenderArgs {
                 nee: self.nee,
                 primitive,
                 normalize: !self.no_normalize,
+                continuous_lod: !self.discrete_lod,
                 ..TraceSettings::default()
             },
             level: self.level,
