@@ -995,3 +995,40 @@ fn hidden_faces_stay_hidden() {
     );
     assert!(red(with) < 0.01, "{}", red(with));
 }
+
+/// The object mask and the error on the object's own pixels: a plane seen from above covers
+/// the pixels inside its edges and none outside (4 × 4 rays a pixel), and the comparison
+/// counts only those: an image 10% brighter there and wrong everywhere else has mean ratio
+/// 1.1 and relative RMSE 0.1.
+#[test]
+fn object_pixels_are_the_ones_the_mesh_covers() {
+    use aggtool::render::compare::compare_on_object;
+    let scene = white_plane();
+    let accel = aggtool::trace::Accel::build(&scene);
+    // From 3 above the plane (x, z in [-1, 1]) with a 90° view: the plane fills the middle
+    // third of the image's width and height.
+    let cam =
+        aggtool::film::Camera::look_at(Vec3::new(0.0, 3.0, 0.0), Vec3::ZERO, Vec3::Z, 90.0, 30, 30);
+    let cov = aggtool::render::reference::coverage(&accel, &cam, 4);
+    let covered = cov.iter().filter(|&&c| c >= 0.5).count();
+    assert_eq!(covered, 100, "{covered} pixels");
+    assert!(cov.iter().all(|&c| (0.0..=1.0).contains(&c)));
+    let reference = aggtool::film::Image {
+        width: 30,
+        height: 30,
+        pixels: vec![Vec3::splat(0.5); 900],
+    };
+    let mut other = reference.clone();
+    for (p, &c) in other.pixels.iter_mut().zip(&cov) {
+        *p = if c >= 0.5 {
+            Vec3::splat(0.55)
+        } else {
+            Vec3::splat(7.0)
+        };
+    }
+    let o = compare_on_object(&other, &reference, &cov).unwrap();
+    assert_eq!(o.pixels, 100);
+    assert!((o.mean_ratio - 1.1).abs() < 1e-6, "{o:?}");
+    assert!((o.relative_rmse - 0.1).abs() < 1e-6, "{o:?}");
+    assert!(compare_on_object(&other, &reference, &cov[1..]).is_err());
+}

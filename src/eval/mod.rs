@@ -86,6 +86,9 @@ pub struct MethodResult {
     pub rmse: f64,
     /// Relative MSE against the reference.
     pub relmse: f64,
+    /// The error on the asset's own pixels (those the mesh covers at least half of, from 4 × 4
+    /// primary rays a pixel): mean ratio and relative RMSE against the reference there.
+    pub object: crate::render::compare::ObjectComparison,
     /// Bytes the method needs for this LoD (see [`level_bytes`] and [`simplify`]).
     pub memory_bytes: u64,
     /// Wall seconds of the method's render.
@@ -246,14 +249,18 @@ pub fn study_scene(
         let view = study_view(scene, res, settings.spp);
         let (truth, reference_seconds) =
             reference_render(&accel, &view, settings.reference_spp, 7)?;
+        let coverage = crate::render::reference::coverage(&accel, &view.camera(), 4);
         let mut images: Vec<(String, Image)> = Vec::new();
         let mut methods = Vec::new();
         let mut push = |method: &str, img: Image, bytes: u64, secs: f64, note: String| {
             let c = compare(&img, &truth).expect("same size");
+            let object = crate::render::compare::compare_on_object(&img, &truth, &coverage)
+                .expect("same size");
             methods.push(MethodResult {
                 method: method.to_string(),
                 rmse: c.rmse,
                 relmse: c.relmse,
+                object,
                 memory_bytes: bytes,
                 render_seconds: secs,
                 note,
@@ -389,6 +396,37 @@ pub fn markdown_table(results: &[SceneResult]) -> String {
                 "{rm} | {:.2} | {:.2} | ",
                 m.memory_bytes as f64 / 1048576.0,
                 m.render_seconds
+            );
+        }
+        s += "\n";
+    }
+    s
+}
+
+/// The study's errors on the assets' own pixels ([`MethodResult::object`]): per scene and
+/// resolution, each method's mean ratio and relative RMSE where the mesh covers the pixel, so
+/// that the sky around an asset cannot hide a wrong asset.
+pub fn object_table(results: &[SceneResult]) -> String {
+    let names: Vec<String> = results
+        .first()
+        .map(|r| r.methods.iter().map(|m| m.method.clone()).collect())
+        .unwrap_or_default();
+    let mut s = String::from("| scene | LoD | pixels | ");
+    for n in &names {
+        s += &format!("{n} mean ratio | {n} rel. RMSE | ");
+    }
+    s += "\n|---|---|---|";
+    for _ in &names {
+        s += "---|---|";
+    }
+    s += "\n";
+    for r in results {
+        let pixels = r.methods.first().map_or(0, |m| m.object.pixels);
+        s += &format!("| {} | {}³ | {pixels} | ", r.scene, r.res);
+        for m in &r.methods {
+            s += &format!(
+                "{:.3} | {:.3} | ",
+                m.object.mean_ratio, m.object.relative_rmse
             );
         }
         s += "\n";

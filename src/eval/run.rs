@@ -8,7 +8,9 @@ use anyhow::Result;
 use serde::Serialize;
 
 use super::budget::{budget_scene, budget_table, BudgetSettings};
-use super::{markdown_table, speed_scene, speed_table, study_scene, SpeedInput, StudySettings};
+use super::{
+    markdown_table, object_table, speed_scene, speed_table, study_scene, SpeedInput, StudySettings,
+};
 use crate::gen::{self, GenSettings};
 use crate::report::{usage, write_output, Notes, Written};
 use crate::scene::Scene;
@@ -306,7 +308,11 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
                 notes(&format!("  ({:.0} s)", t.elapsed().as_secs_f64()));
                 all.extend(r);
             }
-            let table = markdown_table(&all);
+            let table = format!(
+                "{}\nOn the assets' own pixels (where the mesh covers at least half a pixel):\n\n{}",
+                markdown_table(&all),
+                object_table(&all)
+            );
             write_output(&out.join("table.md"), &table)?;
             write_output(&out.join("table.json"), serde_json::to_string_pretty(&all)?)?;
             outputs.push(&out.join("table.md"), "the table");

@@ -48,6 +48,57 @@ pub fn compare(a: &Image, b: &Image) -> Result<Comparison, String> {
     })
 }
 
+/// The error on an object's own pixels: those at least half covered by it (a coverage such as
+/// [`crate::render::reference::coverage`] gives), so that a wrong object cannot hide in the
+/// sky around it.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct ObjectComparison {
+    /// Pixels counted.
+    pub pixels: usize,
+    /// Σ a / Σ b over those pixels and the three channels: 1.03 is 3% too bright.
+    pub mean_ratio: f64,
+    /// RMSE over those pixels and channels divided by the mean of b there.
+    pub relative_rmse: f64,
+}
+
+/// Compares `a` against reference `b` on the pixels whose `coverage` is at least 1/2 (one value
+/// per pixel, row by row). Errors when the sizes differ; NaN ratios when no pixel counts.
+pub fn compare_on_object(
+    a: &Image,
+    b: &Image,
+    coverage: &[f32],
+) -> Result<ObjectComparison, String> {
+    if a.width != b.width || a.height != b.height || coverage.len() != b.pixels.len() {
+        return Err(format!(
+            "image sizes differ: {}x{} against {}x{} with a coverage of {} pixels",
+            a.width,
+            a.height,
+            b.width,
+            b.height,
+            coverage.len()
+        ));
+    }
+    let (mut sa, mut sb, mut se, mut n) = (0f64, 0f64, 0f64, 0usize);
+    for ((p, q), &c) in a.pixels.iter().zip(&b.pixels).zip(coverage) {
+        if !(c >= 0.5) {
+            continue;
+        }
+        n += 1;
+        for k in 0..3 {
+            let (x, y) = (p[k] as f64, q[k] as f64);
+            sa += x;
+            sb += y;
+            se += (x - y) * (x - y);
+        }
+    }
+    let m = (3 * n) as f64;
+    Ok(ObjectComparison {
+        pixels: n,
+        mean_ratio: sa / sb,
+        relative_rmse: (se / m).sqrt() / (sb / m),
+    })
+}
+
 /// A false-colour image of the per-pixel absolute difference (mean over channels), black for
 /// zero through blue, magenta and yellow to white at `scale`. Returns the image and the scale
 /// (the 99th percentile of the difference unless given).

@@ -137,6 +137,29 @@ pub fn render(
     )
 }
 
+/// The fraction of each pixel the scene's surfaces cover, row by row: `n` × `n` stratified
+/// primary rays a pixel, each hitting or not (the object mask of
+/// [`crate::render::compare::compare_on_object`]).
+pub fn coverage(accel: &Accel, camera: &Camera, n: u32) -> Vec<f32> {
+    use rayon::prelude::*;
+    let n = n.max(1);
+    let (w, h) = (camera.width, camera.height);
+    (0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            let (x, y) = ((i % w) as f32, (i / w) as f32);
+            let mut hits = 0u32;
+            for j in 0..n * n {
+                let u = ((j % n) as f32 + 0.5) / n as f32;
+                let v = ((j / n) as f32 + 0.5) / n as f32;
+                let (o, d) = camera.ray(glam::Vec2::new(x + u, y + v));
+                hits += accel.intersect(&Ray::new(o, d)).is_some() as u32;
+            }
+            hits as f32 / (n * n) as f32
+        })
+        .collect()
+}
+
 /// What `aggtool reference` reports.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct ReferenceReport {
