@@ -9,6 +9,8 @@
 //!     [--budgets 16,64,256] [--spp N]
 //! ```
 
+mod common;
+
 use std::path::PathBuf;
 use std::process::Command;
 
@@ -24,12 +26,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     .into(),
             ),
         };
-    let value = |flag: &str| {
-        args.iter()
-            .position(|a| a == flag)
-            .and_then(|i| args.get(i + 1))
-            .cloned()
-    };
+    let value = |flag: &str| common::flag_value(&args, flag);
     let budgets: Vec<Option<u64>> = std::iter::once(None)
         .chain(
             value("--budgets")

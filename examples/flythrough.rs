@@ -25,6 +25,8 @@
 //! Writes `flythrough.md` (the table and the summary) and `strip.png` (eight frames: the
 //! reference, the continuous LoD and the discrete LoD, one row each) to `--out`.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
 use aggtool::eval::{study_view, tile_png};
@@ -47,12 +49,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             )
         }
     };
-    let value = |flag: &str| {
-        args.iter()
-            .position(|a| a == flag)
-            .and_then(|i| args.get(i + 1))
-            .cloned()
-    };
+    let value = |flag: &str| common::flag_value(&args, flag);
     let frames: usize = value("--frames").map_or(Ok(60), |s| s.parse())?;
     let size: u32 = value("--size").map_or(Ok(128), |s| s.parse())?;
     let spp: u32 = value("--spp").map_or(Ok(16), |s| s.parse())?;
@@ -151,7 +148,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
 
     // Bias against the reference (seed 0) of the second reference and of each LoD.
-    let bias = |f: &Frame, m: usize| f.means[m] / f.means[0].max(1e-30) - 1.0;
+    // NaN where the reference saw nothing (too few samples on the asset): left out below.
+    let bias = |f: &Frame, m: usize| {
+        if f.means[0] > 0.0 {
+            f.means[m] / f.means[0] - 1.0
+        } else {
+            f64::NAN
+        }
+    };
     let mut md = String::new();
     md.push_str(&format!(
         "`cargo run --release --example flythrough -- {} {} --frames {frames} --size {size} \
@@ -174,8 +178,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let ep = [bias(p, 1), bias(p, 2), bias(p, 3)];
             (0..3).map(|m| (e[m] - ep[m]).abs()).collect()
         };
-        if k > 0 {
-            for m in 0..3 {
+        for m in 0..3 {
+            if j[m].is_finite() {
                 jumps[m].push(j[m]);
             }
         }
@@ -216,7 +220,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let (max, rms) = summary(&jumps[m]);
         md.push_str(&format!("| {name} | {max:.4} | {rms:.4} |\n"));
     }
-    let mean_abs = |m: usize| rows.iter().map(|f| bias(f, m).abs()).sum::<f64>() / frames as f64;
+    let mean_abs = |m: usize| {
+        let e: Vec<f64> = rows
+            .iter()
+            .map(|f| bias(f, m).abs())
+            .filter(|e| e.is_finite())
+            .collect();
+        e.iter().sum::<f64>() / e.len() as f64
+    };
     md.push_str(&format!(
         "\nMean |e| over the frames: continuous {:.4}, discrete {:.4} (the reference's noise {:.4}).\n",
         mean_abs(2),
