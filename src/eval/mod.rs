@@ -361,22 +361,29 @@ pub fn study_scene(
     Ok(results)
 }
 
+/// The head of a study table: scene, LoD, the `extra` columns (each "NAME | "), then the
+/// `columns` of each method of the first result.
+fn table_head(results: &[SceneResult], extra: &str, columns: &[&str]) -> String {
+    let names: Vec<&str> = results
+        .first()
+        .map(|r| r.methods.iter().map(|m| m.method.as_str()).collect())
+        .unwrap_or_default();
+    let mut s = format!("| scene | LoD | {extra}");
+    for n in &names {
+        for c in columns {
+            s += &format!("{n} {c} | ");
+        }
+    }
+    s += "\n|---|---|";
+    s += &"---|".repeat(extra.matches('|').count() + names.len() * columns.len());
+    s += "\n";
+    s
+}
+
 /// The study's Markdown table: one row per scene and resolution, RMSE / memory / time per
 /// method, the lowest RMSE in bold.
 pub fn markdown_table(results: &[SceneResult]) -> String {
-    let names: Vec<String> = results
-        .first()
-        .map(|r| r.methods.iter().map(|m| m.method.clone()).collect())
-        .unwrap_or_default();
-    let mut s = String::from("| scene | LoD | ");
-    for n in &names {
-        s += &format!("{n} RMSE | {n} MiB | {n} s | ");
-    }
-    s += "\n|---|---|";
-    for _ in &names {
-        s += "---|---|---|";
-    }
-    s += "\n";
+    let mut s = table_head(results, "", &["RMSE", "MiB", "s"]);
     for r in results {
         // The best of the four LoD methods (not the equal-spp reference on the full mesh).
         let best = r
@@ -407,19 +414,7 @@ pub fn markdown_table(results: &[SceneResult]) -> String {
 /// resolution, each method's mean ratio and relative RMSE where the mesh covers the pixel, so
 /// that the sky around an asset cannot hide a wrong asset.
 pub fn object_table(results: &[SceneResult]) -> String {
-    let names: Vec<String> = results
-        .first()
-        .map(|r| r.methods.iter().map(|m| m.method.clone()).collect())
-        .unwrap_or_default();
-    let mut s = String::from("| scene | LoD | pixels | ");
-    for n in &names {
-        s += &format!("{n} mean ratio | {n} rel. RMSE | ");
-    }
-    s += "\n|---|---|---|";
-    for _ in &names {
-        s += "---|---|";
-    }
-    s += "\n";
+    let mut s = table_head(results, "pixels | ", &["mean ratio", "rel. RMSE"]);
     for r in results {
         let pixels = r.methods.first().map_or(0, |m| m.object.pixels);
         s += &format!("| {} | {}³ | {pixels} | ", r.scene, r.res);
