@@ -182,6 +182,9 @@ impl fmt::Display for ConvertReport {
                 v.join("; ")
             }
         };
+        if let Some(rate) = &r.rate {
+            writeln!(f, "stats: rate: {}", rate.line())?;
+        }
         writeln!(f, "stats: effects kept: {}", names(true))?;
         write!(f, "stats: effects dropped: {}", names(false))?;
         if self.verbose {
@@ -195,5 +198,50 @@ impl fmt::Display for ConvertReport {
             write!(f, "\noutput: {p}")?;
         }
         Ok(())
+    }
+}
+
+/// What `aggtool rate` did: an existing file's visibility details re-spent on a target.
+#[derive(Clone, Debug, Serialize)]
+pub struct RateFileReport {
+    /// The file read.
+    pub input: String,
+    /// Its size.
+    pub input_bytes: u64,
+    /// The file written.
+    pub output: String,
+    /// Its size.
+    pub bytes: u64,
+    /// What the rate control chose and met.
+    pub rate: super::rate::RateReport,
+}
+
+/// Re-spends the visibility details of the `.agg` at `input` on the rate target of `target`
+/// (its `size_mib`, `level_mib` or `error`; [`super::rate_file`]) into `output`, without
+/// baking again.
+pub fn rate(input: &Path, target: &BakeSettings, output: &Path) -> Result<RateFileReport> {
+    target.validate().map_err(usage)?;
+    let Some(t) = target.rate_target() else {
+        return Err(usage("give the target: --size-mib, --level-mib or --error"));
+    };
+    crate::util::check_destination(output)
+        .map_err(|e| crate::report::output(format!("cannot write {}: {e}", output.display())))?;
+    let agg = crate::format::Aggregate::open(input)
+        .with_context(|| format!("cannot read {}", input.display()))?;
+    let (bytes, rate) = super::rate_file(&agg, t, output)?;
+    Ok(RateFileReport {
+        input: input.display().to_string(),
+        input_bytes: agg.bytes().len() as u64,
+        output: output.display().to_string(),
+        bytes,
+        rate,
+    })
+}
+
+impl fmt::Display for RateFileReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(f, "input: {} ({})", self.input, mib(self.input_bytes))?;
+        writeln!(f, "output: {} ({})", self.output, mib(self.bytes))?;
+        write!(f, "stats: rate: {}", self.rate.line())
     }
 }

@@ -11,6 +11,7 @@ pub mod convert;
 pub mod level;
 mod pipeline;
 pub mod primitive;
+pub mod rate;
 pub mod sampling;
 pub mod visibility;
 pub mod voxelize;
@@ -80,6 +81,19 @@ pub struct BakeSettings {
     /// Zstandard level of the block blobs (format 1.5; 0 stores them uncompressed): lossless,
     /// inflated by readers the first time a block is read.
     pub compression: i32,
+    /// Rate control ([`rate`]): the whole file's size in MiB (within 3% under it), spent on
+    /// the visibility details where they matter most to radiance; 0: none (the per-map
+    /// `keep` and `energy` truncate). At most one of `size_mib`, `level_mib` and `error`.
+    #[serde(default)]
+    pub size_mib: f64,
+    /// Rate control: the finest level's size in MiB; coarser levels get the same multiplier.
+    /// 0: none.
+    #[serde(default)]
+    pub level_mib: f64,
+    /// Rate control: the largest level error estimate (RMS visibility error weighted by
+    /// radiance, [`rate`]); 0: none.
+    #[serde(default)]
+    pub error: f64,
 }
 
 impl Default for BakeSettings {
@@ -104,6 +118,9 @@ impl Default for BakeSettings {
             keep_all_effects: false,
             lossless: false,
             compression: crate::format::DEFAULT_COMPRESSION,
+            size_mib: 0.0,
+            level_mib: 0.0,
+            error: 0.0,
         }
     }
 }
@@ -417,7 +434,31 @@ impl BakeSettings {
         if !(self.energy >= 0.0 && self.energy <= 1.0) {
             return Err(format!("--energy must be in [0, 1], got {}", self.energy));
         }
+        let targets = [
+            ("--size-mib", self.size_mib),
+            ("--level-mib", self.level_mib),
+            ("--error", self.error),
+        ];
+        for (name, v) in targets {
+            if !(v >= 0.0 && v.is_finite()) {
+                return Err(format!(
+                    "{name} must be a positive number (0: none), got {v}"
+                ));
+            }
+        }
+        let set: Vec<&str> = targets.iter().filter(|t| t.1 > 0.0).map(|t| t.0).collect();
+        if set.len() > 1 {
+            return Err(format!(
+                "{} name the same thing (the bake's rate); give one",
+                set.join(" and ")
+            ));
+        }
         Ok(())
+    }
+
+    /// The rate target these settings name ([`rate::RateTarget::of`]).
+    pub fn rate_target(&self) -> Option<rate::RateTarget> {
+        rate::RateTarget::of(self)
     }
 
     /// The resolutions of the levels, finest first.
@@ -468,6 +509,9 @@ impl BakeSettings {
             aiv_weighting: crate::format::AivWeighting::ProjectedArea,
             lossless: self.lossless,
             compression: self.compression,
+            size_mib: self.size_mib,
+            level_mib: self.level_mib,
+            error: self.error,
         }
     }
 
@@ -607,6 +651,9 @@ impl BakeSettings {
             keep_all_effects: r.keep_all_effects,
             lossless: r.lossless,
             compression: r.compression,
+            size_mib: r.size_mib,
+            level_mib: r.level_mib,
+            error: r.error,
         }
     }
 
@@ -621,8 +668,18 @@ impl BakeSettings {
             abv_rays: self.abv_rays,
             abv_stride: self.abv_stride_at(res),
             abv_windows: self.abv_windows,
-            keep: self.keep,
-            energy: self.energy,
+            // With a rate target every detail that survives the shrinkage is a candidate, and
+            // the rate control truncates ([`rate`]).
+            keep: if self.rate_target().is_some() {
+                1.0
+            } else {
+                self.keep
+            },
+            energy: if self.rate_target().is_some() {
+                1.0
+            } else {
+                self.energy
+            },
             denoise: self.denoise,
             estimate: EstimateSettings {
                 max_lobes: self.ndf_lobes as usize,

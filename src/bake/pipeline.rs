@@ -12,13 +12,14 @@ use super::boundary_visibility::ABV_BANDWIDTHS;
 use super::level::{
     bake_face, bake_voxel, primitive_level, sorted_boundary_faces, voxel_primitive, VoxelCost,
 };
+use super::rate::{self, PendingLevel, RateReport};
 use super::sampling::pieces_by_voxel;
 use super::visibility::AIV_BANDWIDTHS;
 use super::BakeSettings;
 use crate::format::effects::{effect_lines, EffectLine};
 use crate::format::encode::{self, ComponentBytes, Counts, IndexEntry, LevelEntry};
 use crate::format::part::{BlockKind, PartLevel, PartMeta, PartWriter, Shard};
-use crate::format::{VoxelData, Writer};
+use crate::format::{encode_voxel_keys, VoxelData, Writer};
 use crate::scene::Scene;
 use crate::spatial::{Ellipsoid, Grid};
 use crate::trace::Accel;
@@ -135,6 +136,8 @@ pub struct BakeReport {
     pub peak_memory: Option<u64>,
     /// Per effect of the appearance model, whether the file holds it and why not.
     pub effects: Vec<EffectLine>,
+    /// What the rate control chose and met, when the settings name a target.
+    pub rate: Option<RateReport>,
 }
 
 /// Why a bake failed.
@@ -214,12 +217,15 @@ struct Baked {
 /// The bake's levels, block by block into `sink`. With a shard, only the chunks it owns are
 /// baked to the end and written (see [`crate::format::part`]); the voxels of other chunks get
 /// their primitive alone, which the boundary faces need.
+/// With `defer`, the blocks are not encoded: each level's voxels and faces are held there for
+/// the rate control ([`super::rate`]), and the entries' blocks and counts are left empty.
 fn bake_levels(
     scene: &Scene,
     settings: &BakeSettings,
     shard: Option<Shard>,
     sink: &mut Sink,
     progress: Progress,
+    mut defer: Option<&mut Vec<PendingLevel>>,
 ) -> std::io::Result<Baked> {
     let accel = Accel::build(scene);
     let (lo, hi) = scene.bounds();
@@ -235,6 +241,12 @@ fn bake_levels(
     for (li, res) in settings.resolutions().into_iter().enumerate() {
         let grid = Grid::around(lo, hi, res);
         let ls = settings.level(res);
+        if let Some(d) = defer.as_mut() {
+            d.push(PendingLevel {
+                voxel_size: grid.voxel_size(),
+                ..Default::default()
+            });
+        }
         let mut sec = StageSeconds::default();
         let mut counts = Counts::default();
         let mut bytes = 0u64;
@@ -297,6 +309,11 @@ fn bake_levels(
             }
             let t = Instant::now();
             keys_prims.extend(voxels.iter().map(|v| (v.key, v.ellipsoid)));
+            if let Some(level) = defer.as_mut().and_then(|d| d.last_mut()) {
+                level.voxels.push(voxels);
+                sec.write += t.elapsed().as_secs_f64();
+                continue;
+            }
             let blob = encode::voxel_block(
                 li as u32,
                 &voxels,
@@ -371,6 +388,10 @@ fn bake_levels(
             }
             let data: Vec<_> = baked.into_iter().map(|b| b.0).collect();
             sec.faces += t.elapsed().as_secs_f64();
+            if let Some(level) = defer.as_mut().and_then(|d| d.last_mut()) {
+                level.faces.push(data);
+                continue;
+            }
             let t = Instant::now();
             let blob = encode::face_block(
                 li as u32,
@@ -476,22 +497,62 @@ pub fn bake_to_file(
     let t_start = Instant::now();
     let mut writer = Writer::create(out).map_err(io)?;
     writer.set_compression(settings.compression);
-    let b =
-        bake_levels(scene, settings, None, &mut Sink::Agg(&mut writer), progress).map_err(io)?;
+    let target = settings.rate_target();
+    let mut pending = Vec::new();
+    let mut b = bake_levels(
+        scene,
+        settings,
+        None,
+        &mut Sink::Agg(&mut writer),
+        progress,
+        target.is_some().then_some(&mut pending),
+    )
+    .map_err(io)?;
     let (lo, hi) = b.bounds;
+    let recorded = settings.recorded();
+    let index_of = |entries: &[LevelEntry]| {
+        encode::index(&IndexEntry {
+            generator: concat!("aggtool ", env!("CARGO_PKG_VERSION")),
+            source,
+            bounds: (lo, hi),
+            settings: &recorded,
+            tables_version: crate::tables::TABLES_VERSION,
+            tables_crc32: crc32fast::hash(crate::tables::EMBEDDED),
+            levels: entries,
+        })
+    };
+    let mut rate_report = None;
+    if let Some(target) = target {
+        let t = Instant::now();
+        let (placed, report) = place_levels(
+            &mut writer,
+            pending,
+            &mut b.entries,
+            settings,
+            target,
+            &index_of,
+        )
+        .map_err(io)?;
+        b.components = ComponentBytes::default();
+        for (r, p) in b.reports.iter_mut().zip(&placed) {
+            r.counts = p.counts;
+            r.voxels = p.counts.voxels;
+            r.faces = p.counts.faces;
+            r.occupancy = p.counts.voxels as f64 / (r.res as f64).powi(3);
+            r.bytes = p.bytes;
+            b.components.add(&p.components);
+        }
+        b.total.write += t.elapsed().as_secs_f64();
+        rate_report = Some(report);
+    }
     let entries = b.entries;
     let mut total = b.total;
-    let index = encode::index(&IndexEntry {
-        generator: concat!("aggtool ", env!("CARGO_PKG_VERSION")),
-        source,
-        bounds: (lo, hi),
-        settings: &settings.recorded(),
-        tables_version: crate::tables::TABLES_VERSION,
-        tables_crc32: crc32fast::hash(crate::tables::EMBEDDED),
-        levels: &entries,
-    });
+    let index = index_of(&entries);
     let t = Instant::now();
     let size = writer.finish(&index).map_err(io)?;
+    if let Some(r) = rate_report.as_mut() {
+        r.settle(size);
+    }
     let (reports, components, rays) = (b.reports, b.components, b.rays);
     total.write += t.elapsed().as_secs_f64();
     let total_seconds = t_start.elapsed().as_secs_f64();
@@ -508,7 +569,146 @@ pub fn bake_to_file(
         components,
         peak_memory: peak_memory(),
         effects: effect_lines(&per_level, settings.keep_all_effects),
+        rate: rate_report,
     })
+}
+
+/// What a level holds once the rate control has placed it in the file.
+struct Placed {
+    bytes: u64,
+    counts: Counts,
+    components: ComponentBytes,
+}
+
+/// Chooses the rate control's multiplier for `pending` ([`rate::allocate`]) and writes the
+/// levels' blocks, in file order, filling `entries`' block references and counts.
+/// `index_of` encodes the index of a set of entries (its size, with placeholder references,
+/// is part of what a file budget counts).
+fn place_levels(
+    writer: &mut Writer,
+    pending: Vec<PendingLevel>,
+    entries: &mut [LevelEntry],
+    settings: &BakeSettings,
+    target: rate::RateTarget,
+    index_of: &dyn Fn(&[LevelEntry]) -> Vec<u8>,
+) -> std::io::Result<(Vec<Placed>, RateReport)> {
+    // The index's bytes do not depend on λ: block references have a fixed size.
+    let mut sized = entries.to_vec();
+    for (e, p) in sized.iter_mut().zip(&pending) {
+        e.voxel_blocks = vec![Default::default(); p.voxels.len()];
+        e.face_blocks = vec![Default::default(); p.faces.len()];
+    }
+    let fixed = crate::format::HEADER_SIZE as u64 + index_of(&sized).len() as u64;
+    let (levels, report) = rate::allocate(&pending, settings, target, fixed);
+    drop(pending);
+    let mut placed = Vec::with_capacity(levels.len());
+    for (e, level) in entries.iter_mut().zip(levels) {
+        let mut bytes = 0;
+        e.voxel_blocks.clear();
+        e.face_blocks.clear();
+        for (blocks, refs) in [
+            (level.voxel_blocks, &mut e.voxel_blocks),
+            (level.face_blocks, &mut e.face_blocks),
+        ] {
+            for blk in blocks {
+                bytes += blk.blob.len() as u64;
+                refs.push(writer.write_blob(
+                    &blk.blob,
+                    blk.keys.0,
+                    blk.keys.1,
+                    blk.count as u32,
+                )?);
+            }
+        }
+        e.counts = level.counts;
+        placed.push(Placed {
+            bytes,
+            counts: level.counts,
+            components: level.components,
+        });
+    }
+    Ok((placed, report))
+}
+
+/// Re-spends the visibility details of the baked file `input` on the rate target of
+/// `settings` ([`BakeSettings::rate_target`]), without baking again, into `out` (written
+/// atomically): `aggtool rate`. The candidates are the details the file holds, so a file
+/// baked with a target (or `--keep 1 --energy 1`) can be re-rated to any smaller budget, and
+/// a default file only to a smaller one. Everything else is copied as it is.
+pub fn rate_file(
+    input: &crate::format::Aggregate,
+    target: rate::RateTarget,
+    out: &Path,
+) -> Result<(u64, RateReport), BakeError> {
+    let io = |e: std::io::Error| BakeError::Io {
+        path: out.display().to_string(),
+        source: e,
+    };
+    crate::util::check_destination(out).map_err(io)?;
+    let mut settings = BakeSettings::from_recorded(input.settings());
+    (settings.size_mib, settings.level_mib, settings.error) = match target {
+        rate::RateTarget::FileBytes(b) => (b as f64 / (1024.0 * 1024.0), 0.0, 0.0),
+        rate::RateTarget::LevelBytes(b) => (0.0, b as f64 / (1024.0 * 1024.0), 0.0),
+        rate::RateTarget::Error(e) => (0.0, 0.0, e),
+    };
+    let mut pending = Vec::with_capacity(input.level_count());
+    let mut entries = Vec::with_capacity(input.level_count());
+    for l in 0..input.level_count() {
+        let level = input.read_level(l);
+        let keys = encode_voxel_keys(level.voxels.iter().map(|v| v.key), settings.compression);
+        entries.push(LevelEntry {
+            res: level.grid.res,
+            origin: level.grid.origin,
+            size: level.grid.size,
+            voxel_blocks: Vec::new(),
+            face_blocks: Vec::new(),
+            counts: Counts::default(),
+            voxel_keys: keys,
+        });
+        let chunks = |n: usize| n.max(1);
+        let mut p = PendingLevel {
+            voxel_size: level.grid.voxel_size(),
+            ..Default::default()
+        };
+        let mut voxels = level.voxels;
+        while !voxels.is_empty() {
+            let rest = voxels.split_off(chunks(BLOCK_VOXELS).min(voxels.len()));
+            p.voxels.push(std::mem::replace(&mut voxels, rest));
+        }
+        let mut faces = level.faces;
+        while !faces.is_empty() {
+            let rest = faces.split_off(chunks(BLOCK_FACES).min(faces.len()));
+            p.faces.push(std::mem::replace(&mut faces, rest));
+        }
+        pending.push(p);
+    }
+    let recorded = settings.recorded();
+    let (tables_version, tables_crc32) = input.tables();
+    let index_of = |entries: &[LevelEntry]| {
+        encode::index(&IndexEntry {
+            generator: concat!("aggtool ", env!("CARGO_PKG_VERSION")),
+            source: input.source(),
+            bounds: input.bounds(),
+            settings: &recorded,
+            tables_version,
+            tables_crc32,
+            levels: entries,
+        })
+    };
+    let mut writer = Writer::create(out).map_err(io)?;
+    writer.set_compression(settings.compression);
+    let (_, mut report) = place_levels(
+        &mut writer,
+        pending,
+        &mut entries,
+        &settings,
+        target,
+        &index_of,
+    )
+    .map_err(io)?;
+    let size = writer.finish(&index_of(&entries)).map_err(io)?;
+    report.settle(size);
+    Ok((size, report))
 }
 
 /// Bakes shard `shard` of `scene` into the part file `out` (written atomically; see
@@ -530,6 +730,13 @@ pub fn bake_shard_to_file(
             shard.index, shard.count
         )));
     }
+    if let Some(t) = settings.rate_target() {
+        return Err(BakeError::Settings(format!(
+            "a farm's shards cannot share a rate target ({}): the multiplier is chosen over the \
+             whole file; bake it in one process, or without --size-mib, --level-mib and --error",
+            t.describe()
+        )));
+    }
     if !(scene.world_area() > 0.0) {
         return Err(BakeError::Empty);
     }
@@ -546,6 +753,7 @@ pub fn bake_shard_to_file(
         Some(shard),
         &mut Sink::Part(&mut writer),
         progress,
+        None,
     )
     .map_err(io)?;
     let (lo, hi) = b.bounds;
@@ -580,5 +788,6 @@ pub fn bake_shard_to_file(
         components: b.components,
         peak_memory: peak_memory(),
         effects: effect_lines(&per_level, settings.keep_all_effects),
+        rate: None,
     })
 }

@@ -145,6 +145,29 @@ enum Command {
         #[arg(long)]
         remove_parts: bool,
     },
+    /// Re-spend an existing aggregate's visibility details on a size or error target without
+    /// baking again (the same allocation as `convert --size-mib`): the candidates are the
+    /// details the file holds, so a file baked with a target, or with `--keep 1 --energy 1`,
+    /// goes to any smaller budget.
+    #[command(
+        after_help = "Example:\n  aggtool convert tree.glb --keep 1 --energy 1 -o tree-all.agg\n  aggtool rate tree-all.agg --size-mib 4 -o tree-4.agg"
+    )]
+    Rate {
+        /// The aggregate (.agg).
+        agg: PathBuf,
+        /// The aggregate to write.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// The whole file's size in MiB (met within 3% under it).
+        #[arg(long, value_name = "MIB", conflicts_with_all = ["level_mib", "error"], required_unless_present_any = ["level_mib", "error"])]
+        size_mib: Option<f64>,
+        /// The finest level's size in MiB.
+        #[arg(long, value_name = "MIB", conflicts_with = "error")]
+        level_mib: Option<f64>,
+        /// The largest level error estimate (RMS visibility error weighted by radiance).
+        #[arg(long, value_name = "E")]
+        error: Option<f64>,
+    },
     /// Write an asset as plain data for tools without a glTF/OBJ reader (the USD integration):
     /// scene.json (meshes, instances, materials), geometry.bin (positions, normals, UVs,
     /// indices) and the textures as PNG.
@@ -395,6 +418,21 @@ fn run(command: Command, out: &Out) -> Result<Box<dyn Report>> {
                 _ => PartFiles::Listed(parts),
             };
             Box::new(merge_files(&files, &output, remove_parts)?)
+        }
+        Command::Rate {
+            agg,
+            output,
+            size_mib,
+            level_mib,
+            error,
+        } => {
+            let target = aggtool::bake::BakeSettings {
+                size_mib: size_mib.unwrap_or(0.0),
+                level_mib: level_mib.unwrap_or(0.0),
+                error: error.unwrap_or(0.0),
+                ..Default::default()
+            };
+            Box::new(aggtool::bake::convert::rate(&agg, &target, &output)?)
         }
         Command::Export { asset, output } => {
             let stats = aggtool::scene::export::export(&load(&asset)?, &output)?;

@@ -3391,6 +3391,9 @@ impl<'a> BakeSettings<'a> {
   pub const VT_COMPRESSION: ::flatbuffers::VOffsetT = 38;
   pub const VT_AIV_MIN_RAYS: ::flatbuffers::VOffsetT = 40;
   pub const VT_ABV_WINDOWS: ::flatbuffers::VOffsetT = 42;
+  pub const VT_SIZE_MIB: ::flatbuffers::VOffsetT = 44;
+  pub const VT_LEVEL_MIB: ::flatbuffers::VOffsetT = 46;
+  pub const VT_ERROR: ::flatbuffers::VOffsetT = 48;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3402,6 +3405,9 @@ impl<'a> BakeSettings<'a> {
     args: &'args BakeSettingsArgs
   ) -> ::flatbuffers::WIPOffset<BakeSettings<'bldr>> {
     let mut builder = BakeSettingsBuilder::new(_fbb);
+    builder.add_error(args.error);
+    builder.add_level_mib(args.level_mib);
+    builder.add_size_mib(args.size_mib);
     builder.add_aiv_min_rays(args.aiv_min_rays);
     builder.add_compression(args.compression);
     builder.add_abv_full_res(args.abv_full_res);
@@ -3588,6 +3594,32 @@ impl<'a> BakeSettings<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<bool>(BakeSettings::VT_ABV_WINDOWS, Some(false)).unwrap()}
   }
+  /// Recorded since aggtool's rate control (files of format 1.5; no layout change, readers
+  /// need not know it): the budget the bake's visibility details were allocated to, in MiB
+  /// of the whole file (`size_mib`) or of the finest level (`level_mib`), or the bound on its
+  /// error estimate (`error`); at most one is set. 0 (also absent, in older files): none, the
+  /// per-map `keep` and `energy` truncated.
+  #[inline]
+  pub fn size_mib(&self) -> f64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f64>(BakeSettings::VT_SIZE_MIB, Some(0.0)).unwrap()}
+  }
+  #[inline]
+  pub fn level_mib(&self) -> f64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f64>(BakeSettings::VT_LEVEL_MIB, Some(0.0)).unwrap()}
+  }
+  #[inline]
+  pub fn error(&self) -> f64 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<f64>(BakeSettings::VT_ERROR, Some(0.0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for BakeSettings<'_> {
@@ -3616,6 +3648,9 @@ impl ::flatbuffers::Verifiable for BakeSettings<'_> {
      .visit_field::<i32>("compression", Self::VT_COMPRESSION, false)?
      .visit_field::<u32>("aiv_min_rays", Self::VT_AIV_MIN_RAYS, false)?
      .visit_field::<bool>("abv_windows", Self::VT_ABV_WINDOWS, false)?
+     .visit_field::<f64>("size_mib", Self::VT_SIZE_MIB, false)?
+     .visit_field::<f64>("level_mib", Self::VT_LEVEL_MIB, false)?
+     .visit_field::<f64>("error", Self::VT_ERROR, false)?
      .finish();
     Ok(())
   }
@@ -3641,6 +3676,9 @@ pub struct BakeSettingsArgs {
     pub compression: i32,
     pub aiv_min_rays: u32,
     pub abv_windows: bool,
+    pub size_mib: f64,
+    pub level_mib: f64,
+    pub error: f64,
 }
 impl<'a> Default for BakeSettingsArgs {
   #[inline]
@@ -3666,6 +3704,9 @@ impl<'a> Default for BakeSettingsArgs {
       compression: 0,
       aiv_min_rays: 1,
       abv_windows: false,
+      size_mib: 0.0,
+      level_mib: 0.0,
+      error: 0.0,
     }
   }
 }
@@ -3756,6 +3797,18 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> BakeSettingsBuilder<'a, 'b, A
     self.fbb_.push_slot::<bool>(BakeSettings::VT_ABV_WINDOWS, abv_windows, false);
   }
   #[inline]
+  pub fn add_size_mib(&mut self, size_mib: f64) {
+    self.fbb_.push_slot::<f64>(BakeSettings::VT_SIZE_MIB, size_mib, 0.0);
+  }
+  #[inline]
+  pub fn add_level_mib(&mut self, level_mib: f64) {
+    self.fbb_.push_slot::<f64>(BakeSettings::VT_LEVEL_MIB, level_mib, 0.0);
+  }
+  #[inline]
+  pub fn add_error(&mut self, error: f64) {
+    self.fbb_.push_slot::<f64>(BakeSettings::VT_ERROR, error, 0.0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> BakeSettingsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     BakeSettingsBuilder {
@@ -3793,6 +3846,9 @@ impl ::core::fmt::Debug for BakeSettings<'_> {
       ds.field("compression", &self.compression());
       ds.field("aiv_min_rays", &self.aiv_min_rays());
       ds.field("abv_windows", &self.abv_windows());
+      ds.field("size_mib", &self.size_mib());
+      ds.field("level_mib", &self.level_mib());
+      ds.field("error", &self.error());
       ds.finish()
   }
 }

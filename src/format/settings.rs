@@ -69,6 +69,15 @@ pub struct RecordedSettings {
     /// The Zstandard level of the blocks (format 1.5); 0 in older files: none.
     #[serde(default)]
     pub compression: i32,
+    /// The rate control's file budget in MiB (0, also in files that do not record it: none).
+    #[serde(default)]
+    pub size_mib: f64,
+    /// The rate control's finest-level budget in MiB (0: none).
+    #[serde(default)]
+    pub level_mib: f64,
+    /// The rate control's error bound (0: none).
+    #[serde(default)]
+    pub error: f64,
 }
 
 impl RecordedSettings {
@@ -99,6 +108,9 @@ impl RecordedSettings {
             },
             lossless: s.lossless(),
             compression: s.compression(),
+            size_mib: s.size_mib(),
+            level_mib: s.level_mib(),
+            error: s.error(),
         }
     }
 
@@ -128,6 +140,9 @@ impl RecordedSettings {
             lossless: self.lossless,
             compression: self.compression,
             abv_windows: self.abv_windows,
+            size_mib: self.size_mib,
+            level_mib: self.level_mib,
+            error: self.error,
         }
     }
 }

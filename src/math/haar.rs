@@ -211,6 +211,65 @@ impl SparseHaar {
         }
     }
 
+    /// The tree with only the details `keep` accepts (a detail's node and its level's block
+    /// size `s`, the map's side at the root, halving per level), nodes left without a detail
+    /// or a child pruned: what [`Self::new`] builds from the dense details with the others
+    /// zeroed. The rate control's truncation (`bake::rate`) keeps a detail when its weighted
+    /// energy reaches the level's Lagrange multiplier.
+    pub fn retain(&self, keep: impl Fn(f32, u32) -> bool) -> SparseHaar {
+        fn walk(
+            src: &[Node],
+            i: usize,
+            size: u32,
+            keep: &dyn Fn(f32, u32) -> bool,
+            out: &mut Vec<Node>,
+        ) -> bool {
+            let nd = src[i];
+            let details = nd
+                .details
+                .map(|c| if c != 0.0 && keep(c, size) { c } else { 0.0 });
+            let at = out.len();
+            out.push(Node {
+                details,
+                children: 0,
+                subtree: 1,
+            });
+            let (mut mask, mut j) = (0u8, i + 1);
+            for q in 0..4 {
+                if nd.children & (1 << q) != 0 {
+                    if walk(src, j, size / 2, keep, out) {
+                        mask |= 1 << q;
+                    }
+                    j += src[j].subtree as usize;
+                }
+            }
+            if mask == 0 && details == [0.0; 3] {
+                out.truncate(at);
+                return false;
+            }
+            out[at].children = mask;
+            out[at].subtree = (out.len() - at) as u32;
+            true
+        }
+        let mut nodes = Vec::with_capacity(self.nodes.len());
+        if !self.nodes.is_empty() {
+            walk(&self.nodes, 0, self.n, &keep, &mut nodes);
+        }
+        SparseHaar {
+            n: self.n,
+            scaling: self.scaling,
+            nodes,
+        }
+    }
+
+    /// Every non-zero detail of the tree, in preorder.
+    pub fn details(&self) -> impl Iterator<Item = f32> + '_ {
+        self.nodes
+            .iter()
+            .flat_map(|n| n.details)
+            .filter(|&c| c != 0.0)
+    }
+
     /// Whether the map is constant (no details): visibility then needs a flag, not a tree.
     pub fn is_constant(&self) -> bool {
         self.nodes.is_empty()
@@ -522,6 +581,39 @@ mod tests {
         (0..n * n)
             .map(|i| if (i / 7) % 3 == 0 { 1.0 } else { r.next_f32() })
             .collect()
+    }
+
+    /// `retain` on a tree is `new` on the dense details with the rejected ones zeroed,
+    /// node for node (pruning included), and it tells each detail its level's block size.
+    #[test]
+    fn retain_is_new_on_the_kept_details() {
+        let n = 32;
+        let m = random_map(n, 11);
+        let (c, d) = forward(&m, n);
+        let full = SparseHaar::new(c, &d, n);
+        for t in [0.0f32, 0.05, 0.2, 0.6, 10.0] {
+            // Finer blocks need larger details: the rule depends on the size it is told.
+            let rule = |v: f32, s: u32| v.abs() * (s as f32).sqrt() >= t;
+            let mut dense = d.clone();
+            let (mut offset, mut size) = (0usize, 1usize);
+            while size < n {
+                for x in &mut dense[offset..offset + size * size] {
+                    for v in x.iter_mut() {
+                        if !rule(*v, (n / size) as u32) {
+                            *v = 0.0;
+                        }
+                    }
+                }
+                offset += size * size;
+                size *= 2;
+            }
+            assert_eq!(full.retain(rule), SparseHaar::new(c, &dense, n), "t = {t}");
+        }
+        assert!(full.retain(|_, _| false).is_constant());
+        assert_eq!(
+            full.details().count(),
+            d.iter().flatten().filter(|&&v| v != 0.0).count()
+        );
     }
 
     #[test]

@@ -312,6 +312,22 @@ pub struct BakeArgs {
     /// bytes than level 0 for a few seconds of bake [default: 19; draft 3, max 0].
     #[arg(long)]
     pub compression_level: Option<i32>,
+    /// Rate control: the whole file's size in MiB. The bake keeps every visibility detail
+    /// that survives the noise shrinkage as a candidate and spends the budget on those that
+    /// matter most to radiance (surface area × albedo² for a voxel's interior visibility, the
+    /// face's area for boundary visibility; one Lagrange multiplier for the file), landing
+    /// within 3% under it; --keep and --energy then do nothing. Holds the bake's levels in
+    /// memory until the end [default: none].
+    #[arg(long, value_name = "MIB", conflicts_with_all = ["level_mib", "error"])]
+    pub size_mib: Option<f64>,
+    /// Rate control: the finest level's size in MiB (coarser levels get the same
+    /// multiplier) [default: none].
+    #[arg(long, value_name = "MIB", conflicts_with = "error")]
+    pub level_mib: Option<f64>,
+    /// Rate control: the largest level error estimate, the RMS visibility error weighted by
+    /// what it does to radiance (0.01 to 0.05 is a useful range) [default: none].
+    #[arg(long, value_name = "E")]
+    pub error: Option<f64>,
     /// No clustered PCA of the visibility. Accepted and ignored: CPCA was measured
     /// (tools/src/bin/cpca_probe.rs) and does not pay on the quantized, truncated trees, so no
     /// file stores it.
@@ -349,6 +365,9 @@ impl BakeArgs {
         s.keep_all_effects |= self.keep_all_effects;
         s.denoise &= !self.no_denoise;
         s.lossless |= self.lossless;
+        s.size_mib = self.size_mib.unwrap_or(s.size_mib);
+        s.level_mib = self.level_mib.unwrap_or(s.level_mib);
+        s.error = self.error.unwrap_or(s.error);
         s
     }
 }

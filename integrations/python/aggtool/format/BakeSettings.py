@@ -190,8 +190,34 @@ class BakeSettings(object):
             return bool(self._tab.Get(flatbuffers.number_types.BoolFlags, o + self._tab.Pos))
         return False
 
+    # Recorded since aggtool's rate control (files of format 1.5; no layout change, readers
+    # need not know it): the budget the bake's visibility details were allocated to, in MiB
+    # of the whole file (`size_mib`) or of the finest level (`level_mib`), or the bound on its
+    # error estimate (`error`); at most one is set. 0 (also absent, in older files): none, the
+    # per-map `keep` and `energy` truncated.
+    # BakeSettings
+    def SizeMib(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(44))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Float64Flags, o + self._tab.Pos)
+        return 0.0
+
+    # BakeSettings
+    def LevelMib(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(46))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Float64Flags, o + self._tab.Pos)
+        return 0.0
+
+    # BakeSettings
+    def Error(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(48))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Float64Flags, o + self._tab.Pos)
+        return 0.0
+
 def BakeSettingsStart(builder):
-    builder.StartObject(20)
+    builder.StartObject(23)
 
 def Start(builder):
     BakeSettingsStart(builder)
@@ -315,6 +341,24 @@ def BakeSettingsAddAbvWindows(builder, abvWindows):
 
 def AddAbvWindows(builder, abvWindows):
     BakeSettingsAddAbvWindows(builder, abvWindows)
+
+def BakeSettingsAddSizeMib(builder, sizeMib):
+    builder.PrependFloat64Slot(20, sizeMib, 0.0)
+
+def AddSizeMib(builder, sizeMib):
+    BakeSettingsAddSizeMib(builder, sizeMib)
+
+def BakeSettingsAddLevelMib(builder, levelMib):
+    builder.PrependFloat64Slot(21, levelMib, 0.0)
+
+def AddLevelMib(builder, levelMib):
+    BakeSettingsAddLevelMib(builder, levelMib)
+
+def BakeSettingsAddError(builder, error):
+    builder.PrependFloat64Slot(22, error, 0.0)
+
+def AddError(builder, error):
+    BakeSettingsAddError(builder, error)
 
 def BakeSettingsEnd(builder):
     return builder.EndObject()

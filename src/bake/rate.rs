@@ -1,0 +1,564 @@
+//! Rate control: the user names the bytes (of the file or of its finest level) or the error,
+//! and the bake spends the visibility wavelets' coefficients where the picture needs them.
+//!
+//! A bake with a target keeps, per visibility map, every Haar detail that survives the noise
+//! shrinkage (the candidates), holds the levels until all are baked, and then keeps a detail
+//! c of map m where its weighted energy w_m·c² reaches one Lagrange multiplier λ, chosen for
+//! the whole file: the post-compression rate-distortion optimisation of JPEG 2000's code
+//! blocks (Taubman 2000), applied to the AIV (Eq. 25) and ABV (Eq. 26) trees. The Haar basis
+//! is orthonormal, so w_m·c² is exactly what dropping c adds to w_m times the map's summed
+//! squared error, and every candidate costs about the same bytes (a node's detail, or a node):
+//! keeping the details of largest w·c² first is the greedy solution of the rate-constrained
+//! problem, and λ is searched until the bytes meet the budget.
+//!
+//! The weight is what a map's error does to radiance, per unit of the level's surface:
+//! - a voxel's AIV scales the light its surfaces reflect, so w = a·ρ² / (A·N²), with a the
+//!   voxel's surface area after cut-outs, ρ its mean albedo (diffuse and specular, Eq. 13
+//!   and 17), N² the map's cells (the squared error per cell is the energy over N²);
+//! - a boundary face's ABV scales the light that passes through it from behind, taken as
+//!   unit radiance, so w = s² / (A·N²) with s the voxel's side;
+//! - A is the level's total of both areas, so each level's distortion is the weighted mean
+//!   squared visibility error over its surfaces. Its square root is the level's error
+//!   estimate, which `--error` bounds and every bake with a target reports.
+
+use rayon::prelude::*;
+
+use super::BakeSettings;
+use crate::absdf::{MaterialMoments, Moments};
+use crate::format::encode::{self, ComponentBytes, Counts};
+use crate::format::{compress_block, ALIGN};
+use crate::format::{FaceData, VoxelData};
+use crate::math::haar::SparseHaar;
+
+/// What a bake's bytes or error must meet (`convert --size-mib`, `--level-mib`, `--error`).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[serde(rename_all = "kebab-case", tag = "kind", content = "value")]
+pub enum RateTarget {
+    /// The whole file, in bytes.
+    FileBytes(u64),
+    /// The finest level's blocks, in bytes.
+    LevelBytes(u64),
+    /// The largest level error estimate (RMS visibility error, [`LevelWeights`]).
+    Error(f64),
+}
+
+impl RateTarget {
+    /// The target the settings name, if any (at most one does: [`BakeSettings::validate`]).
+    pub fn of(s: &BakeSettings) -> Option<RateTarget> {
+        let mib = |m: f64| (m * 1024.0 * 1024.0).round() as u64;
+        if s.size_mib > 0.0 {
+            Some(RateTarget::FileBytes(mib(s.size_mib)))
+        } else if s.level_mib > 0.0 {
+            Some(RateTarget::LevelBytes(mib(s.level_mib)))
+        } else if s.error > 0.0 {
+            Some(RateTarget::Error(s.error))
+        } else {
+            None
+        }
+    }
+
+    /// "a 4.00 MiB file", "a 2.00 MiB finest level", "an error of 0.02".
+    pub fn describe(&self) -> String {
+        match *self {
+            RateTarget::FileBytes(b) => format!("a {} file", mib_text(b)),
+            RateTarget::LevelBytes(b) => format!("a {} finest level", mib_text(b)),
+            RateTarget::Error(e) => format!("an error estimate of at most {e}"),
+        }
+    }
+}
+
+fn mib_text(b: u64) -> String {
+    format!("{:.2} MiB", b as f64 / (1024.0 * 1024.0))
+}
+
+/// A level's blocks, held until the multiplier is chosen.
+#[derive(Default)]
+pub(crate) struct PendingLevel {
+    /// Voxel blocks, in file order.
+    pub voxels: Vec<Vec<VoxelData>>,
+    /// Face blocks, in file order.
+    pub faces: Vec<Vec<FaceData>>,
+    /// The level's voxel side (world units).
+    pub voxel_size: f32,
+}
+
+/// The mean albedo of a voxel's materials: diffuse plus specular reflectance (Eq. 13, 17),
+/// averaged over colour channels and, for directional moments, over the grid's cells.
+fn albedo(m: &Moments) -> f64 {
+    let one = |m: &MaterialMoments| ((m.diffuse() + m.reflectance()).element_sum() / 3.0) as f64;
+    match m {
+        Moments::Constant(m) => one(m),
+        Moments::Directional { diffuse, .. } => {
+            diffuse.iter().map(one).sum::<f64>() / diffuse.len().max(1) as f64
+        }
+    }
+}
+
+/// The weights w of a level's maps ([module docs](self)): `voxels[b][i]` of voxel `i` of
+/// voxel block `b`, `face` of every face.
+#[derive(Clone, Debug)]
+pub struct LevelWeights {
+    /// Per voxel block, per voxel.
+    pub voxels: Vec<Vec<f64>>,
+    /// Every face's (one side s, one map resolution).
+    pub face: f64,
+}
+
+impl LevelWeights {
+    fn of(level: &PendingLevel) -> LevelWeights {
+        let (flat, face) = map_weights(
+            level.voxels.iter().flatten(),
+            level.faces.iter().flatten(),
+            level.voxel_size,
+        );
+        let mut flat = flat.into_iter();
+        LevelWeights {
+            voxels: level
+                .voxels
+                .iter()
+                .map(|b| flat.by_ref().take(b.len()).collect())
+                .collect(),
+            face,
+        }
+    }
+}
+
+/// The weights w of a level's maps ([module docs](self)): one per voxel, in order, and the
+/// one every boundary face shares (voxels of side `voxel_size`).
+pub fn map_weights<'a>(
+    voxels: impl Iterator<Item = &'a VoxelData> + Clone,
+    faces: impl Iterator<Item = &'a FaceData> + Clone,
+    voxel_size: f32,
+) -> (Vec<f64>, f64) {
+    let raw_voxel = |v: &VoxelData| {
+        let cells = (v.aiv.n as f64).powi(2).max(1.0);
+        let rho = albedo(&v.appearance.moments).clamp(0.0, 1.0);
+        let a = (v.area * v.coverage.clamp(0.0, 1.0) as f64).max(0.0);
+        (a * rho * rho / cells, a)
+    };
+    let s2 = (voxel_size as f64).powi(2);
+    let face_count = faces.clone().count();
+    let face_cells = faces
+        .clone()
+        .next()
+        .map_or(1.0, |f| (f.abv.n as f64).powi(2).max(1.0));
+    let total = voxels.clone().map(|v| raw_voxel(v).1).sum::<f64>() + face_count as f64 * s2;
+    let norm = if total > 0.0 && total.is_finite() {
+        1.0 / total
+    } else {
+        0.0
+    };
+    (
+        voxels.map(|v| raw_voxel(v).0 * norm).collect(),
+        s2 / face_cells * norm,
+    )
+}
+
+/// A candidate detail's weighted energy w·c²: it is kept when this reaches λ.
+#[inline]
+fn importance(w: f64, c: f32) -> f64 {
+    w * (c as f64) * (c as f64)
+}
+
+/// The tree with the details of importance at least `lambda`.
+fn truncated(tree: &SparseHaar, w: f64, lambda: f64) -> SparseHaar {
+    tree.retain(|c, _| importance(w, c) >= lambda)
+}
+
+/// What the rate control chose and met, for the report.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct RateReport {
+    /// The target.
+    pub target: RateTarget,
+    /// The multiplier chosen (a detail is kept where w·c² ≥ λ).
+    pub lambda: f64,
+    /// Whether the target was met (a size within 3% under the budget, or the error at most
+    /// its bound); when not, the message says why.
+    pub met: bool,
+    /// Why the target was not met (empty when it was).
+    pub message: String,
+    /// The bytes the target counts (file or finest level) after the final encoding; 0 for an
+    /// error target.
+    pub bytes: u64,
+    /// Each level's error estimate, finest first (RMS visibility error, [`LevelWeights`]).
+    pub level_errors: Vec<f64>,
+    /// Candidate details (surviving the noise shrinkage) and those kept.
+    pub candidates: u64,
+    /// Details kept.
+    pub kept: u64,
+    /// Trial encodings of the search.
+    pub trials: u32,
+}
+
+impl RateReport {
+    /// Records the written file's size where the target counts it (the search predicted it):
+    /// a file budget is met within [`TOLERANCE`] under it, or under it with every candidate
+    /// kept.
+    pub(crate) fn settle(&mut self, file_bytes: u64) {
+        if let RateTarget::FileBytes(budget) = self.target {
+            self.bytes = file_bytes;
+            let under = file_bytes <= budget;
+            let close = file_bytes as f64 >= (1.0 - TOLERANCE) * budget as f64;
+            self.met = under && (close || self.kept == self.candidates);
+        }
+    }
+
+    /// The report's line: "rate: met a 4.00 MiB file (3.93 MiB) at λ = 1.2e-9, kept 31% of
+    /// 2.1 M candidate details, error estimate ≤ 0.021 (5 trial encodings)".
+    pub fn line(&self) -> String {
+        let worst = self.level_errors.iter().cloned().fold(0.0, f64::max);
+        let got = match self.target {
+            RateTarget::Error(_) => String::new(),
+            _ => format!(" ({})", mib_text(self.bytes)),
+        };
+        let share = 100.0 * self.kept as f64 / self.candidates.max(1) as f64;
+        let head = if self.met {
+            format!("met {}{got}", self.target.describe())
+        } else {
+            format!(
+                "did not meet {}{got}: {}",
+                self.target.describe(),
+                self.message
+            )
+        };
+        format!(
+            "{head} at λ = {:.3e}; kept {share:.0}% of {} candidate details; error estimate at most {worst:.4} ({} trial encodings)",
+            self.lambda, self.candidates, self.trials
+        )
+    }
+}
+
+/// One encoded block as the file stores it.
+pub(crate) struct StoredBlock {
+    /// The blob (compressed where that is smaller).
+    pub blob: Vec<u8>,
+    /// First and last key.
+    pub keys: (u64, u64),
+    /// Records.
+    pub count: usize,
+}
+
+/// A level encoded at one λ.
+pub(crate) struct EncodedLevel {
+    pub voxel_blocks: Vec<StoredBlock>,
+    pub face_blocks: Vec<StoredBlock>,
+    pub counts: Counts,
+    pub components: ComponentBytes,
+}
+
+impl EncodedLevel {
+    /// Bytes in the file, with the alignment padding before each blob.
+    fn bytes(&self) -> u64 {
+        self.voxel_blocks
+            .iter()
+            .chain(&self.face_blocks)
+            .map(|b| (b.blob.len() as u64).div_ceil(ALIGN) * ALIGN)
+            .sum()
+    }
+}
+
+/// The stored form of a block's FlatBuffer at a Zstandard level.
+fn stored(block: Vec<u8>, level: i32) -> Vec<u8> {
+    if level > 0 {
+        if let Some(z) = compress_block(&block, level) {
+            return z;
+        }
+    }
+    block
+}
+
+/// Level `li` encoded with the details of importance at least `lambda`, compressed at
+/// `zstd` (blocks in parallel; the result does not depend on the thread count).
+fn encode_level(
+    li: usize,
+    level: &PendingLevel,
+    weights: &LevelWeights,
+    lambda: f64,
+    settings: &BakeSettings,
+    zstd: i32,
+) -> EncodedLevel {
+    let voxel: Vec<(StoredBlock, Counts, ComponentBytes)> = level
+        .voxels
+        .par_iter()
+        .zip(&weights.voxels)
+        .map(|(block, w)| {
+            let cut: Vec<VoxelData> = block
+                .iter()
+                .zip(w)
+                .map(|(v, &w)| VoxelData {
+                    aiv: truncated(&v.aiv, w, lambda),
+                    ..v.clone()
+                })
+                .collect();
+            let (mut c, mut b) = (Counts::default(), ComponentBytes::default());
+            let blob = encode::voxel_block(
+                li as u32,
+                &cut,
+                settings.keep_all_effects,
+                settings.lossless,
+                &mut c,
+                &mut b,
+            );
+            let keys = (cut[0].key, cut[cut.len() - 1].key);
+            let s = StoredBlock {
+                blob: stored(blob, zstd),
+                keys,
+                count: cut.len(),
+            };
+            (s, c, b)
+        })
+        .collect();
+    let face: Vec<(StoredBlock, Counts, ComponentBytes)> = level
+        .faces
+        .par_iter()
+        .map(|block| {
+            let cut: Vec<FaceData> = block
+                .iter()
+                .map(|f| FaceData {
+                    face: f.face,
+                    abv: truncated(&f.abv, weights.face, lambda),
+                })
+                .collect();
+            let (mut c, mut b) = (Counts::default(), ComponentBytes::default());
+            let blob = encode::face_block(li as u32, &cut, settings.lossless, &mut c, &mut b);
+            let keys = (
+                encode::face_key(&cut[0]),
+                encode::face_key(&cut[cut.len() - 1]),
+            );
+            let s = StoredBlock {
+                blob: stored(blob, zstd),
+                keys,
+                count: cut.len(),
+            };
+            (s, c, b)
+        })
+        .collect();
+    let mut out = EncodedLevel {
+        voxel_blocks: Vec::with_capacity(voxel.len()),
+        face_blocks: Vec::with_capacity(face.len()),
+        counts: Counts::default(),
+        components: ComponentBytes::default(),
+    };
+    for (s, c, b) in voxel {
+        out.counts.add(&c);
+        out.components.add(&b);
+        out.voxel_blocks.push(s);
+    }
+    for (s, c, b) in face {
+        out.counts.add(&c);
+        out.components.add(&b);
+        out.face_blocks.push(s);
+    }
+    out
+}
+
+/// The importances of a level's candidate details, and the level of each.
+fn importances(levels: &[PendingLevel], weights: &[LevelWeights]) -> Vec<(f64, u32)> {
+    let mut out = Vec::new();
+    for (li, (level, w)) in levels.iter().zip(weights).enumerate() {
+        for (block, wb) in level.voxels.iter().zip(&w.voxels) {
+            for (v, &w) in block.iter().zip(wb) {
+                out.extend(v.aiv.details().map(|c| (importance(w, c), li as u32)));
+            }
+        }
+        for f in level.faces.iter().flatten() {
+            out.extend(f.abv.details().map(|c| (importance(w.face, c), li as u32)));
+        }
+    }
+    out
+}
+
+/// Each level's error estimate when the details below `lambda` are dropped.
+fn level_errors(imp: &[(f64, u32)], levels: usize, lambda: f64) -> Vec<f64> {
+    let mut d = vec![0f64; levels];
+    for &(x, l) in imp {
+        if x < lambda {
+            d[l as usize] += x;
+        }
+    }
+    d.into_iter().map(f64::sqrt).collect()
+}
+
+/// The Zstandard level of the search's trial encodings: fast, with the final level's bytes
+/// predicted from it by a ratio measured on the final encodings.
+const TRIAL_ZSTD: i32 = 3;
+/// A size target is met when the bytes land in [1 − TOLERANCE, 1] × the budget.
+pub const TOLERANCE: f64 = 0.03;
+
+/// Chooses λ for `target` over the held levels and encodes them at it, at the settings'
+/// compression. `fixed` is the file's bytes outside the levels' blocks (header, index).
+pub(crate) fn allocate(
+    levels: &[PendingLevel],
+    settings: &BakeSettings,
+    target: RateTarget,
+    fixed: u64,
+) -> (Vec<EncodedLevel>, RateReport) {
+    let weights: Vec<LevelWeights> = levels.iter().map(LevelWeights::of).collect();
+    let mut imp = importances(levels, &weights);
+    let candidates = imp.len() as u64;
+    // Descending importance; ties in a fixed order (the level, then the value's bits).
+    imp.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+    let lambda_at = |k: usize| if k == 0 { f64::INFINITY } else { imp[k - 1].0 };
+    let encode_all = |lambda: f64, zstd: i32| -> Vec<EncodedLevel> {
+        levels
+            .iter()
+            .zip(&weights)
+            .enumerate()
+            .map(|(li, (l, w))| encode_level(li, l, w, lambda, settings, zstd))
+            .collect()
+    };
+    let counted = |enc: &[EncodedLevel]| -> u64 {
+        match target {
+            RateTarget::LevelBytes(_) => enc.first().map_or(0, EncodedLevel::bytes),
+            _ => fixed + enc.iter().map(EncodedLevel::bytes).sum::<u64>(),
+        }
+    };
+    let kept_at = |lambda: f64| imp.partition_point(|x| x.0 >= lambda) as u64;
+    let trials = std::cell::Cell::new(0u32);
+    let report = |lambda: f64, met: bool, message: String, bytes: u64| RateReport {
+        target,
+        lambda,
+        met,
+        message,
+        bytes,
+        level_errors: level_errors(&imp, levels.len(), lambda),
+        candidates,
+        kept: kept_at(lambda),
+        trials: trials.get(),
+    };
+    let budget = match target {
+        RateTarget::Error(e) => {
+            // The largest λ whose every level's error is within e: the dropped energy grows
+            // as λ does, so walk the candidates from the least important up.
+            let mut d = vec![0f64; levels.len()];
+            let bound = e * e;
+            let mut k = imp.len();
+            while k > 0 {
+                let (x, l) = imp[k - 1];
+                if d[l as usize] + x > bound {
+                    break;
+                }
+                d[l as usize] += x;
+                k -= 1;
+            }
+            // Ties with the first detail that must stay are kept with it.
+            let lambda = lambda_at(k);
+            let enc = encode_all(lambda, settings.compression);
+            trials.set(1);
+            let r = report(lambda, true, String::new(), 0);
+            return (enc, r);
+        }
+        RateTarget::FileBytes(b) | RateTarget::LevelBytes(b) => b as f64,
+    };
+    let trial_zstd = if settings.compression > 0 {
+        settings.compression.min(TRIAL_ZSTD)
+    } else {
+        0
+    };
+    let trial = |k: usize| {
+        trials.set(trials.get() + 1);
+        counted(&encode_all(lambda_at(k), trial_zstd)) as f64
+    };
+    // Bytes at both ends: nothing kept, every candidate kept.
+    let (lo_bytes, hi_bytes) = (trial(0), trial(imp.len()));
+    let mut best: Option<(usize, Vec<EncodedLevel>, u64)>;
+    let finish = |k: usize| {
+        trials.set(trials.get() + 1);
+        let enc = encode_all(lambda_at(k), settings.compression);
+        let b = counted(&enc);
+        (enc, b)
+    };
+    // Everything fits, or nothing does: the ends are the answer.
+    let mut ratio = {
+        let (enc, b) = finish(imp.len());
+        if b as f64 <= budget {
+            let lambda = lambda_at(imp.len());
+            let msg = if (b as f64) < (1.0 - TOLERANCE) * budget {
+                format!(
+                    "every candidate detail fits in {}; the file is smaller than the budget",
+                    mib_text(b)
+                )
+            } else {
+                String::new()
+            };
+            let r = report(lambda, true, msg, b);
+            return (enc, r);
+        }
+        // Final bytes over trial bytes, measured here and after each round.
+        b as f64 / hi_bytes.max(1.0)
+    };
+    {
+        let (enc, b) = finish(0);
+        if b as f64 > budget {
+            let msg = format!(
+                "without any visibility detail the bake takes {}; lower --max-res, or raise the budget",
+                mib_text(b)
+            );
+            let r = report(f64::INFINITY, false, msg, b);
+            return (enc, r);
+        }
+        best = Some((0, enc, b));
+    }
+    // Regula falsi (Illinois) on the trial bytes, scaled by the measured ratio, towards the
+    // middle of the tolerance band; then one final encoding checks the real bytes and
+    // corrects the ratio. Three rounds at most.
+    let goal = (1.0 - TOLERANCE / 2.0) * budget;
+    for _round in 0..3 {
+        let (mut a, mut fa) = (0usize, lo_bytes * ratio - goal);
+        let (mut b, mut fb) = (imp.len(), hi_bytes * ratio - goal);
+        let mut k = a;
+        let mut side = 0i32;
+        for _ in 0..24 {
+            if b - a <= 1 {
+                k = a;
+                break;
+            }
+            let t = (-fa / (fb - fa)).clamp(0.0, 1.0);
+            k = (a + ((b - a) as f64 * t).round() as usize).clamp(a + 1, b - 1);
+            let fk = trial(k) * ratio - goal;
+            if fk.abs() <= 0.004 * budget {
+                break;
+            }
+            if fk < 0.0 {
+                a = k;
+                fa = fk;
+                if side == -1 {
+                    fb /= 2.0;
+                }
+                side = -1;
+            } else {
+                b = k;
+                fb = fk;
+                if side == 1 {
+                    fa /= 2.0;
+                }
+                side = 1;
+            }
+            k = a;
+        }
+        let t_bytes = trial(k);
+        let (enc, bytes) = finish(k);
+        let ok = bytes as f64 <= budget;
+        if ok && best.as_ref().is_none_or(|x| bytes > x.2) {
+            best = Some((k, enc, bytes));
+        }
+        if ok && bytes as f64 >= (1.0 - TOLERANCE) * budget {
+            break;
+        }
+        ratio = bytes as f64 / t_bytes.max(1.0);
+    }
+    let (k, enc, bytes) = best.expect("the empty allocation fits");
+    let lambda = lambda_at(k);
+    let met = bytes as f64 >= (1.0 - TOLERANCE) * budget;
+    let msg = if met {
+        String::new()
+    } else {
+        format!(
+            "the search stopped at {}, more than {:.0}% under the budget",
+            mib_text(bytes),
+            100.0 * TOLERANCE
+        )
+    };
+    let r = report(lambda, met, msg, bytes);
+    (enc, r)
+}

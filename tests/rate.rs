@@ -1,0 +1,258 @@
+//! Rate control (issue 42): a size budget is met within 3%, an error bound holds on the maps
+//! as decoded, re-rating a file needs no bake, and the bytes do not depend on the threads.
+
+mod common;
+
+use aggtool::bake::rate::{map_weights, RateTarget, TOLERANCE};
+use aggtool::bake::{bake_to_file, rate_file, BakeReport, BakeSettings};
+use aggtool::format::{Aggregate, VoxelData};
+use aggtool::math::haar::SparseHaar;
+use aggtool::scene::Scene;
+use std::path::Path;
+
+const MIB: f64 = 1024.0 * 1024.0;
+
+fn scene() -> Scene {
+    common::gen_scene("foliage", 3000)
+}
+
+/// Small settings whose candidates still outweigh the rest of the file.
+fn settings() -> BakeSettings {
+    BakeSettings {
+        aiv_res: 16,
+        abv_res: 16,
+        ..common::small_bake(16)
+    }
+}
+
+fn bake(sc: &Scene, s: &BakeSettings, path: &Path) -> BakeReport {
+    bake_to_file(sc, "test.glb", s, path, &aggtool::util::no_progress).unwrap()
+}
+
+/// Every candidate kept, the smallest file, and a budget between them is met within 3% under
+/// it, by the bake and by re-rating the candidates' file; a budget below the smallest file
+/// says so and writes the smallest; one above everything keeps every candidate.
+#[test]
+fn size_budgets_are_met_within_three_percent() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scene();
+    let all_path = dir.path().join("all.agg");
+    let all = bake(
+        &sc,
+        &BakeSettings {
+            keep: 1.0,
+            energy: 1.0,
+            ..settings()
+        },
+        &all_path,
+    );
+    let agg = Aggregate::open(&all_path).unwrap();
+    // The smallest file: a budget of one byte cannot be met.
+    let (least, r) = rate_file(
+        &agg,
+        RateTarget::FileBytes(1),
+        &dir.path().join("least.agg"),
+    )
+    .unwrap();
+    assert!(
+        !r.met && r.message.contains("without any visibility detail"),
+        "{r:?}"
+    );
+    assert!(least < all.bytes, "{least} vs {}", all.bytes);
+    for share in [0.3, 0.6, 0.9] {
+        let budget = least as f64 + share * (all.bytes - least) as f64;
+        let s = BakeSettings {
+            size_mib: budget / MIB,
+            ..settings()
+        };
+        let path = dir.path().join(format!("b{share}.agg"));
+        let r = bake(&sc, &s, &path);
+        let size = std::fs::metadata(&path).unwrap().len() as f64;
+        let rate = r.rate.as_ref().unwrap();
+        assert!(rate.met, "{}", rate.line());
+        assert_eq!(rate.bytes as f64, size);
+        let budget = (budget / MIB * MIB).round();
+        assert!(
+            size <= budget && size >= (1.0 - TOLERANCE) * budget,
+            "{size} for a budget of {budget}: {}",
+            rate.line()
+        );
+        // Re-rating the candidates' file lands in the same band.
+        let (size2, r2) = rate_file(
+            &agg,
+            RateTarget::FileBytes(budget as u64),
+            &dir.path().join("re.agg"),
+        )
+        .unwrap();
+        assert!(r2.met && size2 as f64 <= budget, "{}", r2.line());
+        Aggregate::open(&path).unwrap().verify_all().unwrap();
+    }
+    // A budget above everything keeps every candidate: the levels decode as the input's
+    // (trees compared as maps: the input may hold nodes whose details quantized to zero,
+    // which the rate control prunes).
+    let big = dir.path().join("big.agg");
+    let (_, r) = rate_file(&agg, RateTarget::FileBytes(all.bytes * 2), &big).unwrap();
+    assert!(r.met && r.kept == r.candidates, "{}", r.line());
+    let big = Aggregate::open(&big).unwrap();
+    for l in 0..agg.level_count() {
+        let (x, y) = (big.read_level(l), agg.read_level(l));
+        assert_eq!(x.voxels.len(), y.voxels.len());
+        assert_eq!(x.faces.len(), y.faces.len());
+        for (a, b) in x.voxels.iter().zip(&y.voxels) {
+            // Lobe frames are quantized again, which moves them by less than a step.
+            for (p, q) in a.appearance.lobes.iter().zip(&b.appearance.lobes) {
+                assert!(
+                    p.frame.abs_diff_eq(q.frame, 1e-4),
+                    "level {l}: voxel {}",
+                    a.key
+                );
+            }
+            let mut same = VoxelData {
+                aiv: b.aiv.clone(),
+                ..a.clone()
+            };
+            for (p, q) in same.appearance.lobes.iter_mut().zip(&b.appearance.lobes) {
+                p.frame = q.frame;
+            }
+            assert_eq!(same, *b, "level {l}: voxel {} changed", a.key);
+            assert_eq!(cells(&a.aiv), cells(&b.aiv), "level {l}: AIV of {}", a.key);
+        }
+        for (a, b) in x.faces.iter().zip(&y.faces) {
+            assert_eq!(a.face, b.face);
+            assert_eq!(
+                cells(&a.abv),
+                cells(&b.abv),
+                "level {l}: ABV of {:?}",
+                a.face
+            );
+        }
+    }
+}
+
+/// A map's cells, as decoded.
+fn cells(t: &SparseHaar) -> Vec<f32> {
+    (0..t.n * t.n).map(|i| t.eval(i % t.n, i / t.n)).collect()
+}
+
+/// The error estimate is what the maps lose, as decoded: for each level, the weighted sum
+/// over maps of the squared differences between the candidate and the truncated map, cell by
+/// cell (Parseval says it equals the dropped details' energy), and `--error` bounds it.
+#[test]
+fn error_bound_holds_on_the_decoded_maps() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scene();
+    // Float trees, so that the comparison sees the truncation alone.
+    let base = BakeSettings {
+        lossless: true,
+        ..settings()
+    };
+    let all_path = dir.path().join("all.agg");
+    bake(
+        &sc,
+        &BakeSettings {
+            keep: 1.0,
+            energy: 1.0,
+            ..base.clone()
+        },
+        &all_path,
+    );
+    let all = Aggregate::open(&all_path).unwrap();
+    let mut sizes = Vec::new();
+    for bound in [0.005, 0.02, 0.08] {
+        let path = dir.path().join(format!("e{bound}.agg"));
+        let r = bake(
+            &sc,
+            &BakeSettings {
+                error: bound,
+                ..base.clone()
+            },
+            &path,
+        );
+        let rate = r.rate.unwrap();
+        let cut = Aggregate::open(&path).unwrap();
+        for l in 0..all.level_count() {
+            let (a, c) = (all.read_level(l), cut.read_level(l));
+            let (w, wf) = map_weights(a.voxels.iter(), a.faces.iter(), a.grid.voxel_size());
+            let sq = |x: &SparseHaar, y: &SparseHaar| {
+                let (x, y) = (cells(x), cells(y));
+                x.iter()
+                    .zip(&y)
+                    .map(|(a, b)| (*a as f64 - *b as f64).powi(2))
+                    .sum::<f64>()
+            };
+            let mut d = 0f64;
+            for ((va, vc), w) in a.voxels.iter().zip(&c.voxels).zip(&w) {
+                d += w * sq(&va.aiv, &vc.aiv);
+            }
+            for (fa, fc) in a.faces.iter().zip(&c.faces) {
+                d += wf * sq(&fa.abv, &fc.abv);
+            }
+            let measured = d.sqrt();
+            let estimate = rate.level_errors[l];
+            assert!(
+                (measured - estimate).abs() <= 1e-3 * bound + 1e-4 * estimate,
+                "level {l}: decoded {measured} vs estimate {estimate}"
+            );
+            assert!(
+                measured <= bound * (1.0 + 1e-4),
+                "level {l}: {measured} > {bound}"
+            );
+        }
+        sizes.push(std::fs::metadata(&path).unwrap().len());
+    }
+    assert!(sizes[0] > sizes[1] && sizes[1] > sizes[2], "{sizes:?}");
+}
+
+/// The same settings with a budget give the same bytes on one thread and on two.
+#[test]
+fn budgeted_bytes_do_not_depend_on_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scene();
+    let s = BakeSettings {
+        size_mib: 0.05,
+        ..settings()
+    };
+    let run = |threads: usize, name: &str| {
+        let path = dir.path().join(name);
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| bake(&sc, &s, &path));
+        std::fs::read(&path).unwrap()
+    };
+    assert!(run(1, "a.agg") == run(2, "b.agg"), "1 and 2 threads differ");
+}
+
+/// Two targets at once, a negative one, and a sharded bake with a target are refused with a
+/// message naming the flags.
+#[test]
+fn bad_targets_are_refused() {
+    let s = settings();
+    let two = BakeSettings {
+        size_mib: 1.0,
+        error: 0.01,
+        ..s.clone()
+    };
+    let e = two.validate().unwrap_err();
+    assert!(e.contains("--size-mib") && e.contains("--error"), "{e}");
+    let neg = s.with_field("level_mib", "-2").unwrap_err();
+    assert!(neg.contains("--level-mib"), "{neg}");
+    let nan = BakeSettings {
+        size_mib: f64::NAN,
+        ..s.clone()
+    };
+    assert!(nan.validate().is_err());
+    let dir = tempfile::tempdir().unwrap();
+    let e = aggtool::bake::bake_shard_to_file(
+        &scene(),
+        "t",
+        &BakeSettings { size_mib: 1.0, ..s },
+        aggtool::format::part::Shard { index: 0, count: 2 },
+        &dir.path().join("p.aggpart"),
+        &aggtool::util::no_progress,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("shards") && e.contains("--size-mib"), "{e}");
+}
