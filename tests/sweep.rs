@@ -99,6 +99,10 @@ fn sweep_writes_tables_and_plots_and_resumes() {
         );
         assert!(r["components"]["voxels"].as_u64().unwrap() > 0, "{r}");
         assert!(s.join(r["image"].as_str().unwrap()).exists());
+        // The meshopt mesh of the row's bytes, rendered and compared beside it.
+        let m = &r["mesh"];
+        assert!(m["rmse"].as_f64().unwrap().is_finite(), "{r}");
+        assert!(m["triangles"].as_u64().unwrap() >= 1, "{r}");
     }
     // The varied row has the base's settings with one field changed; max is the paper's
     // control; the default row is the base.
@@ -115,6 +119,7 @@ fn sweep_writes_tables_and_plots_and_resumes() {
         "{out}"
     );
     let md = std::fs::read_to_string(s.join("table.md")).unwrap();
+    assert!(md.contains("mesh of equal bytes"), "{md}");
     for n in &names {
         assert!(md.contains(&format!("| {n}")), "{n} missing from {md}");
     }

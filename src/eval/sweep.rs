@@ -157,6 +157,24 @@ pub struct Row {
     pub image: String,
     /// The aggregate, relative to the sweep folder.
     pub aggregate: String,
+    /// The asset's mesh simplified by meshoptimizer to the row's file bytes and rendered by
+    /// the reference at the row's spp: where the aggregate pays and where a mesh of its
+    /// bytes does better. Absent in rows saved before it was recorded (computed again).
+    #[serde(default)]
+    pub mesh: Option<MeshPoint>,
+}
+
+/// A meshopt-simplified mesh at a row's bytes ([`Row::mesh`]).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct MeshPoint {
+    /// Geometry bytes of the simplified mesh.
+    pub bytes: u64,
+    /// Its triangles.
+    pub triangles: usize,
+    /// RMSE against the reference.
+    pub rmse: f64,
+    /// Relative MSE against the reference.
+    pub relmse: f64,
 }
 
 impl Row {
@@ -450,12 +468,52 @@ pub fn sweep(
             non_finite: stats.non_finite,
             image: image_rel,
             aggregate: agg_rel,
+            mesh: None,
         };
         let json = serde_json::to_string_pretty(&row)?;
         write_bytes_atomic(&row_path, json.as_bytes()).map_err(anyhow::Error::msg)?;
         rows.push(row);
         by_hash.insert(hash, rows.len() - 1);
         on_row(RowEvent::Done(rows.last().expect("pushed")));
+    }
+    // The mesh at each row's bytes (simplified once per distinct byte count).
+    let mut meshes: HashMap<u64, MeshPoint> = HashMap::new();
+    for (i, r) in rows.iter_mut().enumerate() {
+        if r.mesh.is_none() {
+            let m = match meshes.get(&r.bytes) {
+                Some(m) => m.clone(),
+                None => {
+                    let simp = super::simplify::simplify_to_budget(scene, r.bytes as usize);
+                    let accel = Accel::build(&simp.scene);
+                    let (img, _) = reference::render(
+                        &accel,
+                        &camera,
+                        &lights,
+                        ReferenceSettings {
+                            spp: settings.spp,
+                            seed: 1,
+                        },
+                        progress,
+                    );
+                    let c = compare(&img, &truth).map_err(anyhow::Error::msg)?;
+                    MeshPoint {
+                        bytes: simp.bytes_after as u64,
+                        triangles: simp.triangles_after,
+                        rmse: c.rmse,
+                        relmse: c.relmse,
+                    }
+                }
+            };
+            meshes.insert(r.bytes, m.clone());
+            r.mesh = Some(m);
+            let stem = file_stem(&planned[i].label);
+            let json = serde_json::to_string_pretty(&*r)?;
+            write_bytes_atomic(
+                &dir.join("rows").join(format!("{stem}.json")),
+                json.as_bytes(),
+            )
+            .map_err(anyhow::Error::msg)?;
+        }
     }
     // Tables and plots.
     let md = markdown_table(&asset_name, settings, &rows);
@@ -476,7 +534,7 @@ pub fn sweep(
         ),
     ];
     for (file, x_label, cost) in axes {
-        let points: Vec<super::plot::Point> = rows
+        let mut points: Vec<super::plot::Point> = rows
             .iter()
             .map(|r| super::plot::Point {
                 x: cost(r),
@@ -489,6 +547,20 @@ pub fn sweep(
                 marked: r.kind == RowKind::Preset,
             })
             .collect();
+        if file == "pareto-mib.png" {
+            // The meshes of equal bytes on the same axes.
+            let mut seen = std::collections::HashSet::new();
+            for m in rows.iter().filter_map(|r| r.mesh.as_ref()) {
+                if seen.insert(m.bytes) {
+                    points.push(super::plot::Point {
+                        x: m.bytes as f64 / (1024.0 * 1024.0),
+                        y: m.rmse,
+                        label: format!("mesh {} tris", m.triangles),
+                        marked: false,
+                    });
+                }
+            }
+        }
         let title = format!(
             "{asset_name}: rmse against {x_label} ({}² px, {} spp, reference {} spp)",
             settings.res, settings.spp, settings.reference_spp
@@ -528,13 +600,13 @@ pub fn markdown_table(asset: &str, settings: &SweepSettings, rows: &[Row]) -> St
         "Sweep of {asset}: {}² pixels, {} spp, against a {}-spp reference; `*` marks the rows on the Pareto front of RMSE against that cost.\n\n",
         settings.res, settings.spp, settings.reference_spp
     );
-    s += "| setting | RMSE | relMSE | bake CPU s | MiB | render CPU s | records | lobes | moments | AIV | faces | ABV | levels used |\n";
-    s += "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
+    s += "| setting | RMSE | relMSE | bake CPU s | MiB | render CPU s | records | lobes | moments | AIV | faces | ABV | levels used | mesh of equal bytes: RMSE (triangles) |\n";
+    s += "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
     for (i, r) in rows.iter().enumerate() {
         let star = |f: &[bool]| if f[i] { "*" } else { "" };
         let c = &r.components;
         s += &format!(
-            "| {}{} | {:.5} | {:.5} | {:.2}{} | {:.3}{} | {:.3}{} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:?} |\n",
+            "| {}{} | {:.5} | {:.5} | {:.2}{} | {:.3}{} | {:.3}{} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:?} | {} |\n",
             r.label,
             if r.base { " (base)" } else { "" },
             r.rmse,
@@ -551,9 +623,16 @@ pub fn markdown_table(asset: &str, settings: &SweepSettings, rows: &[Row]) -> St
             mib(c.aiv_nodes),
             mib(c.faces),
             mib(c.abv_nodes),
-            r.levels_used
+            r.levels_used,
+            r.mesh.as_ref().map_or("".into(), |m| format!(
+                "{:.5}{} ({})",
+                m.rmse,
+                if m.rmse < r.rmse { " (mesh wins)" } else { "" },
+                m.triangles
+            ))
         );
     }
+    s += "\nThe last column: the asset's mesh simplified by meshoptimizer to the row's file bytes (geometry only) and rendered by the reference at the same spp.\n";
     s += "\nSeconds are CPU seconds (user + system, all threads; the render's include the levels' lazy preparation). Components in MiB (payloads): records include keys and exposure; moments include the dielectric ones.\n";
     s
 }
