@@ -256,3 +256,71 @@ fn bad_targets_are_refused() {
     .to_string();
     assert!(e.contains("shards") && e.contains("--size-mib"), "{e}");
 }
+
+/// `aggtool convert --size-mib` and `aggtool rate` from the command line: the JSON report
+/// says what was met, a missing input is an input error (3), a folder as the output an output
+/// error (4), and no target a usage error (2); a failed run leaves no file.
+#[test]
+fn rate_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    common::ok(&common::aggtool(
+        &["gen", "foliage", "-o", ".", "--triangles", "800"],
+        d,
+    ));
+    let mut args = vec![
+        "convert",
+        "foliage.glb",
+        "-q",
+        "-o",
+        "all.agg",
+        "--keep",
+        "1",
+        "--energy",
+        "1",
+    ];
+    args.extend(common::tiny_bake_flags("8"));
+    common::ok(&common::aggtool(&args, d));
+    let all = std::fs::metadata(d.join("all.agg")).unwrap().len() as f64;
+    let budget = format!("{}", 0.95 * all / MIB);
+    let out = common::ok(&common::aggtool(
+        &[
+            "rate",
+            "all.agg",
+            "--size-mib",
+            &budget,
+            "-o",
+            "r.agg",
+            "--json",
+        ],
+        d,
+    ));
+    let j: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(j["rate"]["met"], true, "{j}");
+    assert_eq!(
+        j["bytes"].as_u64().unwrap(),
+        std::fs::metadata(d.join("r.agg")).unwrap().len()
+    );
+    let mut args = vec![
+        "convert",
+        "foliage.glb",
+        "-o",
+        "c.agg",
+        "--size-mib",
+        &budget,
+    ];
+    args.extend(common::tiny_bake_flags("8"));
+    let out = common::ok(&common::aggtool(&args, d));
+    assert!(out.contains("stats: rate: met a"), "{out}");
+    let code = |args: &[&str]| common::aggtool(args, d).status.code();
+    assert_eq!(
+        code(&["rate", "none.agg", "--error", "0.01", "-o", "x.agg"]),
+        Some(3)
+    );
+    assert_eq!(
+        code(&["rate", "all.agg", "--error", "0.01", "-o", "."]),
+        Some(4)
+    );
+    assert_eq!(code(&["rate", "all.agg", "-o", "x.agg"]), Some(2));
+    assert!(!d.join("x.agg").exists());
+}

@@ -220,6 +220,9 @@ pub struct RateReport {
     /// The bytes the target counts (file or finest level) after the final encoding; 0 for an
     /// error target.
     pub bytes: u64,
+    /// The bytes the search counted for the file (its final encoding plus the header and
+    /// index), before the file was written.
+    pub bytes_predicted: u64,
     /// Each level's error estimate, finest first (RMS visibility error, [`LevelWeights`]).
     pub level_errors: Vec<f64>,
     /// Candidate details (surviving the noise shrinkage) and those kept.
@@ -236,10 +239,18 @@ impl RateReport {
     /// kept.
     pub(crate) fn settle(&mut self, file_bytes: u64) {
         if let RateTarget::FileBytes(budget) = self.target {
+            self.bytes_predicted = self.bytes;
             self.bytes = file_bytes;
             let under = file_bytes <= budget;
             let close = file_bytes as f64 >= (1.0 - TOLERANCE) * budget as f64;
-            self.met = under && (close || self.kept == self.candidates);
+            let met = under && (close || self.kept == self.candidates);
+            if self.met && !met {
+                self.message = format!(
+                    "the file came out at {} bytes where the search counted {}",
+                    file_bytes, self.bytes_predicted
+                );
+            }
+            self.met = met;
         }
     }
 
@@ -516,6 +527,7 @@ pub(crate) fn allocate(
         met,
         message,
         bytes,
+        bytes_predicted: bytes,
         level_errors: level_errors(&imp, levels.len(), k),
         candidates,
         kept: k as u64,

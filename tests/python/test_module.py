@@ -158,6 +158,18 @@ def test_convert_with_settings_and_progress(aggtool_module):
                               progress=lambda stage, done, total: calls.append((stage, done, total)))
         assert Path(out) == tmp / "t.agg" and aggtool.open(out).levels == [8, 4]
         assert calls and all(done <= total for _, done, total in calls)
+        # A rate target is one more setting: the file lands within 3% under the budget.
+        small = dict(max_res=8, min_res=4, samples=4, aiv_res=8, aiv_rays=4, abv_res=8,
+                     abv_full_res=8)
+        full = Path(aggtool.convert(str(tmp / "foliage.glb"), str(tmp / "k.agg"), keep=1.0,
+                                    energy=1.0, **small)).stat().st_size
+        budget = 0.9 * full / 2**20
+        sized = aggtool.convert(str(tmp / "foliage.glb"), str(tmp / "s.agg"), size_mib=budget,
+                                **small)
+        assert 0.97 * budget * 2**20 <= Path(sized).stat().st_size <= budget * 2**20
+        with pytest.raises(ValueError, match="--size-mib"):
+            aggtool.convert(str(tmp / "foliage.glb"), str(tmp / "u.agg"), size_mib=1.0,
+                            error=0.01)
         with pytest.raises(TypeError, match="max_rez"):
             aggtool.convert(str(tmp / "foliage.glb"), str(tmp / "u.agg"), max_rez=8)
         with pytest.raises(ValueError, match="max_res=7"):

@@ -27,8 +27,8 @@ import threading
 import time
 
 import bpy
-from bpy.props import (BoolProperty, EnumProperty, IntProperty, PointerProperty,
-                       StringProperty)
+from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty,
+                       PointerProperty, StringProperty)
 from mathutils import Matrix, Vector
 
 #: The custom properties written on baked objects.
@@ -40,7 +40,7 @@ BAKE_MATRIX = "aggtool_bake_matrix"
 #: (`--max-res`, ...) only when the user sets it, over the preset's value. The presets
 #: themselves, their values and the defaults are the tool's, read from it (`preset_table`).
 SETTINGS = ("max_res", "min_res", "samples", "aiv_res", "aiv_rays", "abv_res", "abv_rays",
-            "abv_full_res")
+            "abv_full_res", "size_mib")
 
 #: Read tables of presets, by where they came from (the module's file, or the binary and its
 #: modification time), so that the menu does not run the tool at every redraw.
@@ -391,17 +391,20 @@ SETTING_HINTS = {
     "abv_rays": ("ABV rays", "Boundary-visibility rays per direction cell", 1, 1 << 16),
     "abv_full_res": ("ABV full resolution", "Finer levels share boundary-visibility rays "
                      "among blocks of cells", 1, 4096),
+    "size_mib": ("Size budget (MiB)", "The whole file's size in MiB (0: none): the bake spends "
+                 "it on the visibility details that matter most to the picture", 0.0, 1e6),
 }
 
 
 def _setting_props(cls_annotations, update=None):
-    """An IntProperty per setting. Its default is only the bottom of its range: a setting
-    reaches the tool only when set (the operator) or ticked (the panel), the rest is the
-    preset's, which the tool holds."""
+    """An IntProperty per setting (a FloatProperty where its range is of floats). Its
+    default is only the bottom of its range: a setting reaches the tool only when set (the
+    operator) or ticked (the panel), the rest is the preset's, which the tool holds."""
     for key in SETTINGS:
         name, desc, lo, hi = SETTING_HINTS[key]
-        cls_annotations[key] = IntProperty(name=name, description=desc + " (unset: the "
-                                           "preset's)", default=lo, min=lo, max=hi)
+        kind = FloatProperty if isinstance(lo, float) else IntProperty
+        cls_annotations[key] = kind(name=name, description=desc + " (unset: the preset's)",
+                                    default=lo, min=lo, max=hi)
 
 
 def _preset_items(self, context):
