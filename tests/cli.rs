@@ -293,7 +293,7 @@ fn lossless_and_quantized_layouts() {
         std::fs::read(p.join("n.agg")).unwrap(),
         "--no-cpca changes nothing"
     );
-    assert_eq!(q["format"], "1.5");
+    assert_eq!(q["format"], "1.6");
     assert_eq!(q["settings"]["lossless"], false);
     assert_eq!(q["settings"]["compression"], 19);
     // Blocks compressed by default (1.5), stored as they are with level 0: same content.

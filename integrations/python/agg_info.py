@@ -98,7 +98,7 @@ def main(argv):
     print(f"{d['file']}: aggtool format {d['format']}, {d['bytes']} bytes, written by {d['generator']}")
     layout = "float" if d["lossless"] else "quantized (1.4)"
     if d["compression"]:
-        layout += f", blocks zstd level {d['compression']} (1.5)"
+        layout += f", blocks zstd level {d['compression']} (1.5; in byte planes from 1.6)"
     print(f"source: {d['source']}; max-res {d['max_res']}, AIV {d['aiv_res']}², ABV {d['abv_res']}²; effects 0x{d['effects_kept']:x}; tables v{d['tables_version']}; layout {layout}")
     print(f"{'level':>6} {'voxels':>10} {'faces':>10} {'vblocks':>7} {'fblocks':>7} {'bytes':>12}")
     for l in d["levels"]:

@@ -3594,7 +3594,7 @@ impl<'a> BakeSettings<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<bool>(BakeSettings::VT_ABV_WINDOWS, Some(false)).unwrap()}
   }
-  /// Recorded since aggtool's rate control (files of format 1.5; no layout change, readers
+  /// Recorded since aggtool's rate control (files of format 1.6; no layout change, readers
   /// need not know it): the budget the bake's visibility details were allocated to, in MiB
   /// of the whole file (`size_mib`) or of the finest level (`level_mib`), or the bound on its
   /// error estimate (`error`); at most one is set. 0 (also absent, in older files): none, the

@@ -29,6 +29,7 @@ pub mod effects;
 pub mod encode;
 mod level;
 pub mod part;
+pub mod planar;
 pub mod quantize;
 mod read;
 pub(crate) mod settings;
@@ -49,7 +50,7 @@ pub const MAGIC: [u8; 8] = [0x89, b'A', b'G', b'G', b'\r', b'\n', 0x1a, b'\n'];
 /// The format version this build writes. Readers accept any minor of their major.
 pub const MAJOR: u16 = 1;
 /// The minor version this build writes.
-pub const MINOR: u16 = 5;
+pub const MINOR: u16 = 6;
 /// Bytes of the fixed header.
 pub const HEADER_SIZE: usize = 64;
 /// Alignment of every blob.
@@ -71,12 +72,22 @@ pub const DEFAULT_COMPRESSION: i32 = 19;
 
 /// A block's FlatBuffer compressed as one Zstandard frame (with its content size, which
 /// readers require), or `None` when compression would not make it smaller.
+///
+/// From format 1.6 the frame holds the block in byte planes ([`planar`]), after
+/// [`planar::PLANAR_MAGIC`].
 pub fn compress_block(block: &[u8], level: i32) -> Option<Vec<u8>> {
     let mut c = zstd::bulk::Compressor::new(level).ok()?;
     c.include_contentsize(true).ok()?;
     c.include_checksum(false).ok()?;
-    let out = c.compress(block).ok()?;
+    let mut out = planar::PLANAR_MAGIC.to_vec();
+    out.extend(c.compress(&planar::to_planes(block)).ok()?);
     (out.len() < block.len()).then_some(out)
+}
+
+/// Whether a stored blob is coded (a Zstandard frame, or a planar one) rather than the
+/// block's FlatBuffer itself.
+pub fn is_coded(stored: &[u8]) -> bool {
+    stored.starts_with(&ZSTD_MAGIC) || stored.starts_with(&planar::PLANAR_MAGIC)
 }
 
 /// A level's voxel keys as the index stores them (`Level.voxel_keys`): the LEB128 varints of
@@ -156,6 +167,16 @@ pub const MAX_INFLATION: u64 = 1024;
 /// [`MAX_BLOCK_BYTES`] and [`MAX_INFLATION`] times its own, and inflate to exactly that many
 /// bytes.
 pub fn inflate_block(blob: &[u8]) -> Result<Vec<u8>, String> {
+    if let Some(frame) = blob.strip_prefix(&planar::PLANAR_MAGIC) {
+        let mut out = inflate_frame(frame)?;
+        planar::from_planes(&mut out, &read::verifier_options())?;
+        return Ok(out);
+    }
+    inflate_frame(blob)
+}
+
+/// One Zstandard frame's content, within the limits of [`inflate_block`].
+fn inflate_frame(blob: &[u8]) -> Result<Vec<u8>, String> {
     let limit = MAX_BLOCK_BYTES.min(MAX_INFLATION * blob.len() as u64);
     let size = match zstd::zstd_safe::get_frame_content_size(blob) {
         Ok(Some(n)) if n <= limit => n as usize,

@@ -328,7 +328,7 @@ impl<'a> Lobes<'a> {
     }
 }
 
-fn verifier_options() -> flatbuffers::VerifierOptions {
+pub(crate) fn verifier_options() -> flatbuffers::VerifierOptions {
     flatbuffers::VerifierOptions {
         max_depth: 16,
         max_tables: 1 << 24,
@@ -716,7 +716,7 @@ impl Aggregate {
         let stored = self.stored(b);
         let bytes = match fresh {
             Some(inflated) => LoadedBytes::Inflated(inflated),
-            None if stored.starts_with(&super::ZSTD_MAGIC) => LoadedBytes::Inflated(
+            None if super::is_coded(stored) => LoadedBytes::Inflated(
                 super::inflate_block(stored)
                     .map_err(|e| corrupt(format!("block at {}: {e}", b.offset)))?
                     .into_boxed_slice(),
@@ -1266,7 +1266,7 @@ fn verify_index(
 /// for the farm merge, which rebuilds a level's `voxel_keys` from its shards' blocks.
 pub(crate) fn stored_block_keys(stored: &[u8]) -> Result<Vec<u64>, String> {
     let inflated;
-    let bytes = if stored.starts_with(&super::ZSTD_MAGIC) {
+    let bytes = if super::is_coded(stored) {
         inflated = super::inflate_block(stored)?;
         &inflated[..]
     } else {
@@ -1314,10 +1314,16 @@ fn check_blob(
             return Err(corrupt(format!("block at {}: checksum mismatch", r.offset)));
         }
         // From 1.5 a block may be one Zstandard frame holding its FlatBuffer.
-        let compressed = stored.starts_with(&super::ZSTD_MAGIC);
+        let compressed = super::is_coded(stored);
         if compressed && minor < 5 {
             return Err(corrupt(format!(
                 "block at {}: compressed, in a file older than 1.5",
+                r.offset
+            )));
+        }
+        if stored.starts_with(&super::planar::PLANAR_MAGIC) && minor < 6 {
+            return Err(corrupt(format!(
+                "block at {}: in byte planes, in a file older than 1.6",
                 r.offset
             )));
         }
