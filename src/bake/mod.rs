@@ -751,7 +751,7 @@ mod tests {
             .unwrap_err()
             .contains("--ndf-lobes"));
         assert!(d.with_field("keep", "many").is_err());
-        assert_eq!(BakeSettings::field_names().len(), 19);
+        assert_eq!(BakeSettings::field_names().len(), 22);
     }
 
     /// `with_value` takes typed values as the bindings pass them: integers for counts (a

@@ -31,6 +31,9 @@ pub struct Point {
     pub label: String,
     /// Drawn as a square in the preset colour (a circle otherwise).
     pub marked: bool,
+    /// Another method for comparison (the sweep's mesh of equal bytes): a green diamond, left
+    /// out of the Pareto front, with its own legend entry when any point is one.
+    pub other: bool,
 }
 
 /// Which points lie on the Pareto front of lower `y` at lower `x`: those that no other point
@@ -121,7 +124,20 @@ pub fn pareto_plot(
         let (a, b) = pad(ymin, ymax);
         (a.max(0.0), b)
     };
-    let front = pareto_front(&points.iter().map(|p| (p.x, p.y)).collect::<Vec<_>>());
+    // The front of the plotted method's points (others never dominate them).
+    let front = pareto_front(
+        &points
+            .iter()
+            .map(|p| {
+                if p.other {
+                    (f64::NAN, f64::NAN)
+                } else {
+                    (p.x, p.y)
+                }
+            })
+            .collect::<Vec<_>>(),
+    );
+    let green = RGBColor(30, 150, 70);
     let preset = RGBColor(200, 60, 40);
     let varied = RGBColor(40, 90, 200);
     let grey = RGBColor(150, 150, 150);
@@ -185,7 +201,14 @@ pub fn pareto_plot(
         let mut spots: Vec<(i32, i32)> = Vec::new();
         for p in &finite {
             let at = (tx(p.x), p.y);
-            if p.marked {
+            if p.other {
+                chart
+                    .draw_series(std::iter::once(
+                        EmptyElement::at(at)
+                            + Polygon::new(vec![(0, -6), (6, 0), (0, 6), (-6, 0)], green.filled()),
+                    ))
+                    .map_err(|e| err(&e))?;
+            } else if p.marked {
                 chart
                     .draw_series(std::iter::once(
                         EmptyElement::at(at) + Rectangle::new([(-5, -5), (5, 5)], preset.filled()),
@@ -203,7 +226,9 @@ pub fn pareto_plot(
                 .filter(|(x, y)| (x - px).abs() <= 3 && (y - py).abs() <= 3)
                 .count() as i32;
             spots.push((px, py));
-            let c = if p.marked {
+            let c = if p.other {
+                [20, 110, 50]
+            } else if p.marked {
                 [150, 40, 25]
             } else {
                 [25, 60, 150]
@@ -241,6 +266,20 @@ pub fn pareto_plot(
         texts.push((lx + 18, ly + 27, "one setting".into(), 1, [0, 0, 0]));
         texts.push((lx + 18, ly + 36, "varied".into(), 1, [0, 0, 0]));
         texts.push((lx + 18, ly + 52, "pareto front".into(), 1, [0, 0, 0]));
+        if finite.iter().any(|p| p.other) {
+            root.draw(&Polygon::new(
+                vec![
+                    (lx + 5, ly + 69),
+                    (lx + 11, ly + 75),
+                    (lx + 5, ly + 81),
+                    (lx - 1, ly + 75),
+                ],
+                green.filled(),
+            ))
+            .map_err(|e| err(&e))?;
+            texts.push((lx + 18, ly + 66, "mesh of equal".into(), 1, [0, 0, 0]));
+            texts.push((lx + 18, ly + 75, "bytes".into(), 1, [0, 0, 0]));
+        }
         root.present().map_err(|e| err(&e))?;
     }
     // Title and axis names.
@@ -350,6 +389,7 @@ mod tests {
                     y: 0.01 * (i + 1) as f64,
                     label: format!("p{i}"),
                     marked: i == 0,
+                    other: i == 2,
                 })
                 .collect()
         };

@@ -545,6 +545,7 @@ pub fn sweep(
                     .unwrap_or(&r.label)
                     .to_string(),
                 marked: r.kind == RowKind::Preset,
+                other: false,
             })
             .collect();
         if file == "pareto-mib.png" {
@@ -557,6 +558,7 @@ pub fn sweep(
                         y: m.rmse,
                         label: format!("mesh {} tris", m.triangles),
                         marked: false,
+                        other: true,
                     });
                 }
             }
