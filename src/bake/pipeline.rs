@@ -592,32 +592,21 @@ fn place_levels(
     target: rate::RateTarget,
     index_of: &dyn Fn(&[LevelEntry]) -> Vec<u8>,
 ) -> std::io::Result<(Vec<Placed>, RateReport)> {
-    // The index's bytes do not depend on λ: block references have a fixed size, and counts
-    // too once none is zero (FlatBuffers leaves out a field at its default).
+    // The index's bytes depend on λ only through the levels' counts (FlatBuffers leaves a
+    // zero out): block references have a fixed size.
     let mut sized = entries.to_vec();
-    let ones = Counts {
-        voxels: 1,
-        faces: 1,
-        directional_moments: 1,
-        metallic: 1,
-        roughness_variance: 1,
-        multi_lobe: 1,
-        aiv_trees: 1,
-        aiv_all_visible: 1,
-        aiv_all_occluded: 1,
-        abv_trees: 1,
-        cut_out: 1,
-        aiv_nodes: 1,
-        abv_nodes: 1,
-        exposure: 1,
-    };
     for (e, p) in sized.iter_mut().zip(&pending) {
         e.voxel_blocks = vec![Default::default(); p.voxels.len()];
         e.face_blocks = vec![Default::default(); p.faces.len()];
-        e.counts = ones;
     }
-    let fixed = crate::format::HEADER_SIZE as u64 + index_of(&sized).len() as u64;
-    let (levels, report) = rate::allocate(&pending, settings, target, fixed);
+    let fixed = |counts: &[Counts]| {
+        let mut s = sized.clone();
+        for (e, c) in s.iter_mut().zip(counts) {
+            e.counts = *c;
+        }
+        crate::format::HEADER_SIZE as u64 + index_of(&s).len() as u64
+    };
+    let (levels, report) = rate::allocate(&pending, settings, target, &fixed);
     drop(pending);
     let mut placed = Vec::with_capacity(levels.len());
     for (e, level) in entries.iter_mut().zip(levels) {
