@@ -11,6 +11,10 @@
 //! keeping the details of largest w·c² first is the greedy solution of the rate-constrained
 //! problem, and λ is searched until the bytes meet the budget.
 //!
+//! A voxel's directional material moments (Eq. 23) are one more candidate, of many details'
+//! bytes: dropped, they become their mean ([`moment_candidate`]); it is kept where its
+//! distortion per detail's bytes reaches λ, the greedy rule for candidates of unequal rates.
+//!
 //! The weight is what a map's error does to radiance, per unit of the level's surface:
 //! - a voxel's AIV scales the light its surfaces reflect, so w = a·ρ² / (A·N²), with a the
 //!   voxel's surface area after cut-outs, ρ its mean albedo (diffuse and specular, Eq. 13
