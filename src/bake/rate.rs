@@ -168,7 +168,7 @@ fn surface(v: &VoxelData) -> f64 {
 
 /// Bytes a candidate detail costs, for comparing other candidates with details: a quantized
 /// Haar node holds three details in five bytes.
-const DETAIL_BYTES: f64 = 5.0 / 3.0;
+pub const DETAIL_BYTES: f64 = 5.0 / 3.0;
 
 /// A voxel's directional material moments (Eq. 23) as a candidate: the constant moments
 /// that would replace them (the mean of the diffuse kernel's cells), what that costs the
