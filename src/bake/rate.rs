@@ -646,7 +646,13 @@ pub(crate) fn allocate(
     let trials = std::cell::Cell::new(0u32);
     let report = |k: usize, met: bool, message: String, bytes: u64| RateReport {
         target,
-        lambda: cut_at(k).lambda as f64,
+        // Nothing kept: the smallest λ above every candidate (never infinite).
+        lambda: match k {
+            0 => imp
+                .first()
+                .map_or(0.0, |c| f32::from_bits(c.importance.to_bits() + 1) as f64),
+            _ => cut_at(k).lambda as f64,
+        },
         met,
         message,
         bytes,
@@ -719,7 +725,7 @@ pub(crate) fn allocate(
         let (enc, b) = finish(0);
         if b as f64 > budget {
             let msg = format!(
-                "without any visibility detail the bake takes {}; lower --max-res, or raise the budget",
+                "without any visibility detail or directional moments the bake takes {}; lower --max-res, or raise the budget",
                 mib_text(b)
             );
             let r = report(0, false, msg, b);
