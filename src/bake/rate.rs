@@ -187,17 +187,7 @@ pub fn moment_candidate(v: &VoxelData, w: f64) -> Option<(MaterialMoments, f64, 
     if diffuse.is_empty() {
         return None;
     }
-    let n = diffuse.len() as f32;
-    let mut flat = MaterialMoments::default();
-    for m in diffuse {
-        flat.c += m.c / n;
-        flat.mc += m.mc / n;
-        flat.s += m.s / n;
-        flat.ms += m.ms / n;
-        flat.m += m.m / n;
-        flat.f90 += m.f90 / n;
-        flat.mf90 += m.mf90 / n;
-    }
+    let flat = MaterialMoments::mean(diffuse);
     let rho = |m: &MaterialMoments| m.diffuse() + m.reflectance();
     let r0 = rho(&flat);
     let cells = diffuse.iter().chain(specular);
