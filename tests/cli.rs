@@ -269,8 +269,7 @@ fn export_writes_views_instances_and_textures() {
 }
 
 /// `convert` writes format 1.4's quantized layout by default, its blocks compressed (1.5), and
-/// the float layout with `--lossless`;
-/// `--no-cpca` is accepted and changes nothing (no file stores CPCA); `inspect --json`
+/// the float layout with `--lossless`; `inspect --json`
 /// gives each level's bytes per component and layout, and the quantized file is smaller in
 /// every node, lobe and moment component.
 #[test]
@@ -286,13 +285,7 @@ fn lossless_and_quantized_layouts() {
         inspect_json(p, out)
     };
     let q = bake(&[], "q.agg");
-    bake(&["--no-cpca"], "n.agg");
     let l = bake(&["--lossless"], "l.agg");
-    assert_eq!(
-        std::fs::read(p.join("q.agg")).unwrap(),
-        std::fs::read(p.join("n.agg")).unwrap(),
-        "--no-cpca changes nothing"
-    );
     assert_eq!(q["format"], "1.6");
     assert_eq!(q["settings"]["lossless"], false);
     assert_eq!(q["settings"]["compression"], 19);

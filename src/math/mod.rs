@@ -3,7 +3,6 @@
 
 pub mod beta;
 pub mod color;
-pub mod cpca;
 pub mod distribution;
 pub mod frame;
 pub mod haar;

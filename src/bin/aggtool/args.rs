@@ -328,11 +328,6 @@ pub struct BakeArgs {
     /// what it does to radiance (0.01 to 0.05 is a useful range) [default: none].
     #[arg(long, value_name = "E")]
     pub error: Option<f64>,
-    /// No clustered PCA of the visibility. Accepted and ignored: CPCA was measured
-    /// (tools/src/bin/cpca_probe.rs) and does not pay on the quantized, truncated trees, so no
-    /// file stores it.
-    #[arg(long)]
-    pub no_cpca: bool,
 }
 
 impl BakeArgs {
