@@ -355,3 +355,54 @@ fn rate_command_line() {
     assert_eq!(code(&["rate", "all.agg", "-o", "x.agg"]), Some(2));
     assert!(!d.join("x.agg").exists());
 }
+
+/// `--level-mib` budgets the finest level alone: its blocks land within 3% under the budget
+/// (each blob counted with the alignment padding before it), and coarser levels follow the
+/// same multiplier.
+#[test]
+fn level_budget_counts_the_finest_level() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scene();
+    let all_path = dir.path().join("all.agg");
+    bake(
+        &sc,
+        &BakeSettings {
+            keep: 1.0,
+            energy: 1.0,
+            ..settings()
+        },
+        &all_path,
+    );
+    let all = Aggregate::open(&all_path).unwrap();
+    let (v, f) = all.level_bytes(0);
+    let budget = 0.7 * (v + f) as f64;
+    let path = dir.path().join("l.agg");
+    let r = bake(
+        &sc,
+        &BakeSettings {
+            level_mib: budget / MIB,
+            ..settings()
+        },
+        &path,
+    );
+    let rate = r.rate.unwrap();
+    assert!(rate.met, "{}", rate.line());
+    let budget = (budget / MIB * MIB).round();
+    let agg = Aggregate::open(&path).unwrap();
+    let (v, f) = agg.level_bytes(0);
+    let (bv, bf) = agg.block_counts(0);
+    let padded = rate.bytes as f64;
+    assert!(
+        padded <= budget && padded >= (1.0 - TOLERANCE) * budget,
+        "{padded} for {budget}"
+    );
+    assert!(((v + f) as f64) <= padded && padded - ((v + f) as f64) < 64.0 * (bv + bf) as f64);
+    // The coarser levels lost details too (one multiplier), so they are smaller than in the
+    // file that keeps every candidate.
+    let coarser = |a: &Aggregate| {
+        (1..a.level_count())
+            .map(|l| a.level_bytes(l).0 + a.level_bytes(l).1)
+            .sum::<u64>()
+    };
+    assert!(coarser(&agg) < coarser(&all));
+}
