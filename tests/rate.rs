@@ -29,6 +29,16 @@ fn bake(sc: &Scene, s: &BakeSettings, path: &Path) -> BakeReport {
     bake_to_file(sc, "test.glb", s, path, &aggtool::util::no_progress).unwrap()
 }
 
+/// A bake of `base` that keeps every candidate (`--keep 1 --energy 1`) at `path`.
+fn bake_candidates(sc: &Scene, base: &BakeSettings, path: &Path) -> BakeReport {
+    let s = BakeSettings {
+        keep: 1.0,
+        energy: 1.0,
+        ..base.clone()
+    };
+    bake(sc, &s, path)
+}
+
 /// Every candidate kept, the smallest file, and a budget between them is met within 3% under
 /// it, by the bake and by re-rating the candidates' file; a budget below the smallest file
 /// says so and writes the smallest; one above everything keeps every candidate.
@@ -37,15 +47,7 @@ fn size_budgets_are_met_within_three_percent() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scene();
     let all_path = dir.path().join("all.agg");
-    let all = bake(
-        &sc,
-        &BakeSettings {
-            keep: 1.0,
-            energy: 1.0,
-            ..settings()
-        },
-        &all_path,
-    );
+    let all = bake_candidates(&sc, &settings(), &all_path);
     let agg = Aggregate::open(&all_path).unwrap();
     // The smallest file: a budget of one byte cannot be met.
     let (least, r) = rate_file(
@@ -147,15 +149,7 @@ fn error_bound_holds_on_the_decoded_maps() {
         ..settings()
     };
     let all_path = dir.path().join("all.agg");
-    bake(
-        &sc,
-        &BakeSettings {
-            keep: 1.0,
-            energy: 1.0,
-            ..base.clone()
-        },
-        &all_path,
-    );
+    bake_candidates(&sc, &base, &all_path);
     let all = Aggregate::open(&all_path).unwrap();
     let mut sizes = Vec::new();
     let mut flattened_total = 0;
@@ -364,15 +358,7 @@ fn level_budget_counts_the_finest_level() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scene();
     let all_path = dir.path().join("all.agg");
-    bake(
-        &sc,
-        &BakeSettings {
-            keep: 1.0,
-            energy: 1.0,
-            ..settings()
-        },
-        &all_path,
-    );
+    bake_candidates(&sc, &settings(), &all_path);
     let all = Aggregate::open(&all_path).unwrap();
     let (v, f) = all.level_bytes(0);
     let budget = 0.7 * (v + f) as f64;

@@ -672,22 +672,15 @@ pub fn rate_file(
             counts: Counts::default(),
             voxel_keys: keys,
         });
-        let chunks = |n: usize| n.max(1);
-        let mut p = PendingLevel {
+        pending.push(PendingLevel {
             voxel_size: level.grid.voxel_size(),
-            ..Default::default()
-        };
-        let mut voxels = level.voxels;
-        while !voxels.is_empty() {
-            let rest = voxels.split_off(chunks(BLOCK_VOXELS).min(voxels.len()));
-            p.voxels.push(std::mem::replace(&mut voxels, rest));
-        }
-        let mut faces = level.faces;
-        while !faces.is_empty() {
-            let rest = faces.split_off(chunks(BLOCK_FACES).min(faces.len()));
-            p.faces.push(std::mem::replace(&mut faces, rest));
-        }
-        pending.push(p);
+            voxels: level
+                .voxels
+                .chunks(BLOCK_VOXELS)
+                .map(<[_]>::to_vec)
+                .collect(),
+            faces: level.faces.chunks(BLOCK_FACES).map(<[_]>::to_vec).collect(),
+        });
     }
     let recorded = settings.recorded();
     let (tables_version, tables_crc32) = input.tables();

@@ -384,14 +384,13 @@ impl EncodedLevel {
     }
 }
 
-/// The stored form of a block's FlatBuffer at a Zstandard level.
-fn stored(block: Vec<u8>, level: i32) -> Vec<u8> {
-    if level > 0 {
-        if let Some(z) = compress_block(&block, level) {
-            return z;
-        }
-    }
-    block
+/// A block's FlatBuffer (keys `keys`, `count` records) as stored at a Zstandard level.
+fn stored(block: Vec<u8>, keys: (u64, u64), count: usize, level: i32) -> StoredBlock {
+    let blob = match level {
+        0 => block,
+        _ => compress_block(&block, level).unwrap_or(block),
+    };
+    StoredBlock { blob, keys, count }
 }
 
 /// Level `li` encoded with the details `cut` keeps, compressed at `zstd` (blocks in
@@ -442,12 +441,7 @@ fn encode_level(
                 &mut b,
             );
             let keys = (cut[0].key, cut[cut.len() - 1].key);
-            let s = StoredBlock {
-                blob: stored(blob, zstd),
-                keys,
-                count: cut.len(),
-            };
-            (s, c, b)
+            (stored(blob, keys, cut.len(), zstd), c, b)
         })
         .collect();
     let face: Vec<(StoredBlock, Counts, ComponentBytes)> = level
@@ -470,12 +464,7 @@ fn encode_level(
                 encode::face_key(&cut[0]),
                 encode::face_key(&cut[cut.len() - 1]),
             );
-            let s = StoredBlock {
-                blob: stored(blob, zstd),
-                keys,
-                count: cut.len(),
-            };
-            (s, c, b)
+            (stored(blob, keys, cut.len(), zstd), c, b)
         })
         .collect();
     let mut out = EncodedLevel {
