@@ -60,6 +60,8 @@ fn render(agg: Aggregate) -> (Vec3, [Vec3; 3]) {
         &TraceSettings {
             normalize: false,
             continuous_lod: false,
+            // Every sample walks its own cone, as the builds that printed the values did.
+            samples_per_walk: 1,
             shading: Shading::Reservoir {
                 picks: 1,
                 roulette: true,

@@ -1032,3 +1032,60 @@ fn object_pixels_are_the_ones_the_mesh_covers() {
     assert!((o.relative_rmse - 0.1).abs() < 1e-6, "{o:?}");
     assert!(compare_on_object(&other, &reference, &cov[1..]).is_err());
 }
+
+/// Shared walks ([`TraceSettings::samples_per_walk`]) change which cones a pixel's samples
+/// walk, not what they estimate: on the lattice (the hard case where the cone meets the most
+/// separate voxels), 256 samples a pixel with 4 samples a walk and with a walk a sample give
+/// the same image mean, and per pixel differ by no more than the two renders' own noise
+/// (measured as the difference of two one-walk-a-sample renders with other seeds). The same
+/// bits come back on one thread as on two.
+#[test]
+fn shared_walks_estimate_the_same_image() {
+    let scene = generated("lattice", 2000);
+    let lod = baked(&scene, &small(16));
+    let view = view_of(&scene, 24, 256);
+    let lights = view.lights().unwrap();
+    let cam = view.camera();
+    let render = |reuse: u32, seed: u64| {
+        let s = TraceSettings {
+            samples_per_walk: reuse,
+            ..Default::default()
+        };
+        aggtool::runtime::render(&lod, &cam, &lights, 256, seed, &s, &no_progress).0
+    };
+    let mean = |img: &aggtool::film::Image| {
+        img.pixels
+            .iter()
+            .map(|p| p.element_sum() as f64)
+            .sum::<f64>()
+            / img.pixels.len() as f64
+    };
+    let (each, shared) = (render(1, 3), render(4, 5));
+    let (me, ms) = (mean(&each), mean(&shared));
+    // 576 pixels × 256 samples: the means' own noise is well below 0.5%.
+    assert!(
+        (ms / me - 1.0).abs() < 0.01,
+        "image mean {ms} shared, {me} each"
+    );
+    fn rmse(a: &aggtool::film::Image, b: &aggtool::film::Image) -> f64 {
+        aggtool::render::compare::compare(a, b).unwrap().rmse as f64
+    }
+    let other = render(1, 11);
+    let noise = rmse(&each, &other);
+    let d = rmse(&each, &shared);
+    // Sharing walks adds the variance of the walk over fewer walks: at most twice the noise
+    // of two independent renders.
+    assert!(d < 2.0 * noise, "shared vs each {d}, noise {noise}");
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| render(4, 5));
+    assert!(
+        one.pixels
+            .iter()
+            .zip(&shared.pixels)
+            .all(|(a, b)| a.to_array().map(f32::to_bits) == b.to_array().map(f32::to_bits)),
+        "thread count changed the bits"
+    );
+}

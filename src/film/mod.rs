@@ -98,6 +98,9 @@ pub struct Sample<'a> {
     pub index: u32,
     /// A seed of the pixel's own (from the render seed and the pixel index, not from `rng`).
     pub pixel_seed: u32,
+    /// The pixel (column, row); its area is [x, x + 1) × [y, y + 1) in [`Camera::ray`]'s
+    /// coordinates.
+    pub pixel: glam::UVec2,
 }
 
 /// The seed of pixel `pixel`'s own stratification under render seed `seed`
@@ -121,6 +124,30 @@ pub fn render_image(
     progress: Progress,
     radiance: impl Fn(Sample) -> Vec3 + Sync,
 ) -> (Image, ImageStats) {
+    render_image_with(
+        camera,
+        spp,
+        seed,
+        stage,
+        progress,
+        || (),
+        |s, _| radiance(s),
+    )
+}
+
+/// [`render_image`] with a state of the renderer's own, made by `state` once for each tile
+/// and passed to every sample of the tile in order (a pixel's samples one after another,
+/// sample 0 first): what a renderer keeps from one sample of a pixel to the next (the LoD's
+/// shared walks, [`crate::runtime::TraceSettings::walks_per_pixel`]).
+pub fn render_image_with<T>(
+    camera: &Camera,
+    spp: u32,
+    seed: u64,
+    stage: &str,
+    progress: Progress,
+    state: impl Fn() -> T + Sync,
+    radiance: impl Fn(Sample, &mut T) -> Vec3 + Sync,
+) -> (Image, ImageStats) {
     let start = Instant::now();
     let (w, h) = (camera.width, camera.height);
     let tiles_x = w.div_ceil(TILE);
@@ -139,6 +166,7 @@ pub fn render_image(
             let mut out = Vec::with_capacity((TILE * TILE) as usize);
             let mut local_rays = 0u64;
             let mut local_invalid = 0u64;
+            let mut st = state();
             for y in ty * TILE..((ty + 1) * TILE).min(h) {
                 for x in tx * TILE..((tx + 1) * TILE).min(w) {
                     let pixel = (y as u64) * w as u64 + x as u64;
@@ -148,15 +176,19 @@ pub fn render_image(
                     for s in 0..spp {
                         let p = Vec2::new(x as f32, y as f32) + jitter(s, spp, &mut rng);
                         let (origin, dir) = camera.ray(p);
-                        let l = radiance(Sample {
-                            origin,
-                            dir,
-                            aperture,
-                            rng: &mut rng,
-                            rays: &mut local_rays,
-                            index: s,
-                            pixel_seed,
-                        });
+                        let l = radiance(
+                            Sample {
+                                origin,
+                                dir,
+                                aperture,
+                                rng: &mut rng,
+                                rays: &mut local_rays,
+                                index: s,
+                                pixel_seed,
+                                pixel: glam::UVec2::new(x, y),
+                            },
+                            &mut st,
+                        );
                         if l.is_finite() {
                             sum += l;
                         } else {

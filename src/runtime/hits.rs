@@ -299,6 +299,12 @@ impl LodScene {
 }
 
 impl<'s> Hits<'s> {
+    /// The cone walked.
+    #[inline]
+    pub fn cone(&self) -> Cone {
+        self.cone
+    }
+
     /// exact weight / bound weight of a hit yielded under [`Weights::Bound`].
     #[inline]
     pub(crate) fn exact_factor(&self, hit: &Hit) -> f32 {

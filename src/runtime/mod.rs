@@ -161,7 +161,18 @@ pub struct TraceSettings {
     /// ([`LodScene::hits_dithered`]), so that a moving camera sees levels blend instead of
     /// switching at a distance (popping). Off: the footprint's level, ⌊log2(tan(θ/2)·t/s)⌋.
     pub continuous_lod: bool,
+    /// Samples of a pixel that shade from one walk in the image loop ([`render`]): a pixel's
+    /// `spp` samples share ⌈spp / this⌉ walks of the pixel's cone, stratified over the pixel's
+    /// area and over the level's dither, and each sample still draws its own shading (which
+    /// hit, the light and ABSDF samples). 1 walks every sample's own cone. The pixel's cone
+    /// already covers the pixel, so fewer walks cost only the variance of which voxels the
+    /// cone meets; the walk is about half of a cone's time. Hosts' batches
+    /// ([`LodScene::trace_batch`]) trace their own cones.
+    pub samples_per_walk: u32,
 }
+
+/// [`TraceSettings::samples_per_walk`]'s default.
+pub const DEFAULT_SAMPLES_PER_WALK: u32 = 2;
 
 impl Default for TraceSettings {
     fn default() -> Self {
@@ -172,6 +183,7 @@ impl Default for TraceSettings {
             shading: Shading::default(),
             normalize: true,
             continuous_lod: true,
+            samples_per_walk: DEFAULT_SAMPLES_PER_WALK,
         }
     }
 }
@@ -629,13 +641,60 @@ pub fn render(
     settings: &TraceSettings,
     progress: crate::util::Progress,
 ) -> (crate::film::Image, crate::film::ImageStats) {
-    crate::film::render_image(camera, spp, seed, "LoD", progress, |mut s| {
-        *s.rays += 1;
-        let cone = Cone::of_sample(&s);
-        scene
-            .trace(&cone, lights, settings, &mut Stratified::of_sample(&mut s))
-            .radiance
-    })
+    let reuse = settings.samples_per_walk.max(1);
+    if reuse == 1 || settings.primitive == PrimitiveKind::Volume {
+        return crate::film::render_image(camera, spp, seed, "LoD", progress, |mut s| {
+            *s.rays += 1;
+            let cone = Cone::of_sample(&s);
+            scene
+                .trace(&cone, lights, settings, &mut Stratified::of_sample(&mut s))
+                .radiance
+        });
+    }
+    let spp = spp.max(1);
+    crate::film::render_image_with(
+        camera,
+        spp,
+        seed,
+        "LoD",
+        progress,
+        shade::Walk::default,
+        |mut s, walk| {
+            // The pixel's samples in runs of `reuse` consecutive samples, run k shading from
+            // walk k (walked by the run's first sample): a run of the stratified sequence is
+            // itself stratified, so the shading numbers of one walk's samples are spread out.
+            // Walk k's cone goes through point k of a (0, m, 2)-net over the pixel and its
+            // dither through point k of another sequence, scrambled by the pixel's own seed:
+            // the walks are stratified over the pixel's area and the level's blend.
+            let k = s.index / reuse;
+            if s.index % reuse == 0 {
+                let h = crate::math::rng::mix64(((s.pixel_seed as u64) << 32) ^ 0x5741_4c4b);
+                let seeds = [h as u32, (h >> 32) as u32, (h >> 16) as u32 ^ 0x9e37_79b9];
+                let p = s.pixel.as_vec2() + crate::math::lowdiscrepancy::shifted_2d(k, seeds);
+                let dither = crate::math::lowdiscrepancy::shifted_1d(
+                    k,
+                    [seeds[2].rotate_left(7) ^ 0x85eb_ca6b, seeds[0] ^ seeds[1]],
+                );
+                let (origin, dir) = camera.ray(p);
+                let cone = Cone {
+                    origin,
+                    dir,
+                    aperture: s.aperture,
+                    tmin: 0.0,
+                    tmax: f32::INFINITY,
+                };
+                walk.fill(scene, &cone, lights, settings, dither);
+            }
+            *s.rays += 1;
+            let mut sampler = Stratified::of_sample(&mut s);
+            // The dither's dimension, which the shared walk drew instead: the shading's numbers
+            // stay in the dimensions a sample of its own would give them.
+            if settings.continuous_lod && settings.level.is_none() {
+                sampler.next_1d();
+            }
+            walk.estimate(lights, settings, &mut sampler).radiance
+        },
+    )
 }
 
 /// Which sample of which pixel each cone of a host's batch is

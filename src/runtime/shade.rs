@@ -2,7 +2,7 @@
 
 use glam::Vec3;
 
-use super::hits::{Hit, Weights};
+use super::hits::{Hit, Hits, Weights};
 use super::{
     Cone, ConeResult, LodScene, PrimitiveKind, Sampler, Shading, TraceSettings, VoxelHandle,
 };
@@ -186,16 +186,153 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
     sampler: &mut S,
     place: &P,
 ) -> (Vec3, f32, u32, f32, f32) {
-    let wo = place.to_world(-cone.dir);
-    // Reservoir shading weighs hits by a bound of |B|_ω (see below).
-    let weights = match settings.shading {
-        Shading::Every => Weights::Exact,
-        Shading::Reservoir { .. } => Weights::Bound,
-    };
     // The level's dither (continuous LoD), drawn first: a pixel's samples stratify it.
     // Not drawn where it would not be read (a forced level), which keeps those renders' bits.
-    let dither = (settings.continuous_lod && settings.level.is_none()).then(|| sampler.next_1d());
-    let mut hits = scene.hits_weighted(cone, settings, weights, dither);
+    let dither = draws_dither(settings).then(|| sampler.next_1d());
+    let mut hits = scene.hits_weighted(cone, settings, walk_weights(settings), dither);
+    estimate(&mut hits, cone, lights, settings, sampler, place)
+}
+
+/// Whether a cone's walk reads a dither (continuous LoD and no forced level).
+#[inline]
+fn draws_dither(settings: &TraceSettings) -> bool {
+    settings.continuous_lod && settings.level.is_none()
+}
+
+/// The weights the walk yields for `settings`' shading: reservoir shading weighs hits by a
+/// bound of |B|_ω (see [`estimate`]).
+#[inline]
+fn walk_weights(settings: &TraceSettings) -> Weights {
+    match settings.shading {
+        Shading::Every => Weights::Exact,
+        Shading::Reservoir { .. } => Weights::Bound,
+    }
+}
+
+/// Where the hits of a cone's estimate come from: its own walk ([`Hits`]), or a walk a
+/// pixel's samples share ([`Walk`]). The estimate holds its candidates as `Item`s: the hits
+/// themselves, or (read again from a kept walk) their indices, which cost nothing to move.
+pub(crate) trait HitSource<'s> {
+    /// A candidate as the reservoir holds it.
+    type Item: Clone;
+    /// The next hit, in order: the candidate, its weight and its ray parameter.
+    fn next_hit(&mut self) -> Option<(Self::Item, f32, f32)>;
+    /// The hit a candidate stands for.
+    fn get<'a>(&'a self, item: &'a Self::Item) -> &'a Hit<'s>;
+    /// The walk the hits came from (its cone and settings; its transmittance once exhausted).
+    fn walk(&self) -> &Hits<'s>;
+}
+
+impl<'s> HitSource<'s> for Hits<'s> {
+    type Item = Hit<'s>;
+    #[inline]
+    fn next_hit(&mut self) -> Option<(Hit<'s>, f32, f32)> {
+        let h = self.next()?;
+        let (w, t) = (h.weight, h.t);
+        Some((h, w, t))
+    }
+    #[inline]
+    fn get<'a>(&'a self, item: &'a Hit<'s>) -> &'a Hit<'s> {
+        item
+    }
+    #[inline]
+    fn walk(&self) -> &Hits<'s> {
+        self
+    }
+}
+
+/// One cone's walk kept whole, for the samples of a pixel to shade from in turn (the image
+/// loop's walk reuse, [`TraceSettings::walks_per_pixel`]). Its buffers are kept between
+/// pixels: refilling allocates nothing once they have grown.
+#[derive(Default)]
+pub(crate) struct Walk<'s> {
+    hits: Option<Hits<'s>>,
+    list: Vec<Hit<'s>>,
+    background: Vec3,
+}
+
+impl<'s> Walk<'s> {
+    /// Walks `cone` (with the level's dither `dither`) and keeps its hits.
+    pub(crate) fn fill(
+        &mut self,
+        scene: &'s LodScene,
+        cone: &Cone,
+        lights: &Lights,
+        settings: &TraceSettings,
+        dither: f32,
+    ) {
+        self.list.clear();
+        let dither = draws_dither(settings).then_some(dither);
+        let mut hits = scene.hits_weighted(cone, settings, walk_weights(settings), dither);
+        self.list.extend(&mut hits);
+        self.hits = Some(hits);
+        self.background = lights.environment.eval(cone.dir);
+    }
+
+    /// One sample's estimate from the kept hits ([`LodScene::trace`]'s result for the walk's
+    /// cone, drawing the shading's numbers from `sampler`).
+    pub(crate) fn estimate<S: Sampler + ?Sized>(
+        &self,
+        lights: &Lights,
+        settings: &TraceSettings,
+        sampler: &mut S,
+    ) -> ConeResult {
+        let Some(hits) = &self.hits else {
+            return ConeResult::compose(Vec3::ZERO, self.background, 1.0, 0, 0.0);
+        };
+        let cone = hits.cone();
+        let mut replay = Replay {
+            walk: self,
+            next: 0,
+        };
+        let (surfaces, transmittance, primitives, coverage, _) =
+            estimate(&mut replay, &cone, lights, settings, sampler, &Alone);
+        ConeResult::compose(
+            surfaces,
+            self.background,
+            transmittance,
+            primitives,
+            coverage,
+        )
+    }
+}
+
+/// A [`Walk`]'s hits, read again.
+struct Replay<'w, 's> {
+    walk: &'w Walk<'s>,
+    next: usize,
+}
+
+impl<'s> HitSource<'s> for Replay<'_, 's> {
+    type Item = u32;
+    #[inline]
+    fn next_hit(&mut self) -> Option<(u32, f32, f32)> {
+        let h = self.walk.list.get(self.next)?;
+        self.next += 1;
+        Some(((self.next - 1) as u32, h.weight, h.t))
+    }
+    #[inline]
+    fn get<'a>(&'a self, item: &'a u32) -> &'a Hit<'s> {
+        &self.walk.list[*item as usize]
+    }
+    #[inline]
+    fn walk(&self) -> &Hits<'s> {
+        self.walk.hits.as_ref().expect("a filled walk")
+    }
+}
+
+/// Eq. 30's estimate over a cone's hits: every hit shaded, or the reservoir's picks; the
+/// surfaces' radiance (no background), the background's weight, the primitives met, the
+/// coverage, and the ray parameter of the first primitive met (infinite when none).
+fn estimate<'s, H: HitSource<'s>, S: Sampler + ?Sized, P: Placement + ?Sized>(
+    hits: &mut H,
+    cone: &Cone,
+    lights: &Lights,
+    settings: &TraceSettings,
+    sampler: &mut S,
+    place: &P,
+) -> (Vec3, f32, u32, f32, f32) {
+    let wo = place.to_world(-cone.dir);
     let mut first = f32::INFINITY;
     // The sum of the hits' weights (for `settings.normalize`): exact when every hit is
     // shaded; under reservoir shading the deterministic sum of bound weights times the mean
@@ -204,10 +341,11 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
     let (surfaces, coverage, weight_sum) = match settings.shading {
         Shading::Every => {
             let (mut sum, mut cov) = (Vec3::ZERO, 0.0f32);
-            for h in &mut hits {
-                first = first.min(h.t);
-                sum += shade_placed(&h, cone, wo, lights, settings.nee, sampler, place) * h.weight;
-                cov += h.weight;
+            while let Some((item, w, t)) = hits.next_hit() {
+                first = first.min(t);
+                let h = hits.get(&item);
+                sum += shade_placed(h, cone, wo, lights, settings.nee, sampler, place) * w;
+                cov += w;
             }
             (sum, cov, cov)
         }
@@ -218,10 +356,9 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
             // estimate of Σ w_k L_o^k, with the exact |B|_ω computed once per pick.
             let n = (picks.max(1) as usize).min(MAX_PICKS);
             let mut reservoir = Picks::new(n, sampler.next_1d());
-            for h in &mut hits {
-                first = first.min(h.t);
-                let w = h.weight;
-                reservoir.push(h, w);
+            while let Some((item, w, t)) = hits.next_hit() {
+                first = first.min(t);
+                reservoir.push(item, w);
             }
             let (kept, wsum) = reservoir.finish();
             // Coverage roulette: shade with probability min(1, Σŵ).
@@ -231,8 +368,9 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
             } else {
                 let (mut sum, mut cov, mut factors, mut picked) =
                     (Vec3::ZERO, 0.0f32, 0.0f32, 0u32);
-                for h in kept.iter().take(n).flatten() {
-                    let k = hits.exact_factor(h);
+                for item in kept.iter().take(n).flatten() {
+                    let h = hits.get(item);
+                    let k = hits.walk().exact_factor(h);
                     factors += k;
                     picked += 1;
                     if k > 0.0 {
@@ -250,7 +388,8 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
             }
         }
     };
-    let mut transmittance = hits.transmittance();
+    let walk = hits.walk();
+    let mut transmittance = walk.transmittance();
     let (mut surfaces, mut coverage) = (surfaces, coverage);
     if settings.normalize {
         let total = weight_sum + transmittance;
@@ -260,7 +399,7 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
             transmittance /= total;
         }
     }
-    (surfaces, transmittance, hits.primitives(), coverage, first)
+    (surfaces, transmittance, walk.primitives(), coverage, first)
 }
 
 /// Weighted reservoir sampling of `n` picks from a stream of weighted candidates, driven by one

@@ -72,6 +72,12 @@ pub struct RenderArgs {
     /// default, which keeps a moving camera from seeing levels switch).
     #[arg(long)]
     pub discrete_lod: bool,
+    /// Samples of a pixel that shade from one walk of its cone (the walks stratified over
+    /// the pixel and the level's blend): fewer walks, faster, a little noisier. 1 walks
+    /// every sample's own cone.
+    #[arg(long, default_value_t = aggtool::runtime::DEFAULT_SAMPLES_PER_WALK,
+          value_parser = clap::value_parser!(u32).range(1..))]
+    pub samples_per_walk: u32,
     /// Assemblies: draw every instance from its aggregate. By default an instance seen
     /// finer than its aggregate's finest level is drawn from its mesh (imported when first
     /// needed), as a renderer does.
@@ -435,6 +441,7 @@ impl RenderArgs {
                 primitive,
                 normalize: !self.no_normalize,
                 continuous_lod: !self.discrete_lod,
+                samples_per_walk: self.samples_per_walk,
                 ..TraceSettings::default()
             },
             level: self.level,
