@@ -221,6 +221,19 @@ pub(crate) trait HitSource<'s> {
     fn get<'a>(&'a self, item: &'a Self::Item) -> &'a Hit<'s>;
     /// The walk the hits came from (its cone and settings; its transmittance once exhausted).
     fn walk(&self) -> &Hits<'s>;
+    /// `n` picks among the rest of the hits, each hit k with probability w_k / Σw and an
+    /// increasing function of `u` ([`Picks`]); with Σw and the ray parameter of the first hit
+    /// (infinite when none).
+    fn picks(&mut self, n: usize, u: f32) -> ([Option<Self::Item>; MAX_PICKS], f32, f32) {
+        let mut reservoir = Picks::new(n, u);
+        let mut first = f32::INFINITY;
+        while let Some((item, w, t)) = self.next_hit() {
+            first = first.min(t);
+            reservoir.push(item, w);
+        }
+        let (kept, wsum) = reservoir.finish();
+        (kept, wsum, first)
+    }
 }
 
 impl<'s> HitSource<'s> for Hits<'s> {
@@ -248,6 +261,11 @@ impl<'s> HitSource<'s> for Hits<'s> {
 pub(crate) struct Walk<'s> {
     hits: Option<Hits<'s>>,
     list: Vec<Hit<'s>>,
+    /// The hits' cumulative weights, for the picks to search.
+    cumulative: Vec<f64>,
+    /// Σw as [`Picks`] sums it.
+    sum: f32,
+    first: f32,
     background: Vec3,
 }
 
@@ -266,6 +284,16 @@ impl<'s> Walk<'s> {
         let mut hits = scene.hits_weighted(cone, settings, walk_weights(settings), dither);
         self.list.extend(&mut hits);
         self.hits = Some(hits);
+        self.cumulative.clear();
+        let (mut c, mut sum, mut first) = (0.0f64, 0.0f32, f32::INFINITY);
+        for h in &self.list {
+            // The walk yields only positive weights.
+            c += h.weight as f64;
+            sum += h.weight;
+            first = first.min(h.t);
+            self.cumulative.push(c);
+        }
+        (self.sum, self.first) = (sum, first);
         self.background = lights.environment.eval(cone.dir);
     }
 
@@ -319,6 +347,34 @@ impl<'s> HitSource<'s> for Replay<'_, 's> {
     fn walk(&self) -> &Hits<'s> {
         self.walk.hits.as_ref().expect("a filled walk")
     }
+    /// [`Picks`]' choice over the kept cumulative weights, by binary search: the same
+    /// probabilities, and increasing in `u`, for a sample's cost independent of the hits.
+    fn picks(&mut self, n: usize, u: f32) -> ([Option<u32>; MAX_PICKS], f32, f32) {
+        let w = self.walk;
+        self.next = w.list.len();
+        (pick_cumulative(&w.cumulative, n, u), w.sum, w.first)
+    }
+}
+
+/// `n` picks (1 to [`MAX_PICKS`]) among candidates of cumulative weights `cumulative`
+/// (increasing, positive weights), driven by `u` as [`Picks`] is: pick j is the candidate
+/// whose share of the total holds (u + j/n mod 1)·Σw. `None` where there is no candidate.
+fn pick_cumulative(cumulative: &[f64], n: usize, u: f32) -> [Option<u32>; MAX_PICKS] {
+    let mut kept = [None; MAX_PICKS];
+    if let Some(&total) = cumulative.last() {
+        let n = n.clamp(1, MAX_PICKS);
+        let u0 = if (0.0..1.0).contains(&u) {
+            u as f64
+        } else {
+            0.0
+        };
+        for (j, slot) in kept.iter_mut().enumerate().take(n) {
+            let target = (u0 + j as f64 / n as f64).fract() * total;
+            let i = cumulative.partition_point(|&c| c <= target);
+            *slot = Some(i.min(cumulative.len() - 1) as u32);
+        }
+    }
+    kept
 }
 
 /// Eq. 30's estimate over a cone's hits: every hit shaded, or the reservoir's picks; the
@@ -355,12 +411,8 @@ fn estimate<'s, H: HitSource<'s>, S: Sampler + ?Sized, P: Placement + ?Sized>(
             // number a cone); shading the kept one and scaling by Σŵ · w_k/ŵ_k is an unbiased
             // estimate of Σ w_k L_o^k, with the exact |B|_ω computed once per pick.
             let n = (picks.max(1) as usize).min(MAX_PICKS);
-            let mut reservoir = Picks::new(n, sampler.next_1d());
-            while let Some((item, w, t)) = hits.next_hit() {
-                first = first.min(t);
-                reservoir.push(item, w);
-            }
-            let (kept, wsum) = reservoir.finish();
+            let (kept, wsum, first_hit) = hits.picks(n, sampler.next_1d());
+            first = first_hit;
             // Coverage roulette: shade with probability min(1, Σŵ).
             let p = if roulette { wsum.min(1.0) } else { 1.0 };
             if !(p > 0.0) || (p < 1.0 && sampler.next_1d() >= p) {
@@ -617,6 +669,62 @@ mod tests {
 
     /// A reservoir step leaves its number in [0, 1) whatever the probability, and one that is
     /// not a probability neither keeps nor moves it.
+    #[test]
+    /// The shared walk's picks by binary search ([`pick_cumulative`]) are the reservoir's.
+    #[test]
+    fn shared_walk_picks_are_the_reservoirs() {
+        // Up to the held candidates the two are the same function of u; beyond them each
+        // candidate is picked with the same probability w_k / Σw (both over a grid of u, the
+        // frequencies exact to the grid's 1/20000 per boundary crossed).
+        for len in [1usize, 5, 16, 40] {
+            let w: Vec<f32> = (0..len).map(|k| 0.2 + (k % 5) as f32).collect();
+            let cumulative: Vec<f64> = w
+                .iter()
+                .scan(0.0f64, |c, &x| {
+                    *c += x as f64;
+                    Some(*c)
+                })
+                .collect();
+            let total = *cumulative.last().unwrap();
+            for n in [1usize, 3] {
+                let grid = 20_000;
+                let mut by_search = vec![0u32; len];
+                let mut by_reservoir = vec![0u32; len];
+                for g in 0..grid {
+                    let u = (g as f32 + 0.5) / grid as f32;
+                    let a = pick_cumulative(&cumulative, n, u);
+                    let mut reservoir = Picks::new(n, u);
+                    for (k, &x) in w.iter().enumerate() {
+                        reservoir.push(k, x);
+                    }
+                    let (b, _) = reservoir.finish();
+                    for j in 0..n {
+                        let (a, b) = (a[j].unwrap() as usize, b[j].unwrap());
+                        if len <= HELD_HITS {
+                            assert_eq!(a, b, "len {len} n {n} u {u}");
+                        }
+                        by_search[a] += 1;
+                        by_reservoir[b] += 1;
+                    }
+                }
+                for k in 0..len {
+                    let p = w[k] as f64 / total;
+                    let fs = by_search[k] as f64 / (grid * n) as f64;
+                    let fr = by_reservoir[k] as f64 / (grid * n) as f64;
+                    assert!(
+                        (fs - p).abs() < 2e-4,
+                        "search: len {len} k {k}: {fs} vs {p}"
+                    );
+                    assert!(
+                        (fr - p).abs() < 0.01,
+                        "reservoir: len {len} k {k}: {fr} vs {p}"
+                    );
+                }
+            }
+        }
+        assert_eq!(pick_cumulative(&[], 2, 0.5), [None; MAX_PICKS]);
+    }
+
     #[test]
     fn reservoir_steps_stay_in_range() {
         let mut rng = Pcg32::new(3, 3);
