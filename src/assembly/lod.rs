@@ -113,6 +113,17 @@ enum Pick<'a> {
     Miss,
 }
 
+/// What an instance on a camera cone's list gives one sample ([`Assembly::compose`]).
+enum Met {
+    /// Nothing: the cone passes.
+    Miss,
+    /// A mesh hit at this world ray parameter, with its radiance: it ends the cone.
+    Opaque(Vec3, f32),
+    /// The aggregate's result (surfaces without background) and its first hit's world ray
+    /// parameter.
+    Aggregate(ConeResult, f32),
+}
+
 /// What an instance was drawn with where a cone first met it (the level picture).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Drawn {
@@ -475,6 +486,40 @@ impl Assembly {
         let background = lights.environment.eval(cone.dir);
         let TraceScratch { list, pending } = scratch;
         self.along(cone, None, true, list);
+        self.compose(list, pending, background, sampler, |j, opaque, sampler| {
+            let (entry, i) = list[j];
+            let i = i as usize;
+            let xf = self.xf(i);
+            match self.pick(i, &xf, cone, entry, settings) {
+                Pick::Miss => Met::Miss,
+                Pick::Mesh { mesh, ray, hit } => Met::Opaque(
+                    self.shade_mesh(i, &xf, mesh, &ray, &hit, cone, lights, settings, sampler),
+                    hit.t,
+                ),
+                Pick::Aggregate => {
+                    let (local, k) = self.clipped_local_cone(&xf, cone, opaque);
+                    let place = self.place(i, xf, cone, settings);
+                    let (r, first) = self.scenes[self.manifest.asset_of(i)]
+                        .trace_placed(&local, lights, settings, sampler, &place);
+                    Met::Aggregate(r, first / k)
+                }
+            }
+        })
+    }
+
+    /// Composes what the instances on a cone's list (`list`, ordered by entry) give, nearest
+    /// first: `meet(j, opaque, sampler)` is what instance `list[j]` gives the cone, with the
+    /// nearest opaque (mesh) hit before it at `opaque`. Instances are asked in the list's
+    /// order until what is left to see falls below [`MIN_TRANSMITTANCE`] (Russian roulette
+    /// below [`ROULETTE_BELOW`]); `pending` is scratch.
+    fn compose<S: Sampler + ?Sized>(
+        &self,
+        list: &[(f32, u32)],
+        pending: &mut Vec<(f32, ConeResult)>,
+        background: Vec3,
+        sampler: &mut S,
+        mut meet: impl FnMut(usize, f32, &mut S) -> Met,
+    ) -> ConeResult {
         pending.clear();
         // The nearest mesh hit so far: opaque, so aggregates traced after it stop there (what
         // lies behind it is hidden).
@@ -487,7 +532,7 @@ impl Assembly {
         };
         // Instances traced but not composed yet (`pending`): (first hit, result), kept sorted
         // by first hit, nearest last.
-        for &(entry, i) in list.iter() {
+        for (j, &(entry, _)) in list.iter().enumerate() {
             acc.flush(pending, entry);
             if acc.transmittance <= MIN_TRANSMITTANCE {
                 break;
@@ -502,43 +547,26 @@ impl Assembly {
                 }
                 acc.transmittance = ROULETTE_BELOW;
             }
-            let i = i as usize;
-            let xf = self.xf(i);
-            let (r, t) = match self.pick(i, &xf, cone, entry, settings) {
-                Pick::Miss => continue,
+            let (r, t) = match meet(j, opaque, sampler) {
+                Met::Miss => continue,
                 // A mesh is opaque: it ends the cone where it is hit.
-                Pick::Mesh { mesh, ray, hit } => (
-                    ConeResult {
-                        radiance: self
-                            .shade_mesh(i, &xf, mesh, &ray, &hit, cone, lights, settings, sampler),
-                        transmittance: 0.0,
-                        primitives: 1,
-                        coverage: 1.0,
-                    },
-                    {
-                        opaque = opaque.min(hit.t);
-                        hit.t
-                    },
-                ),
-                Pick::Aggregate => {
-                    let (mut local, k) = local_cone(&xf, cone);
-                    if opaque < f32::INFINITY {
-                        local.tmax = local.tmax.min(opaque * k);
-                    }
-                    let place = InstancePlace {
-                        asm: self,
-                        instance: i,
-                        xf,
-                        camera: cone.origin,
-                        aperture: cone.aperture,
-                        settings,
-                    };
-                    let (r, first) = self.scenes[self.manifest.asset_of(i)]
-                        .trace_placed(&local, lights, settings, sampler, &place);
+                Met::Opaque(radiance, t) => {
+                    opaque = opaque.min(t);
+                    (
+                        ConeResult {
+                            radiance,
+                            transmittance: 0.0,
+                            primitives: 1,
+                            coverage: 1.0,
+                        },
+                        t,
+                    )
+                }
+                Met::Aggregate(r, t) => {
                     if r.primitives == 0 && r.transmittance >= 1.0 {
                         continue;
                     }
-                    (r, first / k)
+                    (r, t)
                 }
             };
             let at = pending.partition_point(|p| p.0 > t);
@@ -555,6 +583,36 @@ impl Assembly {
             transmittance: crate::math::finite_or_zero(transmittance),
             primitives: acc.primitives,
             coverage: crate::math::finite_or_zero(acc.coverage),
+        }
+    }
+
+    /// World cone `cone` in instance space ([`local_cone`]), ended at the nearest opaque hit
+    /// before it (world parameter `opaque`).
+    #[inline]
+    fn clipped_local_cone(&self, xf: &Xf, cone: &Cone, opaque: f32) -> (Cone, f32) {
+        let (mut local, k) = local_cone(xf, cone);
+        if opaque < f32::INFINITY {
+            local.tmax = local.tmax.min(opaque * k);
+        }
+        (local, k)
+    }
+
+    /// Instance `i` as the runtime's shading sees it, for camera cone `cone`.
+    #[inline]
+    fn place<'a>(
+        &'a self,
+        i: usize,
+        xf: Xf,
+        cone: &Cone,
+        settings: &'a TraceSettings,
+    ) -> InstancePlace<'a> {
+        InstancePlace {
+            asm: self,
+            instance: i,
+            xf,
+            camera: cone.origin,
+            aperture: cone.aperture,
+            settings,
         }
     }
 
@@ -726,12 +784,145 @@ pub fn render(
     settings: &TraceSettings,
     progress: crate::util::Progress,
 ) -> (Image, ImageStats) {
-    crate::film::render_image(camera, spp, seed, "LoD", progress, |mut s| {
-        *s.rays += 1;
-        let cone = Cone::of_sample(&s);
-        asm.trace(&cone, lights, settings, &mut Stratified::of_sample(&mut s))
-            .radiance
-    })
+    let reuse = settings.walk_reuse(spp);
+    if reuse == 1 || settings.primitive == crate::runtime::PrimitiveKind::Volume {
+        return crate::film::render_image(camera, spp, seed, "LoD", progress, |mut s| {
+            *s.rays += 1;
+            let cone = Cone::of_sample(&s);
+            asm.trace(&cone, lights, settings, &mut Stratified::of_sample(&mut s))
+                .radiance
+        });
+    }
+    crate::film::render_image_with(
+        camera,
+        spp,
+        seed,
+        "LoD",
+        progress,
+        AssemblyWalk::default,
+        |mut s, walk| {
+            if s.index % reuse == 0 {
+                let (cone, dither) = crate::runtime::shared_walk_cone(camera, &s, reuse);
+                walk.start(asm, cone, dither);
+            }
+            *s.rays += 1;
+            let mut sampler = Stratified::of_sample(&mut s);
+            // The dither's dimension, which the shared walk drew instead.
+            if settings.continuous_lod && settings.level.is_none() {
+                sampler.next_1d();
+            }
+            walk.estimate(asm, lights, settings, &mut sampler).radiance
+        },
+    )
+}
+
+/// A camera cone's way through the assembly kept for the samples of a pixel that share it
+/// ([`TraceSettings::samples_per_walk`]): the instances on the cone, and for each the first
+/// sample to reach it keeps what it is there (missed, its mesh's hit, or its aggregate's
+/// walk); every sample shades and composes anew. Its buffers are kept between pixels.
+#[derive(Default)]
+struct AssemblyWalk<'a> {
+    cone: Option<Cone>,
+    dither: f32,
+    list: Vec<(f32, u32)>,
+    pending: Vec<(f32, ConeResult)>,
+    kept: Vec<Kept<'a>>,
+    /// The aggregates' walks ([`Kept::Aggregate`] indexes them); the first `used` are this
+    /// cone's.
+    walks: Vec<crate::runtime::Walk<'a>>,
+    used: usize,
+}
+
+/// What an instance on an [`AssemblyWalk`]'s cone is there.
+enum Kept<'a> {
+    /// Not reached by a sample yet.
+    Unknown,
+    /// Missed.
+    Miss,
+    /// Its mesh, hit.
+    Mesh {
+        mesh: &'a MeshAsset,
+        ray: Ray,
+        hit: MeshHit,
+    },
+    /// Its aggregate: the walk's index and the local cone's scale k.
+    Aggregate { walk: usize, k: f32 },
+}
+
+impl<'a> AssemblyWalk<'a> {
+    /// Starts a new cone (the instances on it, nothing kept yet).
+    fn start(&mut self, asm: &'a Assembly, cone: Cone, dither: f32) {
+        asm.along(&cone, None, true, &mut self.list);
+        self.kept.clear();
+        self.kept.resize_with(self.list.len(), || Kept::Unknown);
+        self.used = 0;
+        self.cone = Some(cone);
+        self.dither = dither;
+    }
+
+    /// One sample's estimate: [`Assembly::trace`] of the kept cone with what is kept.
+    fn estimate<S: Sampler + ?Sized>(
+        &mut self,
+        asm: &'a Assembly,
+        lights: &Lights,
+        settings: &'a TraceSettings,
+        sampler: &mut S,
+    ) -> ConeResult {
+        let Some(cone) = self.cone else {
+            return ConeResult::compose(Vec3::ZERO, Vec3::ZERO, 1.0, 0, 0.0);
+        };
+        let background = lights.environment.eval(cone.dir);
+        let AssemblyWalk {
+            dither,
+            list,
+            pending,
+            kept,
+            walks,
+            used,
+            ..
+        } = self;
+        asm.compose(list, pending, background, sampler, |j, opaque, sampler| {
+            let (entry, i) = list[j];
+            let i = i as usize;
+            let xf = asm.xf(i);
+            if matches!(kept[j], Kept::Unknown) {
+                kept[j] = match asm.pick(i, &xf, &cone, entry, settings) {
+                    Pick::Miss => Kept::Miss,
+                    Pick::Mesh { mesh, ray, hit } => Kept::Mesh { mesh, ray, hit },
+                    Pick::Aggregate => {
+                        let (local, k) = asm.clipped_local_cone(&xf, &cone, opaque);
+                        if *used == walks.len() {
+                            walks.push(crate::runtime::Walk::default());
+                        }
+                        let scene = &asm.scenes[asm.manifest.asset_of(i)];
+                        walks[*used].fill(scene, &local, lights, settings, *dither);
+                        *used += 1;
+                        Kept::Aggregate { walk: *used - 1, k }
+                    }
+                };
+            }
+            match &kept[j] {
+                Kept::Unknown | Kept::Miss => Met::Miss,
+                Kept::Mesh { mesh, ray, hit } => Met::Opaque(
+                    asm.shade_mesh(i, &xf, mesh, ray, hit, &cone, lights, settings, sampler),
+                    hit.t,
+                ),
+                Kept::Aggregate { walk, k } => {
+                    let place = asm.place(i, xf, &cone, settings);
+                    let (surfaces, transmittance, primitives, coverage, first) =
+                        walks[*walk].estimate_placed(lights, settings, sampler, &place);
+                    let r = ConeResult::compose(
+                        surfaces,
+                        Vec3::ZERO,
+                        transmittance,
+                        primitives,
+                        coverage,
+                    );
+                    Met::Aggregate(r, first / k)
+                }
+            }
+        })
+    }
 }
 
 /// The assembly is shared by the image loop's threads.

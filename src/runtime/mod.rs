@@ -50,6 +50,7 @@ use crate::spatial::Grid;
 
 pub use cache::{default_budget, BlockCache, CacheStats};
 pub use hits::{Hit, Hits, Occlusion, OCCLUSION_ONSET};
+pub(crate) use shade::Walk;
 pub use shade::{shade, Placement};
 
 /// A cone: a centre ray and the full angle of its aperture (Algorithm 1's r and θ).
@@ -164,15 +165,31 @@ pub struct TraceSettings {
     /// Samples of a pixel that shade from one walk in the image loop ([`render`]): a pixel's
     /// `spp` samples share ⌈spp / this⌉ walks of the pixel's cone, stratified over the pixel's
     /// area and over the level's dither, and each sample still draws its own shading (which
-    /// hit, the light and ABSDF samples). 1 walks every sample's own cone. The pixel's cone
-    /// already covers the pixel, so fewer walks cost only the variance of which voxels the
-    /// cone meets; the walk is about half of a cone's time. Hosts' batches
-    /// ([`LodScene::trace_batch`]) trace their own cones.
+    /// hit, the light and ABSDF samples). 1 walks every sample's own cone; 0 (the default)
+    /// chooses ([`TraceSettings::walk_reuse`]). The pixel's cone already covers the pixel, so
+    /// fewer walks cost only the variance of which voxels the cone meets, and the walk is
+    /// about half of a cone's time. Hosts' batches ([`LodScene::trace_batch`]) trace their
+    /// own cones.
     pub samples_per_walk: u32,
 }
 
-/// [`TraceSettings::samples_per_walk`]'s default.
-pub const DEFAULT_SAMPLES_PER_WALK: u32 = 2;
+/// The fewest walks a pixel gets when [`TraceSettings::samples_per_walk`] is left to choose:
+/// below them the variance of which voxels (and, in an assembly, which meshes) the cone meets
+/// shows. Measured: sharing walks in pairs at 16 spp raised the city's RMSE by 16%; at 64 spp
+/// the maple's by 0.5–1% (see the book's shared-walks page).
+pub const MIN_SHARED_WALKS: u32 = 32;
+
+impl TraceSettings {
+    /// The samples a pixel's walk serves at `spp` samples a pixel: `samples_per_walk` where
+    /// set, else 2 where that leaves at least [`MIN_SHARED_WALKS`] walks, else 1.
+    pub fn walk_reuse(&self, spp: u32) -> u32 {
+        match self.samples_per_walk {
+            0 if spp >= 2 * MIN_SHARED_WALKS => 2,
+            0 => 1,
+            r => r,
+        }
+    }
+}
 
 impl Default for TraceSettings {
     fn default() -> Self {
@@ -183,7 +200,7 @@ impl Default for TraceSettings {
             shading: Shading::default(),
             normalize: true,
             continuous_lod: true,
-            samples_per_walk: DEFAULT_SAMPLES_PER_WALK,
+            samples_per_walk: 0,
         }
     }
 }
@@ -205,7 +222,7 @@ pub struct ConeResult {
 impl ConeResult {
     /// The surfaces' radiance plus the background through `transmittance`. A non-finite sum
     /// is counted ([`crate::math::numerics`]) and replaced by zero.
-    fn compose(
+    pub(crate) fn compose(
         surfaces: Vec3,
         background: Vec3,
         transmittance: f32,
@@ -641,7 +658,7 @@ pub fn render(
     settings: &TraceSettings,
     progress: crate::util::Progress,
 ) -> (crate::film::Image, crate::film::ImageStats) {
-    let reuse = settings.samples_per_walk.max(1);
+    let reuse = settings.walk_reuse(spp);
     if reuse == 1 || settings.primitive == PrimitiveKind::Volume {
         return crate::film::render_image(camera, spp, seed, "LoD", progress, |mut s| {
             *s.rays += 1;
@@ -666,23 +683,8 @@ pub fn render(
             // Walk k's cone goes through point k of a (0, m, 2)-net over the pixel and its
             // dither through point k of another sequence, scrambled by the pixel's own seed:
             // the walks are stratified over the pixel's area and the level's blend.
-            let k = s.index / reuse;
             if s.index % reuse == 0 {
-                let h = crate::math::rng::mix64(((s.pixel_seed as u64) << 32) ^ 0x5741_4c4b);
-                let seeds = [h as u32, (h >> 32) as u32, (h >> 16) as u32 ^ 0x9e37_79b9];
-                let p = s.pixel.as_vec2() + crate::math::lowdiscrepancy::shifted_2d(k, seeds);
-                let dither = crate::math::lowdiscrepancy::shifted_1d(
-                    k,
-                    [seeds[2].rotate_left(7) ^ 0x85eb_ca6b, seeds[0] ^ seeds[1]],
-                );
-                let (origin, dir) = camera.ray(p);
-                let cone = Cone {
-                    origin,
-                    dir,
-                    aperture: s.aperture,
-                    tmin: 0.0,
-                    tmax: f32::INFINITY,
-                };
+                let (cone, dither) = shared_walk_cone(camera, &s, reuse);
                 walk.fill(scene, &cone, lights, settings, dither);
             }
             *s.rays += 1;
@@ -695,6 +697,37 @@ pub fn render(
             walk.estimate(lights, settings, &mut sampler).radiance
         },
     )
+}
+
+/// The cone and the level's dither of the walk sample `s` starts when a pixel's samples share
+/// walks `reuse` at a time ([`TraceSettings::samples_per_walk`]; `s` is the first of its run).
+/// The pixel's samples fall in runs of `reuse` consecutive samples, run k shading from walk k:
+/// a run of the stratified sequence is itself stratified, so the shading numbers of one walk's
+/// samples are spread out. Walk k's cone goes through point k of a (0, m, 2)-net over the
+/// pixel and its dither through point k of another sequence, scrambled by the pixel's own
+/// seed: the walks are stratified over the pixel's area and the level's blend.
+pub(crate) fn shared_walk_cone(
+    camera: &crate::film::Camera,
+    s: &crate::film::Sample,
+    reuse: u32,
+) -> (Cone, f32) {
+    let k = s.index / reuse;
+    let h = crate::math::rng::mix64(((s.pixel_seed as u64) << 32) ^ 0x5741_4c4b);
+    let seeds = [h as u32, (h >> 32) as u32, (h >> 16) as u32 ^ 0x9e37_79b9];
+    let p = s.pixel.as_vec2() + crate::math::lowdiscrepancy::shifted_2d(k, seeds);
+    let dither = crate::math::lowdiscrepancy::shifted_1d(
+        k,
+        [seeds[2].rotate_left(7) ^ 0x85eb_ca6b, seeds[0] ^ seeds[1]],
+    );
+    let (origin, dir) = camera.ray(p);
+    let cone = Cone {
+        origin,
+        dir,
+        aperture: s.aperture,
+        tmin: 0.0,
+        tmax: f32::INFINITY,
+    };
+    (cone, dither)
 }
 
 /// Which sample of which pixel each cone of a host's batch is

@@ -305,16 +305,8 @@ impl<'s> Walk<'s> {
         settings: &TraceSettings,
         sampler: &mut S,
     ) -> ConeResult {
-        let Some(hits) = &self.hits else {
-            return ConeResult::compose(Vec3::ZERO, self.background, 1.0, 0, 0.0);
-        };
-        let cone = hits.cone();
-        let mut replay = Replay {
-            walk: self,
-            next: 0,
-        };
         let (surfaces, transmittance, primitives, coverage, _) =
-            estimate(&mut replay, &cone, lights, settings, sampler, &Alone);
+            self.estimate_placed(lights, settings, sampler, &Alone);
         ConeResult::compose(
             surfaces,
             self.background,
@@ -322,6 +314,27 @@ impl<'s> Walk<'s> {
             primitives,
             coverage,
         )
+    }
+
+    /// [`Walk::estimate`] through a placement, as [`trace_surfaces`] gives it: the surfaces'
+    /// radiance (no background), the background's weight, the primitives met, the coverage,
+    /// and the ray parameter of the first primitive met (infinite when none).
+    pub(crate) fn estimate_placed<S: Sampler + ?Sized, P: Placement + ?Sized>(
+        &self,
+        lights: &Lights,
+        settings: &TraceSettings,
+        sampler: &mut S,
+        place: &P,
+    ) -> (Vec3, f32, u32, f32, f32) {
+        let Some(hits) = &self.hits else {
+            return (Vec3::ZERO, 1.0, 0, 0.0, f32::INFINITY);
+        };
+        let cone = hits.cone();
+        let mut replay = Replay {
+            walk: self,
+            next: 0,
+        };
+        estimate(&mut replay, &cone, lights, settings, sampler, place)
     }
 }
 

@@ -74,10 +74,10 @@ pub struct RenderArgs {
     pub discrete_lod: bool,
     /// Samples of a pixel that shade from one walk of its cone (the walks stratified over
     /// the pixel and the level's blend): fewer walks, faster, a little noisier. 1 walks
-    /// every sample's own cone.
-    #[arg(long, default_value_t = aggtool::runtime::DEFAULT_SAMPLES_PER_WALK,
-          value_parser = clap::value_parser!(u32).range(1..))]
-    pub samples_per_walk: u32,
+    /// every sample's own cone; by default 2 where a pixel still gets 32 walks (64 spp and
+    /// more), else 1.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    pub samples_per_walk: Option<u32>,
     /// Assemblies: draw every instance from its aggregate. By default an instance seen
     /// finer than its aggregate's finest level is drawn from its mesh (imported when first
     /// needed), as a renderer does.
@@ -441,7 +441,7 @@ impl RenderArgs {
                 primitive,
                 normalize: !self.no_normalize,
                 continuous_lod: !self.discrete_lod,
-                samples_per_walk: self.samples_per_walk,
+                samples_per_walk: self.samples_per_walk.unwrap_or(0),
                 ..TraceSettings::default()
             },
             level: self.level,
