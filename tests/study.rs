@@ -36,6 +36,7 @@ fn study_reuses_kept_bakes_and_renders_unnormalised_on_request() {
         },
         agg_dir: Some(kept.clone()),
         normalize: true,
+        image: None,
     };
     let run = |s: &StudySettings, out: &str| {
         study_scene(
@@ -68,4 +69,30 @@ fn study_reuses_kept_bakes_and_renders_unnormalised_on_request() {
     let (a, b) = (ours(&first), ours(&plain));
     assert!(a.is_finite() && b.is_finite() && a > 0.0 && b > 0.0);
     assert_ne!(a, b, "normalize: false renders the LoD unnormalised");
+    // The finest level at twice the pixels (`eval --image`): the same bake, a 16² picture,
+    // and the medians' table names the size.
+    let large = run(
+        &StudySettings {
+            image: Some(16),
+            ..settings.clone()
+        },
+        "d",
+    );
+    assert_eq!((large[0].res, large[0].image), (8, 16));
+    assert!(large[0].picture.ends_with("lattice-8-16px.png"));
+    let png = image::open(&large[0].picture).unwrap();
+    assert!(png.width() >= 16 * 3, "the picture holds 16² renders");
+    let table = aggtool::eval::summary_table(&[first[0].clone(), large[0].clone()]);
+    let ratio = |r: &SceneResult| {
+        let m = |n: &str| r.methods.iter().find(|m| m.method == n).unwrap().rmse;
+        m("ours") / m("ref@spp")
+    };
+    assert!(
+        table.contains(&format!("| 8³ | 1 | {:.2} |", ratio(&first[0]))),
+        "{table}"
+    );
+    assert!(
+        table.contains(&format!("| 8³ at 16² | 1 | {:.2} |", ratio(&large[0]))),
+        "{table}"
+    );
 }

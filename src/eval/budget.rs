@@ -538,8 +538,11 @@ pub fn radiance(
 /// Settings of the budget study.
 #[derive(Clone, Debug)]
 pub struct BudgetSettings {
-    /// The LoD resolution: the image is res² pixels and the level of that resolution is used.
+    /// The LoD resolution: the level of that resolution is used, and the image is res² pixels
+    /// unless `image` says otherwise.
     pub res: u32,
+    /// The image's side in pixels (`aggtool eval --budget --image`); `None`: `res`.
+    pub image: Option<u32>,
     /// Samples per pixel of every row.
     pub spp: u32,
     /// Samples per pixel of the reference.
@@ -562,6 +565,7 @@ impl Default for BudgetSettings {
     fn default() -> Self {
         BudgetSettings {
             res: 64,
+            image: None,
             spp: 64,
             reference_spp: 1024,
             samples: 32,
@@ -601,8 +605,10 @@ pub struct BudgetRow {
 pub struct BudgetResult {
     /// The scene's name.
     pub scene: String,
-    /// The LoD resolution (image res² pixels).
+    /// The LoD resolution.
     pub res: u32,
+    /// The image's side in pixels.
+    pub image: u32,
     /// Samples per pixel of every row.
     pub spp: u32,
     /// Samples per pixel of the reference.
@@ -656,7 +662,8 @@ pub fn budget_scene(
         anyhow::bail!("{}: no {}³ level", agg_path.display(), settings.res);
     };
     let accel = Accel::build(scene);
-    let view: View = super::study_view(scene, settings.res, settings.spp);
+    let image = settings.image.unwrap_or(settings.res);
+    let view: View = super::study_view(scene, image, settings.spp);
     let lights = view.lights()?;
     let camera = view.camera();
     let (truth_img, _) = super::reference_render(&accel, &view, settings.reference_spp, 7)?;
@@ -748,11 +755,16 @@ pub fn budget_scene(
             0.0
         };
     }
-    let picture = dir.join(format!("{name}-budget-{}.png", settings.res));
-    budget_picture(&picture, &truth_img, &images, settings.res)?;
+    let picture = if image == settings.res {
+        dir.join(format!("{name}-budget-{}.png", settings.res))
+    } else {
+        dir.join(format!("{name}-budget-{}-{image}px.png", settings.res))
+    };
+    budget_picture(&picture, &truth_img, &images, image)?;
     Ok(BudgetResult {
         scene: name.to_string(),
         res: settings.res,
+        image,
         spp: settings.spp,
         reference_spp: settings.reference_spp,
         samples: settings.samples,
@@ -804,9 +816,10 @@ pub fn budget_table(results: &[BudgetResult]) -> String {
     let mut s = String::new();
     for r in results {
         s += &format!(
-            "### {} ({}³, 2 × {} spp, {} oracle samples per voxel; reference {} spp; rows {})\n\n",
+            "### {} ({}³ at {}², 2 × {} spp, {} oracle samples per voxel; reference {} spp; rows {})\n\n",
             r.scene,
             r.res,
+            r.image,
             r.spp,
             r.samples,
             r.reference_spp,

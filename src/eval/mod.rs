@@ -59,6 +59,10 @@ pub struct StudySettings {
     pub agg_dir: Option<PathBuf>,
     /// [`TraceSettings::normalize`] of the LoD methods (ours, cube, volume).
     pub normalize: bool,
+    /// The image's side in pixels (`aggtool eval --image`); `None`: each resolution's own
+    /// (res² pixels, one voxel a pixel). A larger image shows the finest level as users
+    /// render it, several pixels a voxel.
+    pub image: Option<u32>,
 }
 
 impl Default for StudySettings {
@@ -73,6 +77,7 @@ impl Default for StudySettings {
             },
             agg_dir: None,
             normalize: true,
+            image: None,
         }
     }
 }
@@ -102,8 +107,10 @@ pub struct MethodResult {
 pub struct SceneResult {
     /// The scene's name.
     pub scene: String,
-    /// The LoD resolution r (and the image's side).
+    /// The LoD resolution r.
     pub res: u32,
+    /// The image's side in pixels (r unless the study set another).
+    pub image: u32,
     /// Triangles of the original asset.
     pub triangles: usize,
     /// Wall seconds of the bake.
@@ -246,7 +253,8 @@ pub fn study_scene(
             eprintln!("warning: {name}: no {res}³ level, skipped");
             continue;
         };
-        let view = study_view(scene, res, settings.spp);
+        let image = settings.image.unwrap_or(res);
+        let view = study_view(scene, image, settings.spp);
         let (truth, reference_seconds) =
             reference_render(&accel, &view, settings.reference_spp, 7)?;
         let coverage = crate::render::reference::coverage(&accel, &view.camera(), 4);
@@ -297,8 +305,8 @@ pub fn study_scene(
         let (img, secs) = reference_render(&accel, &view, settings.spp, 1)?;
         push("ref@spp", img, full_bytes, secs, "original mesh".into());
         // Picture: images over their differences, all differences on one scale; captions.
-        let k = (256 / res).max(1);
-        let (side, scale_px) = (res * k, if res * k >= 200 { 2 } else { 1 });
+        let k = (256 / image).max(1);
+        let (side, scale_px) = (image * k, if image * k >= 200 { 2 } else { 1 });
         let scale = {
             let (_, s) = difference_image(&images[0].1, &truth, None);
             s
@@ -312,7 +320,7 @@ pub fn study_scene(
             format!("{reference_seconds:.2} s"),
         ];
         let mut top = vec![caption(
-            &enlarge(&truth.to_srgb8(0.0), res, res, k),
+            &enlarge(&truth.to_srgb8(0.0), image, image, k),
             &ref_lines.iter().map(String::as_str).collect::<Vec<_>>(),
         )];
         let mut bottom = vec![caption(
@@ -330,21 +338,26 @@ pub fn study_scene(
                 ),
             ];
             top.push(caption(
-                &enlarge(&img.to_srgb8(0.0), res, res, k),
+                &enlarge(&img.to_srgb8(0.0), image, image, k),
                 &lines.iter().map(String::as_str).collect::<Vec<_>>(),
             ));
             let (d, _) = difference_image(img, &truth, Some(scale));
             bottom.push(caption(
-                &enlarge(&d.to_srgb8(0.0), res, res, k),
+                &enlarge(&d.to_srgb8(0.0), image, image, k),
                 &[name, "", ""],
             ));
         }
         let tile_h = side + 3 * crate::render::label::line_height(scale_px) + 4 * scale_px;
-        let picture = dir.join(format!("{name}-{res}.png"));
+        let picture = if image == res {
+            dir.join(format!("{name}-{res}.png"))
+        } else {
+            dir.join(format!("{name}-{res}-{image}px.png"))
+        };
         tile_png(&picture, &[top, bottom], side, tile_h)?;
         results.push(SceneResult {
             scene: name.to_string(),
             res,
+            image,
             triangles: scene.instanced_triangle_count(),
             bake_seconds,
             reference_seconds,
@@ -380,6 +393,16 @@ fn table_head(results: &[SceneResult], extra: &str, columns: &[&str]) -> String 
     s
 }
 
+/// A table's resolution cell: "64³", or "128³ at 256²" where the image is not one voxel a
+/// pixel.
+fn res_label(res: u32, image: u32) -> String {
+    if image == res {
+        format!("{res}³")
+    } else {
+        format!("{res}³ at {image}²")
+    }
+}
+
 /// The study's Markdown table: one row per scene and resolution, RMSE / memory / time per
 /// method, the lowest RMSE in bold.
 pub fn markdown_table(results: &[SceneResult]) -> String {
@@ -392,7 +415,7 @@ pub fn markdown_table(results: &[SceneResult]) -> String {
             .filter(|m| m.method != "ref@spp")
             .map(|m| m.rmse)
             .fold(f64::INFINITY, f64::min);
-        s += &format!("| {} | {}³ | ", r.scene, r.res);
+        s += &format!("| {} | {} | ", r.scene, res_label(r.res, r.image));
         for m in &r.methods {
             let rm = if m.rmse == best {
                 format!("**{:.4}**", m.rmse)
@@ -417,7 +440,11 @@ pub fn object_table(results: &[SceneResult]) -> String {
     let mut s = table_head(results, "pixels | ", &["mean ratio", "rel. RMSE"]);
     for r in results {
         let pixels = r.methods.first().map_or(0, |m| m.object.pixels);
-        s += &format!("| {} | {}³ | {pixels} | ", r.scene, r.res);
+        s += &format!(
+            "| {} | {} | {pixels} | ",
+            r.scene,
+            res_label(r.res, r.image)
+        );
         for m in &r.methods {
             s += &format!(
                 "{:.3} | {:.3} | ",
@@ -425,6 +452,58 @@ pub fn object_table(results: &[SceneResult]) -> String {
             );
         }
         s += "\n";
+    }
+    s
+}
+
+/// The study's medians per resolution (and image size): ours over ref@spp (RMSE over the
+/// image), and on the assets' own pixels ours' and ref@spp's mean ratio and relative RMSE;
+/// the hard cases count like any scene.
+pub fn summary_table(results: &[SceneResult]) -> String {
+    let mut groups: Vec<(u32, u32)> = results.iter().map(|r| (r.res, r.image)).collect();
+    groups.sort_unstable();
+    groups.dedup();
+    let median = |mut v: Vec<f64>| -> f64 {
+        v.retain(|x| x.is_finite());
+        if v.is_empty() {
+            return f64::NAN;
+        }
+        v.sort_by(f64::total_cmp);
+        let n = v.len();
+        if n % 2 == 1 {
+            v[n / 2]
+        } else {
+            0.5 * (v[n / 2 - 1] + v[n / 2])
+        }
+    };
+    let mut s = String::from(
+        "| LoD | scenes | median ours / ref@spp | own pixels: ours mean ratio | ours rel. RMSE | ref@spp mean ratio | ref@spp rel. RMSE |\n|---|---|---|---|---|---|---|\n",
+    );
+    for (res, image) in groups {
+        let rows: Vec<&SceneResult> = results
+            .iter()
+            .filter(|r| (r.res, r.image) == (res, image))
+            .collect();
+        let method = |r: &SceneResult, name: &str| -> Option<MethodResult> {
+            r.methods.iter().find(|m| m.method == name).cloned()
+        };
+        let pairs: Vec<(MethodResult, MethodResult)> = rows
+            .iter()
+            .filter_map(|r| Some((method(r, "ours")?, method(r, "ref@spp")?)))
+            .collect();
+        let ratio = median(pairs.iter().map(|(o, r)| o.rmse / r.rmse).collect());
+        let of = |f: &dyn Fn(&(MethodResult, MethodResult)) -> f64| {
+            median(pairs.iter().map(f).collect())
+        };
+        s += &format!(
+            "| {} | {} | {ratio:.2} | {:.3} | {:.3} | {:.3} | {:.3} |\n",
+            res_label(res, image),
+            pairs.len(),
+            of(&|p| p.0.object.mean_ratio),
+            of(&|p| p.0.object.relative_rmse),
+            of(&|p| p.1.object.mean_ratio),
+            of(&|p| p.1.object.relative_rmse),
+        );
     }
     s
 }

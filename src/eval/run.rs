@@ -9,7 +9,8 @@ use serde::Serialize;
 
 use super::budget::{budget_scene, budget_table, BudgetSettings};
 use super::{
-    markdown_table, object_table, speed_scene, speed_table, study_scene, SpeedInput, StudySettings,
+    markdown_table, object_table, speed_scene, speed_table, study_scene, summary_table, SpeedInput,
+    StudySettings,
 };
 use crate::gen::{self, GenSettings};
 use crate::report::{usage, write_output, Notes, Written};
@@ -131,6 +132,9 @@ pub struct EvalSettings {
     pub normalize: bool,
     /// Where bakes are kept and reused as NAME-RES.agg (default: the output folder).
     pub agg_dir: Option<PathBuf>,
+    /// Quality and budget: the image's side in pixels (`--image`; none: each resolution's
+    /// own, one voxel a pixel).
+    pub image: Option<u32>,
     /// Output folder.
     pub output: PathBuf,
 }
@@ -147,6 +151,7 @@ impl Default for EvalSettings {
             reference_spp: s.reference_spp,
             normalize: s.normalize,
             agg_dir: None,
+            image: None,
             output: PathBuf::from("aggtool-eval"),
         }
     }
@@ -184,6 +189,9 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
             "--res {r}: each resolution must be a power of two of at least 4"
         )));
     }
+    if let Some(px) = s.image.filter(|&px| px < 4) {
+        return Err(usage(format!("--image {px}: at least 4 pixels")));
+    }
     let out = &s.output;
     std::fs::create_dir_all(out)
         .map_err(|e| crate::report::output(format!("cannot create {}: {e}", out.display())))?;
@@ -203,6 +211,7 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
                 for &r in &s.resolutions {
                     let b = BudgetSettings {
                         res: r,
+                        image: s.image,
                         spp: s.spp,
                         reference_spp: s.reference_spp,
                         samples: *samples,
@@ -290,6 +299,7 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
                 reference_spp: s.reference_spp,
                 agg_dir: s.agg_dir.clone(),
                 normalize: s.normalize,
+                image: s.image,
                 ..Default::default()
             };
             let mut all = Vec::new();
@@ -303,15 +313,21 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
                         .iter()
                         .map(|m| format!("{} {:.4}", m.method, m.rmse))
                         .collect();
-                    notes(&format!("{name} {}³: {}", x.res, line.join(", ")));
+                    notes(&format!(
+                        "{name} {}³ at {}²: {}",
+                        x.res,
+                        x.image,
+                        line.join(", ")
+                    ));
                 }
                 notes(&format!("  ({:.0} s)", t.elapsed().as_secs_f64()));
                 all.extend(r);
             }
             let table = format!(
-                "{}\nOn the assets' own pixels (where the mesh covers at least half a pixel):\n\n{}",
+                "{}\nOn the assets' own pixels (where the mesh covers at least half a pixel):\n\n{}\nMedians:\n\n{}",
                 markdown_table(&all),
-                object_table(&all)
+                object_table(&all),
+                summary_table(&all)
             );
             write_output(&out.join("table.md"), &table)?;
             write_output(&out.join("table.json"), serde_json::to_string_pretty(&all)?)?;

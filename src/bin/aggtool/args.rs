@@ -169,6 +169,10 @@ pub struct EvalArgs {
     /// LoD resolutions (each gives an image of res² pixels).
     #[arg(long, value_delimiter = ',', default_values_t = EvalSettings::default().resolutions)]
     pub res: Vec<u32>,
+    /// Quality study and budget: the image's side in pixels (default: each --res, one voxel a
+    /// pixel); e.g. `--res 128 --image 256` renders the 128³ level at 256², as users render.
+    #[arg(long, value_name = "PIXELS", conflicts_with = "speed")]
+    pub image: Option<u32>,
     /// Samples per pixel of every method.
     #[arg(long, default_value_t = EvalSettings::default().spp)]
     pub spp: u32,
@@ -482,6 +486,7 @@ impl EvalArgs {
             reference_spp: self.reference_spp,
             normalize: !self.no_normalize,
             agg_dir: self.agg_dir.clone(),
+            image: self.image,
             output: self.output.clone(),
         })
     }
