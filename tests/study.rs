@@ -37,6 +37,7 @@ fn study_reuses_kept_bakes_and_renders_unnormalised_on_request() {
         agg_dir: Some(kept.clone()),
         normalize: true,
         image: None,
+        samples_per_walk: 0,
     };
     let run = |s: &StudySettings, out: &str| {
         study_scene(

@@ -63,6 +63,8 @@ pub struct StudySettings {
     /// (res² pixels, one voxel a pixel). A larger image shows the finest level as users
     /// render it, several pixels a voxel.
     pub image: Option<u32>,
+    /// [`TraceSettings::samples_per_walk`] of the LoD methods (0: the runtime's choice).
+    pub samples_per_walk: u32,
 }
 
 impl Default for StudySettings {
@@ -78,6 +80,7 @@ impl Default for StudySettings {
             agg_dir: None,
             normalize: true,
             image: None,
+            samples_per_walk: 0,
         }
     }
 }
@@ -285,6 +288,7 @@ pub fn study_scene(
                 level: Some(l),
                 primitive: kind,
                 normalize: settings.normalize,
+                samples_per_walk: settings.samples_per_walk,
                 ..Default::default()
             };
             let (img, secs) = lod_render(&lod, &view, settings.spp, 1, &ts)?;

@@ -135,6 +135,9 @@ pub struct EvalSettings {
     /// Quality and budget: the image's side in pixels (`--image`; none: each resolution's
     /// own, one voxel a pixel).
     pub image: Option<u32>,
+    /// Quality study: [`crate::runtime::TraceSettings::samples_per_walk`] of the LoD methods
+    /// (0: the runtime's choice).
+    pub samples_per_walk: u32,
     /// Output folder.
     pub output: PathBuf,
 }
@@ -152,6 +155,7 @@ impl Default for EvalSettings {
             normalize: s.normalize,
             agg_dir: None,
             image: None,
+            samples_per_walk: 0,
             output: PathBuf::from("aggtool-eval"),
         }
     }
@@ -300,6 +304,7 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
                 agg_dir: s.agg_dir.clone(),
                 normalize: s.normalize,
                 image: s.image,
+                samples_per_walk: s.samples_per_walk,
                 ..Default::default()
             };
             let mut all = Vec::new();

@@ -173,6 +173,10 @@ pub struct EvalArgs {
     /// pixel); e.g. `--res 128 --image 256` renders the 128³ level at 256², as users render.
     #[arg(long, value_name = "PIXELS", conflicts_with = "speed")]
     pub image: Option<u32>,
+    /// Quality study: samples of a pixel that shade from one walk in the LoD methods (as
+    /// `render --samples-per-walk`; default: the runtime's choice).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    pub samples_per_walk: Option<u32>,
     /// Samples per pixel of every method.
     #[arg(long, default_value_t = EvalSettings::default().spp)]
     pub spp: u32,
@@ -487,6 +491,7 @@ impl EvalArgs {
             normalize: !self.no_normalize,
             agg_dir: self.agg_dir.clone(),
             image: self.image,
+            samples_per_walk: self.samples_per_walk.unwrap_or(0),
             output: self.output.clone(),
         })
     }
