@@ -392,3 +392,84 @@ fn level_budget_counts_the_finest_level() {
     };
     assert!(coarser(&agg) < coarser(&all));
 }
+
+/// `assemble --size-mib` budgets every asset of a manifest alike: each aggregate whose
+/// candidates exceed the budget lands within 3% under it, and one below it keeps everything.
+#[test]
+fn assemble_budgets_every_asset() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let gen = |out: &str| {
+        common::ok(&common::aggtool(
+            &[
+                "gen",
+                "forest",
+                "-o",
+                out,
+                "--species",
+                "2",
+                "--instances",
+                "6",
+                "--triangles",
+                "1500",
+            ],
+            d,
+        ))
+    };
+    gen("all");
+    gen("budget");
+    let assemble = |manifest: &str, extra: &[&str]| {
+        let mut args = vec!["assemble", manifest, "-q"];
+        args.extend(common::tiny_bake_flags("8"));
+        args.extend(extra);
+        common::ok(&common::aggtool(&args, d))
+    };
+    assemble("all/forest.json", &["--keep", "1", "--energy", "1"]);
+    let sizes = |sub: &str| -> Vec<(String, u64)> {
+        let mut v: Vec<(String, u64)> = std::fs::read_dir(d.join(sub))
+            .unwrap()
+            .filter_map(|e| {
+                let p = e.unwrap().path();
+                (p.extension()? == "agg").then(|| {
+                    let name = p.file_name().unwrap().to_string_lossy().into_owned();
+                    (name, std::fs::metadata(&p).unwrap().len())
+                })
+            })
+            .collect();
+        v.sort();
+        v
+    };
+    let all = sizes("all");
+    assert!(all.len() >= 3, "{all:?}");
+    // The budget: between the smallest and the largest candidates' file.
+    let (lo, hi) = (
+        all.iter().map(|a| a.1).min().unwrap(),
+        all.iter().map(|a| a.1).max().unwrap(),
+    );
+    let budget = 0.5 * (lo + hi) as f64;
+    let mib = format!("{}", budget / MIB);
+    assemble(
+        "budget/forest.json",
+        &["--keep", "1", "--energy", "1", "--size-mib", &mib],
+    );
+    let budgeted = sizes("budget");
+    assert_eq!(budgeted.len(), all.len());
+    let mut met = 0;
+    for ((name, full), (_, got)) in all.iter().zip(&budgeted) {
+        let got = *got as f64;
+        if (*full as f64) > budget {
+            assert!(
+                got <= budget && got >= (1.0 - TOLERANCE) * budget,
+                "{name}: {got} bytes for a budget of {budget} ({full} with every candidate)"
+            );
+            met += 1;
+        } else {
+            // Everything kept: the same file but for the budget recorded in its settings.
+            assert!(
+                (got - *full as f64).abs() <= 64.0,
+                "{name}: under the budget, everything kept: {got} against {full}"
+            );
+        }
+    }
+    assert!(met >= 1, "no asset was over the budget: {all:?}");
+}
