@@ -27,7 +27,11 @@ fn main() -> Result<()> {
                 crop = Some((v[0], v[1], v[2], v[3]));
             }
             "--scale" => {
-                scale = it.next().context("--scale S")?.parse().context("--scale S")?;
+                scale = it
+                    .next()
+                    .context("--scale S")?
+                    .parse()
+                    .context("--scale S")?;
                 if !(scale > 0.0 && scale <= 1.0) {
                     bail!("--scale S: in (0, 1]");
                 }
@@ -43,7 +47,11 @@ fn main() -> Result<()> {
         .to_rgb8();
     if let Some((x, y, w, h)) = crop {
         if x + w > img.width() || y + h > img.height() {
-            bail!("--crop outside the {}×{} picture", img.width(), img.height());
+            bail!(
+                "--crop outside the {}×{} picture",
+                img.width(),
+                img.height()
+            );
         }
         img = image::imageops::crop_imm(&img, x, y, w, h).to_image();
     }
@@ -52,7 +60,11 @@ fn main() -> Result<()> {
         ((img.height() as f32 * scale).round() as u32).max(1),
     );
     let out = image::imageops::resize(&img, w, h, image::imageops::FilterType::Triangle);
-    out.save(output).with_context(|| format!("writing {output}"))?;
-    println!("{output}: {w}×{h}, {} bytes", std::fs::metadata(output)?.len());
+    out.save(output)
+        .with_context(|| format!("writing {output}"))?;
+    println!(
+        "{output}: {w}×{h}, {} bytes",
+        std::fs::metadata(output)?.len()
+    );
     Ok(())
 }
