@@ -680,9 +680,6 @@ mod tests {
         assert_eq!(p.finish().0[0], None);
     }
 
-    /// A reservoir step leaves its number in [0, 1) whatever the probability, and one that is
-    /// not a probability neither keeps nor moves it.
-    #[test]
     /// The shared walk's picks by binary search ([`pick_cumulative`]) are the reservoir's.
     #[test]
     fn shared_walk_picks_are_the_reservoirs() {
@@ -738,6 +735,8 @@ mod tests {
         assert_eq!(pick_cumulative(&[], 2, 0.5), [None; MAX_PICKS]);
     }
 
+    /// A reservoir step leaves its number in [0, 1) whatever the probability, and one that is
+    /// not a probability neither keeps nor moves it.
     #[test]
     fn reservoir_steps_stay_in_range() {
         let mut rng = Pcg32::new(3, 3);
