@@ -10,10 +10,16 @@ mod common;
 /// The lattice's budget at 16³ (small bakes and few samples: a test's budget), its rows as
 /// baked or normalised.
 fn lattice_budget(normalize: bool) -> aggtool::eval::budget::BudgetResult {
+    lattice_budget_at(normalize, None)
+}
+
+/// [`lattice_budget`] rendered at `image`² pixels (`eval --budget --image`).
+fn lattice_budget_at(normalize: bool, image: Option<u32>) -> aggtool::eval::budget::BudgetResult {
     let dir = tempfile::tempdir().unwrap();
     let scene = common::gen_scene("lattice", 3000);
     let settings = BudgetSettings {
         res: 16,
+        image,
         spp: 16,
         reference_spp: 256,
         samples: 16,
@@ -123,6 +129,32 @@ fn normalised_budget_rows_agree_with_the_normalised_runtime() {
         no_coverage.bias < 0.8 * baked.bias,
         "all but coverage: bias {} against the baked {}",
         no_coverage.bias,
+        baked.bias
+    );
+}
+
+/// The budget of the 16³ level at 32² pixels (`eval --budget --image 32`, two pixels a voxel,
+/// as the fidelity study's 128³ at 256²): the result and the picture say the size, every row
+/// is finite, and with every term exact the bias falls below the baked one's.
+#[test]
+fn budget_at_a_larger_image() {
+    let r = lattice_budget_at(true, Some(32));
+    assert_eq!((r.res, r.image), (16, 32));
+    assert!(
+        r.picture.ends_with("lattice-budget-16-32px.png"),
+        "{:?}",
+        r.picture
+    );
+    let row = |o: Oracles| r.rows.iter().find(|x| x.oracles == o).unwrap();
+    let (baked, all) = (row(Oracles::default()), row(Oracles::ALL));
+    assert!(r
+        .rows
+        .iter()
+        .all(|x| x.rmse.is_finite() && x.bias.is_finite()));
+    assert!(
+        all.bias < baked.bias,
+        "all exact {} against baked {}",
+        all.bias,
         baked.bias
     );
 }
