@@ -808,7 +808,7 @@ pub fn render(
             *s.rays += 1;
             let mut sampler = Stratified::of_sample(&mut s);
             // The dither's dimension, which the shared walk drew instead.
-            if settings.continuous_lod && settings.level.is_none() {
+            if crate::runtime::draws_dither(settings) {
                 sampler.next_1d();
             }
             walk.estimate(asm, lights, settings, &mut sampler).radiance

@@ -207,7 +207,7 @@ impl LodScene {
         let inv = cone.dir.recip();
         let tan_half = half_tan(cone.aperture);
         let lod_tan = match dither {
-            Some(u) if settings.continuous_lod && settings.level.is_none() && u.is_finite() => {
+            Some(u) if super::shade::draws_dither(settings) && u.is_finite() => {
                 tan_half * (u.clamp(0.0, 1.0) - 0.5).exp2()
             }
             _ => tan_half,

@@ -50,7 +50,7 @@ use crate::spatial::Grid;
 
 pub use cache::{default_budget, BlockCache, CacheStats};
 pub use hits::{Hit, Hits, Occlusion, OCCLUSION_ONSET};
-pub(crate) use shade::Walk;
+pub(crate) use shade::{draws_dither, Walk};
 pub use shade::{shade, Placement};
 
 /// A cone: a centre ray and the full angle of its aperture (Algorithm 1's r and θ).
@@ -691,7 +691,7 @@ pub fn render(
             let mut sampler = Stratified::of_sample(&mut s);
             // The dither's dimension, which the shared walk drew instead: the shading's numbers
             // stay in the dimensions a sample of its own would give them.
-            if settings.continuous_lod && settings.level.is_none() {
+            if shade::draws_dither(settings) {
                 sampler.next_1d();
             }
             walk.estimate(lights, settings, &mut sampler).radiance

@@ -195,7 +195,7 @@ pub(crate) fn trace_surfaces<S: Sampler + ?Sized, P: Placement + ?Sized>(
 
 /// Whether a cone's walk reads a dither (continuous LoD and no forced level).
 #[inline]
-fn draws_dither(settings: &TraceSettings) -> bool {
+pub(crate) fn draws_dither(settings: &TraceSettings) -> bool {
     settings.continuous_lod && settings.level.is_none()
 }
 
