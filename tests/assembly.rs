@@ -1293,32 +1293,5 @@ fn shared_walks_in_an_assembly_estimate_the_same_image() {
         };
         assembly::render(&asm, &cam, &lights(), 128, seed, &s, &no_progress).0
     };
-    let mean = |img: &Image| {
-        img.pixels
-            .iter()
-            .map(|p| p.element_sum() as f64)
-            .sum::<f64>()
-            / img.pixels.len() as f64
-    };
-    let (each, shared, other) = (render(1, 3), render(4, 5), render(1, 11));
-    let (me, ms) = (mean(&each), mean(&shared));
-    assert!(
-        (ms / me - 1.0).abs() < 0.01,
-        "image mean {ms} shared, {me} each"
-    );
-    let noise = compare(&each, &other).unwrap().rmse;
-    let d = compare(&each, &shared).unwrap().rmse;
-    assert!(d < 2.0 * noise, "shared vs each {d}, noise {noise}");
-    let one = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .build()
-        .unwrap()
-        .install(|| render(4, 5));
-    assert!(
-        one.pixels
-            .iter()
-            .zip(&shared.pixels)
-            .all(|(a, b)| a.to_array().map(f32::to_bits) == b.to_array().map(f32::to_bits)),
-        "thread count changed the bits"
-    );
+    common::assert_shared_walks_agree(render);
 }

@@ -1053,39 +1053,5 @@ fn shared_walks_estimate_the_same_image() {
         };
         aggtool::runtime::render(&lod, &cam, &lights, 256, seed, &s, &no_progress).0
     };
-    let mean = |img: &aggtool::film::Image| {
-        img.pixels
-            .iter()
-            .map(|p| p.element_sum() as f64)
-            .sum::<f64>()
-            / img.pixels.len() as f64
-    };
-    let (each, shared) = (render(1, 3), render(4, 5));
-    let (me, ms) = (mean(&each), mean(&shared));
-    // 576 pixels × 256 samples: the means' own noise is well below 0.5%.
-    assert!(
-        (ms / me - 1.0).abs() < 0.01,
-        "image mean {ms} shared, {me} each"
-    );
-    fn rmse(a: &aggtool::film::Image, b: &aggtool::film::Image) -> f64 {
-        aggtool::render::compare::compare(a, b).unwrap().rmse as f64
-    }
-    let other = render(1, 11);
-    let noise = rmse(&each, &other);
-    let d = rmse(&each, &shared);
-    // Sharing walks adds the variance of the walk over fewer walks: at most twice the noise
-    // of two independent renders.
-    assert!(d < 2.0 * noise, "shared vs each {d}, noise {noise}");
-    let one = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .build()
-        .unwrap()
-        .install(|| render(4, 5));
-    assert!(
-        one.pixels
-            .iter()
-            .zip(&shared.pixels)
-            .all(|(a, b)| a.to_array().map(f32::to_bits) == b.to_array().map(f32::to_bits)),
-        "thread count changed the bits"
-    );
+    common::assert_shared_walks_agree(render);
 }

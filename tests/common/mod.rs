@@ -143,3 +143,40 @@ pub fn small_bake(max_res: u32) -> aggtool::bake::BakeSettings {
         ..Default::default()
     }
 }
+
+/// Shared walks (`TraceSettings::samples_per_walk`) against a walk a sample, with
+/// `render(samples_per_walk, seed)`: 4 samples a walk give the same image mean as 1 (within
+/// 1%), differ per pixel by less than twice two one-walk renders with other seeds do, and give
+/// the same bits on one thread as on the pool's.
+#[allow(dead_code)]
+pub fn assert_shared_walks_agree(render: impl Fn(u32, u64) -> aggtool::film::Image + Sync) {
+    use aggtool::render::compare::compare;
+    let mean = |img: &aggtool::film::Image| {
+        img.pixels
+            .iter()
+            .map(|p| p.element_sum() as f64)
+            .sum::<f64>()
+            / img.pixels.len() as f64
+    };
+    let (each, shared, other) = (render(1, 3), render(4, 5), render(1, 11));
+    let (me, ms) = (mean(&each), mean(&shared));
+    assert!(
+        (ms / me - 1.0).abs() < 0.01,
+        "image mean {ms} shared, {me} each"
+    );
+    let noise = compare(&each, &other).unwrap().rmse;
+    let d = compare(&each, &shared).unwrap().rmse;
+    assert!(d < 2.0 * noise, "shared vs each {d}, noise {noise}");
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| render(4, 5));
+    assert!(
+        one.pixels
+            .iter()
+            .zip(&shared.pixels)
+            .all(|(a, b)| a.to_array().map(f32::to_bits) == b.to_array().map(f32::to_bits)),
+        "thread count changed the bits"
+    );
+}
