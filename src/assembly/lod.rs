@@ -42,7 +42,7 @@ use obvhs::BvhBuildParams;
 
 use super::hybrid::{LazyMesh, MeshAsset, Representation};
 use super::manifest::Manifest;
-use crate::film::{Camera, Image, ImageStats, Stratified};
+use crate::film::{Camera, Image, ImageStats};
 use crate::lights::Lights;
 use crate::math::sampling::Sampler;
 use crate::runtime::{Cone, ConeResult, LodScene, Placement, RuntimeError, TraceSettings};
@@ -784,35 +784,15 @@ pub fn render(
     settings: &TraceSettings,
     progress: crate::util::Progress,
 ) -> (Image, ImageStats) {
-    let reuse = settings.walk_reuse(spp);
-    if reuse == 1 || settings.primitive == crate::runtime::PrimitiveKind::Volume {
-        return crate::film::render_image(camera, spp, seed, "LoD", progress, |mut s| {
-            *s.rays += 1;
-            let cone = Cone::of_sample(&s);
-            asm.trace(&cone, lights, settings, &mut Stratified::of_sample(&mut s))
-                .radiance
-        });
-    }
-    crate::film::render_image_with(
+    crate::runtime::render_sharing_walks(
         camera,
         spp,
         seed,
-        "LoD",
+        settings,
         progress,
-        AssemblyWalk::default,
-        |mut s, walk| {
-            if s.index % reuse == 0 {
-                let (cone, dither) = crate::runtime::shared_walk_cone(camera, &s, reuse);
-                walk.start(asm, cone, dither);
-            }
-            *s.rays += 1;
-            let mut sampler = Stratified::of_sample(&mut s);
-            // The dither's dimension, which the shared walk drew instead.
-            if crate::runtime::draws_dither(settings) {
-                sampler.next_1d();
-            }
-            walk.estimate(asm, lights, settings, &mut sampler).radiance
-        },
+        |cone, sampler| asm.trace(cone, lights, settings, sampler),
+        |walk: &mut AssemblyWalk, cone, dither| walk.start(asm, *cone, dither),
+        |walk, sampler| walk.estimate(asm, lights, settings, sampler),
     )
 }
 

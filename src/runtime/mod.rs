@@ -50,7 +50,7 @@ use crate::spatial::Grid;
 
 pub use cache::{default_budget, BlockCache, CacheStats};
 pub use hits::{Hit, Hits, Occlusion, OCCLUSION_ONSET};
-pub(crate) use shade::{draws_dither, Walk};
+pub(crate) use shade::Walk;
 pub use shade::{shade, Placement};
 
 /// A cone: a centre ray and the full angle of its aperture (Algorithm 1's r and θ).
@@ -658,43 +658,65 @@ pub fn render(
     settings: &TraceSettings,
     progress: crate::util::Progress,
 ) -> (crate::film::Image, crate::film::ImageStats) {
+    render_sharing_walks(
+        camera,
+        spp,
+        seed,
+        settings,
+        progress,
+        |cone, sampler| scene.trace(cone, lights, settings, sampler),
+        |walk: &mut shade::Walk, cone, dither| walk.fill(scene, cone, lights, settings, dither),
+        |walk, sampler| walk.estimate(lights, settings, sampler),
+    )
+}
+
+/// The LoD's image loop, over [`crate::film::render_image_with`], for a single aggregate
+/// ([`render`]) and an assembly ([`crate::assembly::render`]) alike: each sample traces its
+/// own cone with `trace`, or, where [`TraceSettings::walk_reuse`] shares walks, runs of a
+/// pixel's samples shade from one walk of kind `W`, which `start(walk, cone, dither)` begins
+/// and `estimate(walk, sampler)` shades once a sample.
+///
+/// The pixel's samples fall in runs of `reuse` consecutive samples, run k shading from walk k
+/// (walked by the run's first sample, [`shared_walk_cone`]); each sample's sampler skips the
+/// dither's dimension, which the shared walk drew instead, so that its shading numbers stay
+/// in the dimensions a sample of its own would give them.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn render_sharing_walks<W: Default>(
+    camera: &crate::film::Camera,
+    spp: u32,
+    seed: u64,
+    settings: &TraceSettings,
+    progress: crate::util::Progress,
+    trace: impl Fn(&Cone, &mut Stratified<'_, Pcg32>) -> ConeResult + Sync,
+    start: impl Fn(&mut W, &Cone, f32) + Sync,
+    estimate: impl Fn(&mut W, &mut Stratified<'_, Pcg32>) -> ConeResult + Sync,
+) -> (crate::film::Image, crate::film::ImageStats) {
     let reuse = settings.walk_reuse(spp);
     if reuse == 1 || settings.primitive == PrimitiveKind::Volume {
         return crate::film::render_image(camera, spp, seed, "LoD", progress, |mut s| {
             *s.rays += 1;
             let cone = Cone::of_sample(&s);
-            scene
-                .trace(&cone, lights, settings, &mut Stratified::of_sample(&mut s))
-                .radiance
+            trace(&cone, &mut Stratified::of_sample(&mut s)).radiance
         });
     }
-    let spp = spp.max(1);
     crate::film::render_image_with(
         camera,
         spp,
         seed,
         "LoD",
         progress,
-        shade::Walk::default,
+        W::default,
         |mut s, walk| {
-            // The pixel's samples in runs of `reuse` consecutive samples, run k shading from
-            // walk k (walked by the run's first sample): a run of the stratified sequence is
-            // itself stratified, so the shading numbers of one walk's samples are spread out.
-            // Walk k's cone goes through point k of a (0, m, 2)-net over the pixel and its
-            // dither through point k of another sequence, scrambled by the pixel's own seed:
-            // the walks are stratified over the pixel's area and the level's blend.
             if s.index % reuse == 0 {
                 let (cone, dither) = shared_walk_cone(camera, &s, reuse);
-                walk.fill(scene, &cone, lights, settings, dither);
+                start(walk, &cone, dither);
             }
             *s.rays += 1;
             let mut sampler = Stratified::of_sample(&mut s);
-            // The dither's dimension, which the shared walk drew instead: the shading's numbers
-            // stay in the dimensions a sample of its own would give them.
             if shade::draws_dither(settings) {
                 sampler.next_1d();
             }
-            walk.estimate(lights, settings, &mut sampler).radiance
+            estimate(walk, &mut sampler).radiance
         },
     )
 }
