@@ -191,6 +191,14 @@ impl std::fmt::Display for Summary {
             s.ndf_lobes, s.moment_res, s.keep, s.energy,
             if s.keep_all_effects { ", keep-all-effects" } else { "" }
         )?;
+        if s.shading_res() != 0 {
+            writeln!(
+                f,
+                "visibility levels (1.7): the levels finer than {0}³ hold geometry and boundary \
+                 visibility only; their hits shade with the {0}³ voxels",
+                s.shading_res()
+            )?;
+        }
         if sm.minor >= 4 {
             writeln!(
                 f,

@@ -219,6 +219,43 @@ fn format_1_4_quantized_file_renders_as_the_float_one() {
     }
 }
 
+/// The committed 1.7 file (`foliage-1.7.agg`: `aggtool gen foliage --triangles 400`, baked by
+/// the build that added visibility levels with the 1.3 file's command and `--visibility-levels 1`):
+/// its 8³ level holds no AIV trees and no directional moments, its hits are shaded by the 4³
+/// voxels, and it renders as it did when it was written (values printed by that build).
+#[test]
+fn format_1_7_visibility_level_file_reads_and_renders_the_same() {
+    let agg = open("foliage-1.7.agg");
+    assert_eq!((agg.header().major, agg.header().minor), (1, 7));
+    assert_eq!(agg.settings().shading_res, 4);
+    assert_eq!(
+        (0..3).map(|l| agg.shading_level(l)).collect::<Vec<_>>(),
+        [1, 1, 2]
+    );
+    let c = agg.counts(0);
+    assert_eq!((c.voxels, c.faces), (133, 220));
+    assert_eq!((c.aiv_trees, c.directional_moments), (0, 0));
+    assert!(aggtool::format::exercise(&agg) > 0);
+    let (mean, px) = render(agg);
+    if std::env::var_os("AGGTOOL_PRINT").is_some() {
+        eprintln!(
+            "mean {:?} pixels {:?}",
+            mean.to_array(),
+            px.map(|p| p.to_array())
+        );
+    }
+    let want_mean = [0.35687265, 0.46237954, 0.6204117];
+    let want_px = [
+        [0.25992042, 0.58016515, 0.3971318],
+        [0.4, 0.5, 0.7],
+        [0.17446515, 0.31106827, 0.2844672],
+    ];
+    assert!(close(mean, want_mean), "mean {mean}");
+    for (p, w) in px.iter().zip(want_px) {
+        assert!(close(*p, w), "pixel {p} against {w:?}");
+    }
+}
+
 /// The committed 1.6 file (`foliage-1.6.agg`: `cargo run -p aggtool-tools --bin requantize --
 /// tests/data/foliage-1.3.agg tests/data/foliage-1.6.agg`, its blocks compressed in byte planes)
 /// opens, verifies, holds exactly what the 1.5 file holds in fewer bytes, and renders exactly

@@ -542,7 +542,7 @@ fn damaged_files_never_panic() {
     let dir = tempfile::tempdir().unwrap();
     let (bytes, _) = bake(&scene("foliage", 300, false), &small(), dir.path(), "f.agg");
     // The default bake (quantized, blocks compressed), then the committed files of each layout
-    // (1.3 floats, 1.4 quantized, 1.5 compressed, 1.6 in byte planes).
+    // (1.3 floats, 1.4 quantized, 1.5 compressed, 1.6 in byte planes, 1.7 a visibility level).
     let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
     let files = [
         (bytes, 3000),
@@ -550,6 +550,7 @@ fn damaged_files_never_panic() {
         (std::fs::read(data.join("foliage-1.4.agg")).unwrap(), 1000),
         (std::fs::read(data.join("foliage-1.5.agg")).unwrap(), 1000),
         (std::fs::read(data.join("foliage-1.6.agg")).unwrap(), 1000),
+        (std::fs::read(data.join("foliage-1.7.agg")).unwrap(), 1000),
     ];
     for (bytes, runs) in files {
         damage(&bytes, runs);
@@ -681,4 +682,80 @@ fn hard_cases_round_trip_quantized() {
     );
     assert!(seen.aiv_trees > 0 && seen.cut_out > 0, "{seen:?}");
     assert!(seen.abv_trees > 0 && seen.abv_trees < seen.faces);
+}
+
+/// A bake with visibility levels (`BakeSettings::visibility_levels`, format 1.7) is the same bytes on
+/// one thread as on two; a file whose `shading_res` names no level of it is refused with an
+/// error that says so; and with `shading_res` cleared (what a 1.6 reader sees, which does not
+/// know the field) the visibility level is an ordinary level that renders finite values.
+#[test]
+fn visibility_levels_are_deterministic_and_checked() {
+    use aggtool::format::fb;
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scene("foliage", 1500, false);
+    let s = BakeSettings {
+        visibility_levels: 1,
+        ..small()
+    };
+    let run = |threads: usize, name: &str| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| bake(&sc, &s, dir.path(), name).0)
+    };
+    let a = run(1, "a.agg");
+    assert!(a == run(2, "b.agg"), "1 and 2 threads differ");
+    let agg = Aggregate::from_bytes(a.clone()).unwrap();
+    assert_eq!(agg.header().minor, MINOR);
+    assert_eq!(agg.shading_level(0), 1);
+    // Rewrites the recorded shading_res in place (the index's checksum fixed up).
+    let with_shading_res = |r: u32| {
+        let mut b = a.clone();
+        let h = Header::parse(&b).unwrap();
+        let (o, n) = (h.index_offset as usize, h.index_size as usize);
+        let pos = {
+            let index = flatbuffers::root::<fb::Index>(&b[o..o + n]).unwrap();
+            let st = index.settings().unwrap();
+            let field = st._tab.vtable().get(fb::BakeSettings::VT_SHADING_RES) as usize;
+            assert!(field > 0, "shading_res is stored");
+            o + st._tab.loc() + field
+        };
+        b[pos..pos + 4].copy_from_slice(&r.to_le_bytes());
+        let mut h = h;
+        h.index_crc32 = crc32fast::hash(&b[o..o + n]);
+        b[..HEADER_SIZE].copy_from_slice(&h.to_bytes());
+        b
+    };
+    assert_eq!(
+        Aggregate::from_bytes(with_shading_res(4)).unwrap().bytes(),
+        agg.bytes()
+    );
+    let Err(e) = Aggregate::from_bytes(with_shading_res(3)) else {
+        panic!("a shading_res naming no level was read");
+    };
+    assert!(
+        matches!(e, FormatError::Corrupt(_)) && e.to_string().contains("shading_res 3"),
+        "{e}"
+    );
+    let plain = Aggregate::from_bytes(with_shading_res(0)).unwrap();
+    assert_eq!(plain.shading_level(0), 0);
+    let lod = aggtool::runtime::LodScene::new(plain);
+    let (c, r) = sc.bounding_sphere();
+    let view = aggtool::render::View::framing(c, r, 16, 16, 4);
+    let lights = view.lights().unwrap();
+    let ts = aggtool::runtime::TraceSettings {
+        level: Some(0),
+        ..Default::default()
+    };
+    let (img, stats) = aggtool::runtime::render(
+        &lod,
+        &view.camera(),
+        &lights,
+        4,
+        1,
+        &ts,
+        &aggtool::util::no_progress,
+    );
+    common::assert_clean_render(&img, &stats, "a visibility level read as a plain one");
 }

@@ -23,6 +23,9 @@ use crate::trace::Accel;
 /// Settings of one level's bake.
 #[derive(Clone, Copy, Debug)]
 pub struct LevelSettings {
+    /// False at a visibility level ([`super::BakeSettings::visibility_levels`]): no AIV rays, a
+    /// constant AIV of 1 and constant moments; the geometry and the faces as at any level.
+    pub shade: bool,
     /// Surface samples per voxel at this level.
     pub samples_per_voxel: u32,
     /// Interior-visibility rays per surface sample.
@@ -163,6 +166,9 @@ pub fn bake_voxel(
         };
         return (None, cost);
     };
+    if !s.shade {
+        return visibility_voxel(key, area, coverage, ellipsoid, &samples, s, t0);
+    }
     let t1 = std::time::Instant::now();
     let est = aiv_map(
         accel,
@@ -206,6 +212,48 @@ pub fn bake_voxel(
             aiv,
             // Quantized to 1/256 so that stored and baked values compare equal.
             exposure: quantize_exposure(est.exposure),
+        }),
+        cost,
+    )
+}
+
+/// A voxel of a visibility level ([`LevelSettings::shade`] off): its ellipsoid and SGGX lobes
+/// from the surface samples as they are (no AIV rays to weigh them by exposure), constant
+/// moments, a constant AIV of 1 and exposure 1. Readers of 1.7 shade its hits with the voxel of
+/// the shading level containing it and read only its geometry; older readers shade it as it
+/// is (without self-shadowing).
+fn visibility_voxel(
+    key: u64,
+    area: f64,
+    coverage: f32,
+    ellipsoid: Ellipsoid,
+    samples: &[super::sampling::PointSample],
+    s: &LevelSettings,
+    t0: std::time::Instant,
+) -> (Option<VoxelData>, VoxelCost) {
+    let surface: Vec<SurfaceSample> = samples.iter().map(|p| p.surface).collect();
+    let settings = EstimateSettings {
+        moment_res: 0,
+        ..s.estimate
+    };
+    let Some(appearance) = estimate(&surface, &settings) else {
+        return (None, VoxelCost::default());
+    };
+    let res = s.aiv_res.max(1);
+    let aiv = compress(&vec![1.0; (res * res) as usize], res, 1.0, 0.0, s);
+    let cost = VoxelCost {
+        cpu: [t0.elapsed().as_secs_f64(), 0.0],
+        ..Default::default()
+    };
+    (
+        Some(VoxelData {
+            key,
+            area,
+            coverage: coverage.min(1.0),
+            appearance,
+            ellipsoid,
+            aiv,
+            exposure: 1.0,
         }),
         cost,
     )

@@ -94,6 +94,18 @@ pub struct BakeSettings {
     /// radiance, [`rate`]); 0: none.
     #[serde(default)]
     pub error: f64,
+    /// How many of the finest levels are visibility levels (format 1.7): their voxels keep
+    /// the geometry (ellipsoid, SGGX lobes) and their faces the ABV, and their hits are shaded
+    /// with the voxel of the finest shading level that contains them, so that no AIV rays are
+    /// traced and no moments or AIV trees are stored there. Where a pixel is about a voxel or
+    /// smaller, what varies inside a voxel is mostly whether a ray gets through (the ABV and
+    /// the primitives), not how the surface it meets reflects: the maple's 256³ level shaded
+    /// by its 128³ voxels renders at 256² within noise of the full 256³ level
+    /// (`docs/src/studies/2026-12-06-visibility-levels.md`). Surface samples count from the
+    /// finest shading level (a 256³ bake with one visibility level samples its 128³ level as
+    /// a 128³ bake does). At least the coarsest level shades; 0: every level shades itself.
+    #[serde(default)]
+    pub visibility_levels: u32,
 }
 
 impl Default for BakeSettings {
@@ -121,6 +133,7 @@ impl Default for BakeSettings {
             size_mib: 0.0,
             level_mib: 0.0,
             error: 0.0,
+            visibility_levels: 0,
         }
     }
 }
@@ -446,6 +459,12 @@ impl BakeSettings {
                 ));
             }
         }
+        if self.visibility_levels > 16 {
+            return Err(format!(
+                "--visibility-levels must be 0 to 16, got {}",
+                self.visibility_levels
+            ));
+        }
         let set: Vec<&str> = targets.iter().filter(|t| t.1 > 0.0).map(|t| t.0).collect();
         if set.len() > 1 {
             return Err(format!(
@@ -475,9 +494,31 @@ impl BakeSettings {
         out
     }
 
-    /// Surface samples per voxel at resolution `res`.
+    /// The finest level that shades its own hits ([`Self::visibility_levels`] below the
+    /// finest, and at least the coarsest).
+    pub fn finest_shading_res(&self) -> u32 {
+        (self.max_res >> self.visibility_levels.min(31)).max(self.min_res.min(self.max_res))
+    }
+
+    /// The resolution a file records as its `shading_res`: 0 when every level shades itself.
+    pub fn shading_res(&self) -> u32 {
+        match self.finest_shading_res() {
+            r if r >= self.max_res => 0,
+            r => r,
+        }
+    }
+
+    /// Whether the level of resolution `res` is a visibility level
+    /// ([`Self::visibility_levels`]).
+    pub fn is_visibility_level(&self, res: u32) -> bool {
+        res > self.finest_shading_res()
+    }
+
+    /// Surface samples per voxel at resolution `res`: `samples` at the finest shading level
+    /// and finer, more on coarser ones.
     pub fn samples_at(&self, res: u32) -> u32 {
-        let k = (self.max_res as f64 / res as f64).powi(2);
+        let top = self.finest_shading_res().max(res);
+        let k = (top as f64 / res as f64).powi(2);
         ((self.samples as f64 * k).round() as u64).clamp(1, self.max_samples as u64) as u32
     }
 
@@ -512,6 +553,7 @@ impl BakeSettings {
             size_mib: self.size_mib,
             level_mib: self.level_mib,
             error: self.error,
+            shading_res: self.shading_res(),
         }
     }
 
@@ -654,12 +696,17 @@ impl BakeSettings {
             size_mib: r.size_mib,
             level_mib: r.level_mib,
             error: r.error,
+            visibility_levels: match r.shading_res {
+                0 => 0,
+                s => r.max_res.checked_div(s).map_or(0, |k| k.max(1).ilog2()),
+            },
         }
     }
 
     /// The settings of one level.
     pub fn level(&self, res: u32) -> LevelSettings {
         LevelSettings {
+            shade: !self.is_visibility_level(res),
             samples_per_voxel: self.samples_at(res),
             aiv_rays: self.aiv_rays,
             aiv_min_rays: self.aiv_min_rays,
@@ -751,7 +798,7 @@ mod tests {
             .unwrap_err()
             .contains("--ndf-lobes"));
         assert!(d.with_field("keep", "many").is_err());
-        assert_eq!(BakeSettings::field_names().len(), 22);
+        assert_eq!(BakeSettings::field_names().len(), 23);
     }
 
     /// `with_value` takes typed values as the bindings pass them: integers for counts (a

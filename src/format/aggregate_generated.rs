@@ -3394,6 +3394,7 @@ impl<'a> BakeSettings<'a> {
   pub const VT_SIZE_MIB: ::flatbuffers::VOffsetT = 44;
   pub const VT_LEVEL_MIB: ::flatbuffers::VOffsetT = 46;
   pub const VT_ERROR: ::flatbuffers::VOffsetT = 48;
+  pub const VT_SHADING_RES: ::flatbuffers::VOffsetT = 50;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3408,6 +3409,7 @@ impl<'a> BakeSettings<'a> {
     builder.add_error(args.error);
     builder.add_level_mib(args.level_mib);
     builder.add_size_mib(args.size_mib);
+    builder.add_shading_res(args.shading_res);
     builder.add_aiv_min_rays(args.aiv_min_rays);
     builder.add_compression(args.compression);
     builder.add_abv_full_res(args.abv_full_res);
@@ -3620,6 +3622,20 @@ impl<'a> BakeSettings<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<f64>(BakeSettings::VT_ERROR, Some(0.0)).unwrap()}
   }
+  /// Added in 1.7: levels finer than this resolution are visibility levels. They hold the
+  /// geometry (voxels, ellipsoids, SGGX lobes) and the boundary faces with their ABV trees,
+  /// but no interior visibility (a constant AIV of 1) and constant moments; a reader of 1.7
+  /// shades a hit of such a level (its ABSDF, its AIV towards the viewer and the lights, its
+  /// exposure) with the voxel of the level of this resolution that contains it. 0 (also
+  /// absent, in older files): every level shades its own hits. Readers of 1.6 and older read
+  /// such a level as an ordinary one (valid, without self-shadowing).
+  #[inline]
+  pub fn shading_res(&self) -> u32 {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<u32>(BakeSettings::VT_SHADING_RES, Some(0)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for BakeSettings<'_> {
@@ -3651,6 +3667,7 @@ impl ::flatbuffers::Verifiable for BakeSettings<'_> {
      .visit_field::<f64>("size_mib", Self::VT_SIZE_MIB, false)?
      .visit_field::<f64>("level_mib", Self::VT_LEVEL_MIB, false)?
      .visit_field::<f64>("error", Self::VT_ERROR, false)?
+     .visit_field::<u32>("shading_res", Self::VT_SHADING_RES, false)?
      .finish();
     Ok(())
   }
@@ -3679,6 +3696,7 @@ pub struct BakeSettingsArgs {
     pub size_mib: f64,
     pub level_mib: f64,
     pub error: f64,
+    pub shading_res: u32,
 }
 impl<'a> Default for BakeSettingsArgs {
   #[inline]
@@ -3707,6 +3725,7 @@ impl<'a> Default for BakeSettingsArgs {
       size_mib: 0.0,
       level_mib: 0.0,
       error: 0.0,
+      shading_res: 0,
     }
   }
 }
@@ -3809,6 +3828,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> BakeSettingsBuilder<'a, 'b, A
     self.fbb_.push_slot::<f64>(BakeSettings::VT_ERROR, error, 0.0);
   }
   #[inline]
+  pub fn add_shading_res(&mut self, shading_res: u32) {
+    self.fbb_.push_slot::<u32>(BakeSettings::VT_SHADING_RES, shading_res, 0);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> BakeSettingsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     BakeSettingsBuilder {
@@ -3849,6 +3872,7 @@ impl ::core::fmt::Debug for BakeSettings<'_> {
       ds.field("size_mib", &self.size_mib());
       ds.field("level_mib", &self.level_mib());
       ds.field("error", &self.error());
+      ds.field("shading_res", &self.shading_res());
       ds.finish()
   }
 }

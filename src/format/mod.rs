@@ -50,7 +50,7 @@ pub const MAGIC: [u8; 8] = [0x89, b'A', b'G', b'G', b'\r', b'\n', 0x1a, b'\n'];
 /// The format version this build writes. Readers accept any minor of their major.
 pub const MAJOR: u16 = 1;
 /// The minor version this build writes.
-pub const MINOR: u16 = 6;
+pub const MINOR: u16 = 7;
 /// Bytes of the fixed header.
 pub const HEADER_SIZE: usize = 64;
 /// Alignment of every blob.

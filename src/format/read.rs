@@ -488,6 +488,31 @@ impl Aggregate {
         self.levels[l].grid
     }
 
+    /// The level whose voxels shade level `l`'s hits: `l` itself, or for a visibility level
+    /// (finer than the recorded `shading_res`, format 1.7) the level of that resolution, whose
+    /// voxel containing a hit's voxel gives its ABSDF and AIV.
+    pub fn shading_level(&self, l: usize) -> usize {
+        let r = self.settings.shading_res;
+        if r == 0 || self.levels[l].grid.res <= r {
+            return l;
+        }
+        self.levels
+            .iter()
+            .position(|x| x.grid.res == r)
+            .unwrap_or(l)
+    }
+
+    /// The shading level of level `l` ([`Self::shading_level`]) and how many times finer
+    /// level `l` is (as a power of two): a voxel v of level `l` is shaded by voxel v >> shift.
+    pub fn shading_of(&self, l: usize) -> (usize, u32) {
+        let s = self.shading_level(l);
+        let (rl, rs) = (self.levels[l].grid.res, self.levels[s].grid.res);
+        if s == l || rs >= rl {
+            return (l, 0);
+        }
+        (s, rl.trailing_zeros() - rs.trailing_zeros())
+    }
+
     /// What level `l` stores (counted by the bake).
     pub fn counts(&self, l: usize) -> Counts {
         self.levels[l].counts
@@ -1207,6 +1232,24 @@ fn verify_index(
             voxel_blobs: v0..f0,
             face_blobs: f0..blobs.len(),
         });
+    }
+    // A visibility level is shaded by the level of `shading_res`, which must be there and
+    // have the same cube (its voxels contain theirs).
+    if settings.shading_res != 0 {
+        let r = settings.shading_res;
+        let Some(shading) = infos.iter().find(|i| i.grid.res == r) else {
+            return Err(corrupt(format!(
+                "shading_res {r} names no level of the file"
+            )));
+        };
+        if infos.iter().any(|i| {
+            i.grid.res > r
+                && (i.grid.origin != shading.grid.origin || i.grid.size != shading.grid.size)
+        }) {
+            return Err(corrupt(format!(
+                "a level finer than shading_res {r} has another cube than the level it is shaded by"
+            )));
+        }
     }
     for r in index.pca_blocks().into_iter().flatten() {
         blobs.push(blob(r, BlobKind::Reserved)?);

@@ -78,6 +78,10 @@ pub struct RecordedSettings {
     /// The rate control's error bound (0: none).
     #[serde(default)]
     pub error: f64,
+    /// Levels finer than this are visibility levels, shaded by the level of this resolution
+    /// (format 1.7); 0, also in older files: every level shades itself.
+    #[serde(default)]
+    pub shading_res: u32,
 }
 
 impl RecordedSettings {
@@ -111,6 +115,7 @@ impl RecordedSettings {
             size_mib: s.size_mib(),
             level_mib: s.level_mib(),
             error: s.error(),
+            shading_res: s.shading_res(),
         }
     }
 
@@ -143,6 +148,7 @@ impl RecordedSettings {
             size_mib: self.size_mib,
             level_mib: self.level_mib,
             error: self.error,
+            shading_res: self.shading_res,
         }
     }
 }

@@ -269,6 +269,10 @@ pub struct LodScene {
     clip: Vec<(Vec3, Vec3)>,
     /// Finest voxel size.
     base: f32,
+    /// Per level, the level that shades its hits and the shift from its voxel coordinates to
+    /// that level's ([`Aggregate::shading_of`]): itself and 0, or for a visibility level the
+    /// coarser level whose voxels hold its ABSDFs and AIVs.
+    shading: Vec<(usize, u32)>,
     cache: Arc<BlockCache>,
     /// Whether levels learn their voxels from the index's keys where the file has them
     /// (otherwise from the blocks, as for older files).
@@ -323,8 +327,10 @@ impl LodScene {
         let grids: Vec<Grid> = (0..agg.level_count()).map(|l| agg.grid(l)).collect();
         let (lo, hi) = agg.bounds();
         let clip = grids.iter().map(|g| clip_box(g, lo, hi)).collect();
+        let shading = (0..grids.len()).map(|l| agg.shading_of(l)).collect();
         LodScene {
             levels: (0..grids.len()).map(|_| OnceLock::new()).collect(),
+            shading,
             base: grids.first().map_or(1.0, |g| g.voxel_size()),
             clip,
             index_keys: true,

@@ -25,7 +25,8 @@ def test_python_reader_matches_inspect():
         tmp = Path(d)
         run("gen", "foliage", "-o", tmp, "--triangles", 800, cwd=tmp)
         run("convert", tmp / "foliage.glb", "--max-res", 8, "--min-res", 2, "--samples", 8,
-            "--aiv-res", 8, "--aiv-rays", 4, "--abv-res", 8, "--abv-full-res", 4, cwd=tmp)
+            "--aiv-res", 8, "--aiv-rays", 4, "--abv-res", 8, "--abv-full-res", 4,
+            "--visibility-levels", 1, cwd=tmp)
         agg = tmp / "foliage.agg"
         assert agg.exists()
         ours = json.loads(run("inspect", agg, "--json", cwd=tmp))
@@ -36,7 +37,8 @@ def test_python_reader_matches_inspect():
         assert theirs["bytes"] == ours["bytes"] == agg.stat().st_size
         assert theirs["source"] == ours["source"] == "foliage.glb"
         assert theirs["abv_full_res"] == ours["settings"]["abv_full_res"] == 4
-        assert theirs["format"] == "1.6" and theirs["lossless"] is ours["settings"]["lossless"] is False
+        assert theirs["shading_res"] == ours["settings"]["shading_res"] == 4
+        assert theirs["format"] == "1.7" and theirs["lossless"] is ours["settings"]["lossless"] is False
         assert theirs["compression"] == ours["settings"]["compression"] == 19
         assert [(l["res"], l["voxels"], l["faces"], l["bytes"]) for l in theirs["levels"]] == \
                [(l["res"], l["voxels"], l["faces"], l["bytes"]) for l in ours["levels"]]

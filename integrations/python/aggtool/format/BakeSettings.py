@@ -216,8 +216,22 @@ class BakeSettings(object):
             return self._tab.Get(flatbuffers.number_types.Float64Flags, o + self._tab.Pos)
         return 0.0
 
+    # Added in 1.7: levels finer than this resolution are visibility levels. They hold the
+    # geometry (voxels, ellipsoids, SGGX lobes) and the boundary faces with their ABV trees,
+    # but no interior visibility (a constant AIV of 1) and constant moments; a reader of 1.7
+    # shades a hit of such a level (its ABSDF, its AIV towards the viewer and the lights, its
+    # exposure) with the voxel of the level of this resolution that contains it. 0 (also
+    # absent, in older files): every level shades its own hits. Readers of 1.6 and older read
+    # such a level as an ordinary one (valid, without self-shadowing).
+    # BakeSettings
+    def ShadingRes(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(50))
+        if o != 0:
+            return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
+        return 0
+
 def BakeSettingsStart(builder):
-    builder.StartObject(23)
+    builder.StartObject(24)
 
 def Start(builder):
     BakeSettingsStart(builder)
@@ -359,6 +373,12 @@ def BakeSettingsAddError(builder, error):
 
 def AddError(builder, error):
     BakeSettingsAddError(builder, error)
+
+def BakeSettingsAddShadingRes(builder, shadingRes):
+    builder.PrependUint32Slot(23, shadingRes, 0)
+
+def AddShadingRes(builder, shadingRes):
+    BakeSettingsAddShadingRes(builder, shadingRes)
 
 def BakeSettingsEnd(builder):
     return builder.EndObject()
