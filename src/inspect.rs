@@ -194,8 +194,8 @@ impl std::fmt::Display for Summary {
         if s.shading_res() != 0 {
             writeln!(
                 f,
-                "visibility levels (1.7): the levels finer than {0}³ hold geometry and boundary \
-                 visibility only; their hits shade with the {0}³ voxels",
+                "visibility levels (1.7): the levels finer than {0}³ keep no interior visibility \
+                 of their own; their voxels read the AIV of the {0}³ voxels",
                 s.shading_res()
             )?;
         }

@@ -77,7 +77,7 @@ def describe(path):
         "lossless": s.Lossless() if header["minor"] >= 4 else True,
         # 1.5: the Zstandard level of the blocks (0: stored as FlatBuffers).
         "compression": s.Compression() if header["minor"] >= 5 else 0,
-        # 1.7: levels finer than this are visibility levels, shaded by this level (0: none).
+        # 1.7: levels finer than this are visibility levels, reading this level's AIV (0: none).
         "shading_res": s.ShadingRes() if header["minor"] >= 7 else 0,
         "effects_kept": ix.EffectsKept(),
         "tables_version": ix.TablesVersion(),
@@ -103,7 +103,7 @@ def main(argv):
         layout += f", blocks zstd level {d['compression']} (1.5; in byte planes from 1.6)"
     print(f"source: {d['source']}; max-res {d['max_res']}, AIV {d['aiv_res']}², ABV {d['abv_res']}²; effects 0x{d['effects_kept']:x}; tables v{d['tables_version']}; layout {layout}")
     if d["shading_res"] and d["shading_res"] < d["max_res"]:
-        print(f"visibility levels (1.7): finer than {d['shading_res']}³, shaded by its voxels")
+        print(f"visibility levels (1.7): finer than {d['shading_res']}³, reading its voxels' AIV")
     print(f"{'level':>6} {'voxels':>10} {'faces':>10} {'vblocks':>7} {'fblocks':>7} {'bytes':>12}")
     for l in d["levels"]:
         print(f"{l['res']:>5}³ {l['voxels']:>10} {l['faces']:>10} {l['voxel_blocks']:>7} {l['face_blocks']:>7} {l['bytes']:>12}")

@@ -217,11 +217,11 @@ pub fn bake_voxel(
     )
 }
 
-/// A voxel of a visibility level ([`LevelSettings::shade`] off): its ellipsoid and SGGX lobes
-/// from the surface samples as they are (no AIV rays to weigh them by exposure), constant
-/// moments, a constant AIV of 1 and exposure 1. Readers of 1.7 shade its hits with the voxel of
-/// the shading level containing it and read only its geometry; older readers shade it as it
-/// is (without self-shadowing).
+/// A voxel of a visibility level ([`LevelSettings::shade`] off): its ellipsoid, SGGX lobes and
+/// constant material moments from the surface samples as they are (no AIV rays to weigh them
+/// by exposure; directional moments measured to buy nothing here), a constant AIV of 1 and
+/// exposure 1. Readers of 1.7 take its AIV and exposure from the voxel of the shading level
+/// containing it; older readers shade it as it is (without self-shadowing).
 fn visibility_voxel(
     key: u64,
     area: f64,

@@ -3623,12 +3623,12 @@ impl<'a> BakeSettings<'a> {
     unsafe { self._tab.get::<f64>(BakeSettings::VT_ERROR, Some(0.0)).unwrap()}
   }
   /// Added in 1.7: levels finer than this resolution are visibility levels. They hold the
-  /// geometry (voxels, ellipsoids, SGGX lobes) and the boundary faces with their ABV trees,
-  /// but no interior visibility (a constant AIV of 1) and constant moments; a reader of 1.7
-  /// shades a hit of such a level (its ABSDF, its AIV towards the viewer and the lights, its
-  /// exposure) with the voxel of the level of this resolution that contains it. 0 (also
-  /// absent, in older files): every level shades its own hits. Readers of 1.6 and older read
-  /// such a level as an ordinary one (valid, without self-shadowing).
+  /// geometry and the material (voxels, ellipsoids, SGGX lobes, constant moments) and the
+  /// boundary faces with their ABV trees, but no interior visibility (a constant AIV of 1,
+  /// exposure 1): a reader of 1.7 takes a voxel's AIV and exposure from the voxel of the level
+  /// of this resolution that contains it. 0 (also absent, in older files): every level keeps
+  /// its own. Readers of 1.6 and older read such a level as an ordinary one (valid, without
+  /// self-shadowing inside its voxels).
   #[inline]
   pub fn shading_res(&self) -> u32 {
     // Safety:

@@ -488,9 +488,9 @@ impl Aggregate {
         self.levels[l].grid
     }
 
-    /// The level whose voxels shade level `l`'s hits: `l` itself, or for a visibility level
-    /// (finer than the recorded `shading_res`, format 1.7) the level of that resolution, whose
-    /// voxel containing a hit's voxel gives its ABSDF and AIV.
+    /// The level whose voxels hold level `l`'s interior visibility: `l` itself, or for a
+    /// visibility level (finer than the recorded `shading_res`, format 1.7) the level of that
+    /// resolution, whose voxel containing a voxel of `l` gives its AIV and exposure.
     pub fn shading_level(&self, l: usize) -> usize {
         let r = self.settings.shading_res;
         if r == 0 || self.levels[l].grid.res <= r {
@@ -1233,7 +1233,7 @@ fn verify_index(
             face_blobs: f0..blobs.len(),
         });
     }
-    // A visibility level is shaded by the level of `shading_res`, which must be there and
+    // A visibility level reads the AIV of the level of `shading_res`, which must be there and
     // have the same cube (its voxels contain theirs).
     if settings.shading_res != 0 {
         let r = settings.shading_res;

@@ -34,9 +34,6 @@ pub struct Hit<'s> {
     /// The exact |B|_ω of a primitive crossing its voxel where the walk computed it for
     /// [`Occlusion`] under [`Weights::Bound`], else 0: [`Hits::exact_factor`] reuses it.
     pub(crate) exact_area: f32,
-    /// The weight is exact already ([`Hits::exact_factor`] 1): a hit of a visibility level,
-    /// whose `voxel` shades it but is not the primitive hit.
-    pub(crate) exact_weight: bool,
 }
 
 /// The share of a cone the surfaces met so far may cover before the ones behind them are
@@ -311,9 +308,6 @@ impl<'s> Hits<'s> {
     /// exact weight / bound weight of a hit yielded under [`Weights::Bound`].
     #[inline]
     pub(crate) fn exact_factor(&self, hit: &Hit) -> f32 {
-        if hit.exact_weight {
-            return 1.0;
-        }
         let (level, block, i) = (hit.voxel.data, &hit.voxel.block, hit.voxel.i);
         if self.settings.primitive != PrimitiveKind::TruncatedEllipsoid
             || block.hit[i as usize].area_case != Some(AreaCase::Crossing)
@@ -602,8 +596,20 @@ impl<'s> Hits<'s> {
     /// [`Weights`]), and the exact one where `exact` asks for it ([`Occlusion`] counts it),
     /// else the same.
     #[inline]
-    fn weight(&self, level: &Level, block: &Voxels, i: u32, exact: bool) -> (f32, f32, f32) {
-        let vo = block.weight[i as usize].aiv.eval(-self.cone.dir);
+    fn weight(
+        &self,
+        level: &Level,
+        block: &Voxels,
+        i: u32,
+        exact: bool,
+        vis: Option<&(Arc<Voxels>, u32)>,
+    ) -> (f32, f32, f32) {
+        // V̂(ω_o): the voxel's own, or at a visibility level its shading level's voxel's.
+        let record = match vis {
+            Some((b, j)) => &b.weight[*j as usize],
+            None => &block.weight[i as usize],
+        };
+        let vo = record.aiv.eval(-self.cone.dir);
         let (g, g_exact, area) = self.geometric_weight(level, block, i, exact);
         (vo * g, vo * g_exact, area)
     }
@@ -614,36 +620,17 @@ impl<'s> Hits<'s> {
     pub(crate) fn next_geometric(&mut self) -> Option<(VoxelHandle<'s>, f32, f32)> {
         let (level, li, block, i, t, c) = self.next_primitive()?;
         let g = crate::math::finite_or_zero(self.geometric_weight(level, &block, i, false).0);
-        let voxel = self.shading_voxel(li, c).unwrap_or(VoxelHandle {
-            data: level,
-            block,
-            i,
-            level: li,
-        });
-        Some((voxel, t, g))
-    }
-
-    /// For a hit at voxel `c` of visibility level `li`, the voxel that shades it: the one of
-    /// the shading level ([`crate::format::Aggregate::shading_level`]) that contains it
-    /// (levels share one cube, so its coordinates are `c`'s shifted). `None` at a level that
-    /// shades itself, or where that voxel is missing or its level cannot be read (the hit
-    /// then shades with its own voxel's stored statistics, as a 1.6 reader would).
-    #[inline]
-    fn shading_voxel(&self, li: usize, c: IVec3) -> Option<VoxelHandle<'s>> {
-        let (sl, shift) = self.scene.shading[li];
-        if sl == li {
-            return None;
-        }
-        let level = self.scene.level(sl)?;
-        let idx = level.find(c >> shift as i32)?;
-        let block = level.voxels(idx)?;
-        let i = idx - block.first;
-        Some(VoxelHandle {
-            data: level,
-            block,
-            i,
-            level: sl,
-        })
+        Some((
+            VoxelHandle {
+                data: level,
+                block,
+                i,
+                level: li,
+                vis: self.scene.visibility_voxel(li, c),
+            },
+            t,
+            g,
+        ))
     }
 
     /// [`Hits::weight`] without V̂(ω_o): with the walk's |B|_ω ([`Weights`]), and with the
@@ -707,17 +694,8 @@ impl<'s> Iterator for Hits<'s> {
         loop {
             let (level, li, block, i, t, c) = self.next_primitive()?;
             let occlude = self.settings.normalize;
-            let shading = self.shading_voxel(li, c);
-            let (w, exact, exact_area) = match &shading {
-                None => self.weight(level, &block, i, occlude),
-                Some(s) => {
-                    // A visibility level: its geometry, the shading voxel's V̂(ω_o), and the
-                    // exact |B|_ω (the factor that corrects a bound needs the primitive hit).
-                    let vo = s.block.weight[s.i as usize].aiv.eval(-self.cone.dir);
-                    let (_, g, area) = self.geometric_weight(level, &block, i, true);
-                    (vo * g, vo * g, area)
-                }
-            };
+            let vis = self.scene.visibility_voxel(li, c);
+            let (w, exact, exact_area) = self.weight(level, &block, i, occlude, vis.as_ref());
             let mut weight = crate::math::finite_or_zero(w);
             if occlude && weight > 0.0 {
                 weight *= self.occlusion.pass(crate::math::finite_or_zero(exact));
@@ -727,18 +705,17 @@ impl<'s> Iterator for Hits<'s> {
                 }
             }
             if weight > 0.0 {
-                let exact_weight = shading.is_some();
                 return Some(Hit {
-                    voxel: shading.unwrap_or(VoxelHandle {
+                    voxel: VoxelHandle {
                         data: level,
                         block,
                         i,
                         level: li,
-                    }),
+                        vis,
+                    },
                     t,
                     weight,
                     exact_area,
-                    exact_weight,
                 });
             }
         }

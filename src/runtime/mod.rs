@@ -269,9 +269,9 @@ pub struct LodScene {
     clip: Vec<(Vec3, Vec3)>,
     /// Finest voxel size.
     base: f32,
-    /// Per level, the level that shades its hits and the shift from its voxel coordinates to
-    /// that level's ([`Aggregate::shading_of`]): itself and 0, or for a visibility level the
-    /// coarser level whose voxels hold its ABSDFs and AIVs.
+    /// Per level, the level holding its interior visibility and the shift from its voxel
+    /// coordinates to that level's ([`Aggregate::shading_of`]): itself and 0, or for a
+    /// visibility level the coarser level whose voxels hold its AIVs and exposures.
     shading: Vec<(usize, u32)>,
     cache: Arc<BlockCache>,
     /// Whether levels learn their voxels from the index's keys where the file has them
@@ -491,7 +491,30 @@ impl LodScene {
             i: idx - block.first,
             block,
             level: l,
+            vis: self.visibility_voxel(l, c.as_ivec3()),
         })
+    }
+
+    /// For voxel `c` of visibility level `l` (format 1.7), the voxel of its shading level that
+    /// contains it ([`Aggregate::shading_of`]: levels share one cube, so its coordinates are
+    /// `c`'s shifted), whose AIV and exposure stand for the finer voxel's. `None` at a level
+    /// that shades itself, or where that voxel is missing or its level cannot be read (the
+    /// voxel then keeps its own stored AIV of 1, as a 1.6 reader reads it).
+    #[inline]
+    pub(crate) fn visibility_voxel(
+        &self,
+        l: usize,
+        c: glam::IVec3,
+    ) -> Option<(Arc<level::Voxels>, u32)> {
+        let (sl, shift) = *self.shading.get(l)?;
+        if sl == l {
+            return None;
+        }
+        let level = self.level(sl)?;
+        let idx = level.find(c >> shift as i32)?;
+        let block = level.voxels(idx)?;
+        let i = idx - block.first;
+        Some((block, i))
     }
 
     /// Traces one cone with the runtime's lights and shading (Algorithm 1, Eq. 30).
@@ -596,6 +619,9 @@ pub struct VoxelHandle<'s> {
     /// The voxel's index in its block.
     i: u32,
     level: usize,
+    /// For a voxel of a visibility level (format 1.7), the voxel of the shading level that
+    /// holds its interior visibility and exposure (block and index); `None` elsewhere.
+    vis: Option<(Arc<level::Voxels>, u32)>,
 }
 
 impl<'s> VoxelHandle<'s> {
@@ -615,16 +641,27 @@ impl<'s> VoxelHandle<'s> {
         self.block.absdf(self.i)
     }
 
-    /// The interior visibility V̂(ω) of the voxel's surfaces towards unit `d` (Eq. 25).
+    /// The record holding the voxel's interior visibility and exposure: its own, or at a
+    /// visibility level the containing voxel's of the shading level.
+    #[inline]
+    fn visibility_record(&self) -> &level::WeightRecord<'static> {
+        match &self.vis {
+            Some((b, i)) => &b.weight[*i as usize],
+            None => &self.block.weight[self.i as usize],
+        }
+    }
+
+    /// The interior visibility V̂(ω) of the voxel's surfaces towards unit `d` (Eq. 25); at a
+    /// visibility level, that of the shading level's voxel containing it.
     #[inline]
     pub fn aiv(&self, d: Vec3) -> f32 {
-        self.block.weight[self.i as usize].aiv.eval(d)
+        self.visibility_record().aiv.eval(d)
     }
 
     /// The voxel's exposure η in [1/16, 1] (see [`VoxelHandle::incident_visibility`]).
     #[inline]
     pub fn exposure(&self) -> f32 {
-        1.0 / self.block.weight[self.i as usize].inv_exposure
+        1.0 / self.visibility_record().inv_exposure
     }
 
     /// The visibility to use for light arriving from `wi`: min(1, V̂(ω_i)/η), the AIV corrected
@@ -632,7 +669,7 @@ impl<'s> VoxelHandle<'s> {
     /// the bake's interior visibility).
     #[inline]
     pub fn incident_visibility(&self, wi: Vec3) -> f32 {
-        let w = &self.block.weight[self.i as usize];
+        let w = self.visibility_record();
         (w.aiv.eval(wi) * w.inv_exposure).min(1.0)
     }
 }

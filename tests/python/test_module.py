@@ -167,8 +167,8 @@ def test_convert_with_settings_and_progress(aggtool_module):
         sized = aggtool.convert(str(tmp / "foliage.glb"), str(tmp / "s.agg"), size_mib=budget,
                                 **small)
         assert 0.97 * budget * 2**20 <= Path(sized).stat().st_size <= budget * 2**20
-        # Visibility levels (format 1.7): the 8³ level's hits come with the 4³ voxel that
-        # shades them (level index 1), which voxel_eval reads like any other.
+        # Visibility levels (format 1.7): the 8³ level's hits read the AIV of the 4³ voxel
+        # that contains them (their own stored AIV is the constant 1).
         vis = aggtool.open(aggtool.convert(str(tmp / "foliage.glb"), str(tmp / "v.agg"),
                                            visibility_levels=1, **small))
         lo, hi = (np.array(x) for x in vis.bounds)
@@ -179,11 +179,12 @@ def test_convert_with_settings_and_progress(aggtool_module):
         dirs = (rng.uniform(lo, hi, (n, 3)) - o).astype(np.float32)
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
         h = vis.hits(o, dirs, 1e-4)
-        assert len(h["level"]) > 0 and (h["level"] == 1).all()
+        assert len(h["level"]) > 0 and (h["level"] == 0).all()
         m = len(h["key"])
         f, _ = vis.voxel_eval(h["level"], h["key"], np.tile(np.float32([0, 1, 0]), (m, 1)),
                               np.tile(np.float32([0, 0, 1]), (m, 1)))
-        assert np.isfinite(f).all()
+        _, inc = vis.voxel_visibility(h["level"], h["key"], np.tile(np.float32([0, -1, 0]), (m, 1)))
+        assert np.isfinite(f).all() and (inc < 1).any()
         with pytest.raises(ValueError, match="--visibility-levels"):
             aggtool.convert(str(tmp / "foliage.glb"), str(tmp / "u.agg"), visibility_levels=99,
                             **small)
