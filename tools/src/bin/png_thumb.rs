@@ -1,8 +1,9 @@
-//! A small PNG for the book from a study's picture: crop a region, scale it, and keep the
-//! palette-friendly 8-bit RGB (the pictures `eval` writes are a few hundred KB wide).
+//! A small PNG for the book from a study's pictures: crop a region, scale it, and keep the
+//! palette-friendly 8-bit RGB (the pictures `eval` writes are a few hundred KB wide). Several
+//! inputs are cropped alike and laid side by side, in the order given, 2 pixels apart.
 //!
 //! ```sh
-//! cargo run --release -p aggtool-tools --bin png_thumb -- IN.png OUT.png [--crop X,Y,W,H] [--scale 0.5]
+//! cargo run --release -p aggtool-tools --bin png_thumb -- IN.png [IN2.png ...] OUT.png [--crop X,Y,W,H] [--scale 0.5]
 //! ```
 
 use anyhow::{bail, Context, Result};
@@ -39,21 +40,34 @@ fn main() -> Result<()> {
             f => files.push(f.to_string()),
         }
     }
-    let [input, output] = files.as_slice() else {
-        bail!("usage: png_thumb IN.png OUT.png [--crop X,Y,W,H] [--scale S]");
+    let Some((output, inputs)) = files.split_last().filter(|(_, i)| !i.is_empty()) else {
+        bail!("usage: png_thumb IN.png [IN2.png ...] OUT.png [--crop X,Y,W,H] [--scale S]");
     };
-    let mut img = image::open(input)
-        .with_context(|| format!("reading {input}"))?
-        .to_rgb8();
-    if let Some((x, y, w, h)) = crop {
-        if x + w > img.width() || y + h > img.height() {
-            bail!(
-                "--crop outside the {}×{} picture",
-                img.width(),
-                img.height()
-            );
+    let mut tiles = Vec::new();
+    for input in inputs {
+        let mut img = image::open(input)
+            .with_context(|| format!("reading {input}"))?
+            .to_rgb8();
+        if let Some((x, y, w, h)) = crop {
+            if x + w > img.width() || y + h > img.height() {
+                bail!(
+                    "--crop outside the {}×{} picture {input}",
+                    img.width(),
+                    img.height()
+                );
+            }
+            img = image::imageops::crop_imm(&img, x, y, w, h).to_image();
         }
-        img = image::imageops::crop_imm(&img, x, y, w, h).to_image();
+        tiles.push(img);
+    }
+    const GAP: u32 = 2;
+    let width = tiles.iter().map(|t| t.width()).sum::<u32>() + GAP * (tiles.len() as u32 - 1);
+    let height = tiles.iter().map(|t| t.height()).max().unwrap_or(1);
+    let mut img = image::RgbImage::from_pixel(width, height, image::Rgb([255, 255, 255]));
+    let mut x = 0;
+    for t in &tiles {
+        image::imageops::replace(&mut img, t, x as i64, 0);
+        x += t.width() + GAP;
     }
     let (w, h) = (
         ((img.width() as f32 * scale).round() as u32).max(1),
