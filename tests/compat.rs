@@ -83,6 +83,23 @@ fn close(a: Vec3, b: [f32; 3]) -> bool {
     (a - b).abs().max_element() <= 1e-4 * b.abs().max_element().max(1e-3)
 }
 
+/// Renders `agg` ([`render`]) and checks its mean and three pixels against the pinned values
+/// (AGGTOOL_PRINT=1 prints them, to pin them again on purpose).
+fn assert_renders_as(agg: Aggregate, want_mean: [f32; 3], want_px: [[f32; 3]; 3]) {
+    let (mean, px) = render(agg);
+    if std::env::var_os("AGGTOOL_PRINT").is_some() {
+        eprintln!(
+            "mean {:?} pixels {:?}",
+            mean.to_array(),
+            px.map(|p| p.to_array())
+        );
+    }
+    assert!(close(mean, want_mean), "mean {mean}");
+    for (p, w) in px.iter().zip(want_px) {
+        assert!(close(*p, w), "pixel {p} against {w:?}");
+    }
+}
+
 #[test]
 fn format_1_3_file_still_reads_and_renders_the_same() {
     let agg = open("foliage-1.3.agg");
@@ -93,14 +110,6 @@ fn format_1_3_file_still_reads_and_renders_the_same() {
         .collect();
     assert_eq!(counts, [(133, 220), (37, 80), (8, 24)]);
     assert!(aggtool::format::exercise(&agg) > 0);
-    let (mean, px) = render(agg);
-    if std::env::var_os("AGGTOOL_PRINT").is_some() {
-        eprintln!(
-            "mean {:?} pixels {:?}",
-            mean.to_array(),
-            px.map(|p| p.to_array())
-        );
-    }
     // Printed by the 1.3 build (21f8d27), again when the image loop's sampler became
     // stratified (the means moved by 0.4% at most, the pixels by the 4 spp's noise), and again
     // when the ABSDF read Eq. 21's S at the narrower lobe width (means +0.06%, pixels +0.4% at
@@ -111,10 +120,7 @@ fn format_1_3_file_still_reads_and_renders_the_same() {
         [0.4, 0.5, 0.7],
         [0.23259428, 0.41883087, 0.37963784],
     ];
-    assert!(close(mean, want_mean), "mean {mean}");
-    for (p, w) in px.iter().zip(want_px) {
-        assert!(close(*p, w), "pixel {p} against {w:?}");
-    }
+    assert_renders_as(agg, want_mean, want_px);
 }
 
 /// The committed 1.0, 1.1 and 1.2 files open, verify and render as they did (the values printed
@@ -237,24 +243,15 @@ fn format_1_7_visibility_level_file_reads_and_renders_the_same() {
     assert_eq!((c.voxels, c.faces), (133, 220));
     assert_eq!((c.aiv_trees, c.directional_moments), (0, 0));
     assert!(aggtool::format::exercise(&agg) > 0);
-    let (mean, px) = render(agg);
-    if std::env::var_os("AGGTOOL_PRINT").is_some() {
-        eprintln!(
-            "mean {:?} pixels {:?}",
-            mean.to_array(),
-            px.map(|p| p.to_array())
-        );
-    }
-    let want_mean = [0.35610127, 0.45674548, 0.6192328];
-    let want_px = [
-        [0.21352643, 0.38597876, 0.34405738],
-        [0.4, 0.5, 0.7],
-        [0.15292521, 0.22057775, 0.2616046],
-    ];
-    assert!(close(mean, want_mean), "mean {mean}");
-    for (p, w) in px.iter().zip(want_px) {
-        assert!(close(*p, w), "pixel {p} against {w:?}");
-    }
+    assert_renders_as(
+        agg,
+        [0.35610127, 0.45674548, 0.6192328],
+        [
+            [0.21352643, 0.38597876, 0.34405738],
+            [0.4, 0.5, 0.7],
+            [0.15292521, 0.22057775, 0.2616046],
+        ],
+    );
 }
 
 /// The committed 1.6 file (`foliage-1.6.agg`: `cargo run -p aggtool-tools --bin requantize --

@@ -55,6 +55,21 @@ fn bake(
     (std::fs::read(&path).unwrap(), r)
 }
 
+/// The bytes of `scene` baked with `s` on a pool of `threads` threads.
+fn bake_on_threads(
+    scene: &Scene,
+    s: &BakeSettings,
+    dir: &Path,
+    name: &str,
+    threads: usize,
+) -> Vec<u8> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(|| bake(scene, s, dir, name).0)
+}
+
 /// Rewrites the header of `bytes` with another version (checksum fixed up).
 fn with_version(bytes: &[u8], major: u16, minor: u16) -> Vec<u8> {
     let mut h = Header::parse(bytes).unwrap();
@@ -341,13 +356,7 @@ fn bytes_are_deterministic_across_runs_and_threads() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scene("displaced-sphere", 600, false);
     let s = small();
-    let run = |threads: usize, name: &str| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(|| bake(&sc, &s, dir.path(), name).0)
-    };
+    let run = |threads: usize, name: &str| bake_on_threads(&sc, &s, dir.path(), name, threads);
     let a = run(1, "a.agg");
     let b = run(2, "b.agg");
     let c = run(2, "c.agg");
@@ -697,15 +706,11 @@ fn visibility_levels_are_deterministic_and_checked() {
         visibility_levels: 1,
         ..small()
     };
-    let run = |threads: usize, name: &str| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(|| bake(&sc, &s, dir.path(), name).0)
-    };
-    let a = run(1, "a.agg");
-    assert!(a == run(2, "b.agg"), "1 and 2 threads differ");
+    let a = bake_on_threads(&sc, &s, dir.path(), "a.agg", 1);
+    assert!(
+        a == bake_on_threads(&sc, &s, dir.path(), "b.agg", 2),
+        "1 and 2 threads differ"
+    );
     let agg = Aggregate::from_bytes(a.clone()).unwrap();
     assert_eq!(agg.header().minor, MINOR);
     assert_eq!(agg.shading_level(0), 1);

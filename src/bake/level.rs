@@ -166,13 +166,60 @@ pub fn bake_voxel(
         };
         return (None, cost);
     };
-    if !s.shade {
-        return visibility_voxel(key, area, coverage, ellipsoid, &samples, s, t0);
-    }
+    let (appearance, aiv, exposure, cost) = if s.shade {
+        let Some(shaded) = interior_statistics(accel, &samples, s, seed, t0) else {
+            return (None, VoxelCost::default());
+        };
+        shaded
+    } else {
+        // A visibility level: the statistics of the samples as they are (no AIV rays to weigh
+        // them by exposure), constant moments (directional ones measured to buy nothing
+        // there), a constant AIV of 1 and exposure 1. Readers of 1.7 take the AIV and the
+        // exposure from the voxel of the shading level containing it; older readers shade it
+        // as it is (without self-shadowing).
+        let surface: Vec<SurfaceSample> = samples.iter().map(|p| p.surface).collect();
+        let settings = EstimateSettings {
+            moment_res: 0,
+            ..s.estimate
+        };
+        let Some(appearance) = estimate(&surface, &settings) else {
+            return (None, VoxelCost::default());
+        };
+        let res = s.aiv_res.max(1);
+        let aiv = compress(&vec![1.0; (res * res) as usize], res, 1.0, 0.0, s);
+        let cost = VoxelCost {
+            cpu: [t0.elapsed().as_secs_f64(), 0.0],
+            ..Default::default()
+        };
+        (appearance, aiv, 1.0, cost)
+    };
+    (
+        Some(VoxelData {
+            key,
+            area,
+            coverage: coverage.min(1.0),
+            appearance,
+            ellipsoid,
+            aiv,
+            exposure,
+        }),
+        cost,
+    )
+}
+
+/// A shaded voxel's interior visibility (its AIV rays, map and exposure) and the ABSDF
+/// statistics of its samples weighted by how exposed each is; `None` when no sample is usable.
+fn interior_statistics(
+    accel: &Accel,
+    samples: &[super::sampling::PointSample],
+    s: &LevelSettings,
+    seed: u32,
+    t0: std::time::Instant,
+) -> Option<(crate::absdf::VoxelAppearance, SparseHaar, f32, VoxelCost)> {
     let t1 = std::time::Instant::now();
     let est = aiv_map(
         accel,
-        &samples,
+        samples,
         s.aiv_res,
         s.aiv_rays,
         s.aiv_min_rays,
@@ -189,9 +236,7 @@ pub fn bake_voxel(
         })
         .collect();
     // Some sample is usable (the ellipsoid says so), and the weights stay positive.
-    let Some(appearance) = estimate(&exposed, &s.estimate) else {
-        return (None, VoxelCost::default());
-    };
+    let appearance = estimate(&exposed, &s.estimate)?;
     let per_cell = aiv_rays_per_cell(est.rays, s.aiv_res);
     let aiv = compress(&est.map, s.aiv_res, per_cell, est.denoise, s);
     let cost = VoxelCost {
@@ -202,61 +247,8 @@ pub fn bake_voxel(
         ],
         aiv_bandwidth: Some(est.bandwidth),
     };
-    (
-        Some(VoxelData {
-            key,
-            area,
-            coverage: coverage.min(1.0),
-            appearance,
-            ellipsoid,
-            aiv,
-            // Quantized to 1/256 so that stored and baked values compare equal.
-            exposure: quantize_exposure(est.exposure),
-        }),
-        cost,
-    )
-}
-
-/// A voxel of a visibility level ([`LevelSettings::shade`] off): its ellipsoid, SGGX lobes and
-/// constant material moments from the surface samples as they are (no AIV rays to weigh them
-/// by exposure; directional moments measured to buy nothing here), a constant AIV of 1 and
-/// exposure 1. Readers of 1.7 take its AIV and exposure from the voxel of the shading level
-/// containing it; older readers shade it as it is (without self-shadowing).
-fn visibility_voxel(
-    key: u64,
-    area: f64,
-    coverage: f32,
-    ellipsoid: Ellipsoid,
-    samples: &[super::sampling::PointSample],
-    s: &LevelSettings,
-    t0: std::time::Instant,
-) -> (Option<VoxelData>, VoxelCost) {
-    let surface: Vec<SurfaceSample> = samples.iter().map(|p| p.surface).collect();
-    let settings = EstimateSettings {
-        moment_res: 0,
-        ..s.estimate
-    };
-    let Some(appearance) = estimate(&surface, &settings) else {
-        return (None, VoxelCost::default());
-    };
-    let res = s.aiv_res.max(1);
-    let aiv = compress(&vec![1.0; (res * res) as usize], res, 1.0, 0.0, s);
-    let cost = VoxelCost {
-        cpu: [t0.elapsed().as_secs_f64(), 0.0],
-        ..Default::default()
-    };
-    (
-        Some(VoxelData {
-            key,
-            area,
-            coverage: coverage.min(1.0),
-            appearance,
-            ellipsoid,
-            aiv,
-            exposure: 1.0,
-        }),
-        cost,
-    )
+    // Exposure quantized to 1/256 so that stored and baked values compare equal.
+    Some((appearance, aiv, quantize_exposure(est.exposure), cost))
 }
 
 /// Exposure as stored: multiples of 1/256 (exactly representable in f32), 1 when within 1/512.
