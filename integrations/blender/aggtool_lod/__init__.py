@@ -40,7 +40,7 @@ BAKE_MATRIX = "aggtool_bake_matrix"
 #: (`--max-res`, ...) only when the user sets it, over the preset's value. The presets
 #: themselves, their values and the defaults are the tool's, read from it (`preset_table`).
 SETTINGS = ("max_res", "min_res", "samples", "aiv_res", "aiv_rays", "abv_res", "abv_rays",
-            "abv_full_res", "size_mib")
+            "abv_full_res", "visibility_levels", "size_mib")
 
 #: Read tables of presets, by where they came from (the module's file, or the binary and its
 #: modification time), so that the menu does not run the tool at every redraw.
@@ -391,6 +391,9 @@ SETTING_HINTS = {
     "abv_rays": ("ABV rays", "Boundary-visibility rays per direction cell", 1, 1 << 16),
     "abv_full_res": ("ABV full resolution", "Finer levels share boundary-visibility rays "
                      "among blocks of cells", 1, 4096),
+    "visibility_levels": ("Visibility levels", "The finest levels that keep no interior "
+                          "visibility of their own (fewer bytes and less bake time; for "
+                          "foliage seen up close)", 0, 16),
     "size_mib": ("Size budget (MiB)", "The whole file's size in MiB (0: none): the bake spends "
                  "it on the visibility details that matter most to the picture", 0.0, 1e6),
 }
