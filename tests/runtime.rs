@@ -1064,7 +1064,7 @@ fn shared_walks_estimate_the_same_image() {
 /// the interior visibility at half the resolution is what it gives up) and closer than the 8³
 /// bake alone, in fewer bytes.
 #[test]
-fn visibility_levels_shade_with_the_coarser_voxels() {
+fn visibility_levels_read_the_coarser_voxels_aiv() {
     let scene = generated("foliage", 6000);
     let full_s = small(16);
     let vis_s = BakeSettings {
