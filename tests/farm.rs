@@ -36,9 +36,16 @@ fn shards_merge_into_the_one_machine_bytes() {
     let d = dir.path();
     ok(&["gen", "foliage", "--triangles", "2000", "-o", "."], d);
     // At 64³ the finest level has several voxel and face chunks, so that the shards interleave
-    // blocks within a level, not only across levels.
-    for (max_res, n) in [("16", 3u32), ("64", 4)] {
-        let t = common::tiny_bake_flags(max_res);
+    // blocks within a level, not only across levels; the last case has a visibility level
+    // (format 1.7), whose shard holds no AIV.
+    let cases: [(&str, u32, &[&str]); 3] = [
+        ("16", 3, &[]),
+        ("64", 4, &[]),
+        ("16", 3, &["--visibility-levels", "1"]),
+    ];
+    for (max_res, n, extra) in cases {
+        let mut t = common::tiny_bake_flags(max_res);
+        t.extend(extra);
         let mut args = vec!["convert", "foliage.glb", "-o", "one.agg"];
         args.extend(&t);
         ok(&args, d);
@@ -69,6 +76,10 @@ fn shards_merge_into_the_one_machine_bytes() {
         if max_res == "64" {
             let s = ok(&["inspect", "merged.agg"], d);
             assert!(s.contains("64"), "{s}");
+        }
+        if !extra.is_empty() {
+            let s = ok(&["inspect", "merged.agg"], d);
+            assert!(s.contains("visibility levels (1.7)"), "{s}");
         }
         std::fs::remove_file(d.join("merged.agg")).unwrap();
     }

@@ -100,8 +100,8 @@ pub struct BakeSettings {
     /// shading level that contains them, so that no AIV rays are traced and no AIV trees or
     /// directional moments are stored there. On foliage, seen about a voxel a pixel, what
     /// varies inside a voxel is mostly whether a ray gets through (the ABV and the
-    /// primitives), and the maple loses nothing; on solids the finer AIV tells the sides of a
-    /// wall apart and a building loses a third of its RMSE
+    /// primitives), and the maple's RMSE at 64² is unchanged; on solids the finer AIV tells
+    /// the sides of a wall apart and a building's RMSE rises by 30%
     /// (`docs/src/studies/2026-12-06-visibility-levels.md`). At least the coarsest level
     /// shades; 0: every level shades itself.
     #[serde(default)]
