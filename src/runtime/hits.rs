@@ -609,8 +609,9 @@ impl<'s> Hits<'s> {
             Some((b, j)) => &b.weight[*j as usize],
             None => &block.weight[i as usize],
         };
-        let vo = record.aiv.eval(-self.cone.dir);
+        record.aiv.prefetch();
         let (g, g_exact, area) = self.geometric_weight(level, block, i, exact);
+        let vo = record.aiv.eval(-self.cone.dir);
         (vo * g, vo * g_exact, area)
     }
 
