@@ -28,7 +28,7 @@ count), S seeds numpy's PCG64 (one stream per batch of rays).
 What it computes (direct illumination, as Mitsuba's `direct` integrator does for meshes):
 
 - Camera rays meet Mitsuba's meshes (`Scene.ray_intersect`) and each aggregate's primitives
-  (`aggtool.Scene.hits` with `tmax` clipped at the mesh), so the nearer surface wins: the
+  (`aggtool.Scene.pick` with `tmax` clipped at the mesh), so the nearer surface wins: the
   aggregate's surfaces in front of the mesh add their radiance, weighted by their coverage
   (Eq. 30 of the paper), and pass what lies behind (the mesh, or the environment) through the
   aggregate's transmittance (its ABV). Several aggregates composite front to back.
@@ -36,9 +36,9 @@ What it computes (direct illumination, as Mitsuba's `direct` integrator does for
   MIS) with Mitsuba's emitters; their shadow rays are Mitsuba's (other meshes) times each
   aggregate's transmittance along a shadow cone (`aggtool.Scene.transmittance`), so aggregates
   shadow meshes.
-- Aggregate hits are shaded here, not by the runtime: one primitive per cone, picked in
-  proportion to its coverage weight (the weight sum carried, an unbiased estimate of Eq. 30's
-  sum), lit by one emitter sample of Mitsuba's scene (environment map, directional emitter,
+- Aggregate hits are shaded here, not by the runtime: one primitive per cone, picked by the
+  runtime in proportion to its coverage weight (the weight sum carried, an unbiased estimate
+  of Eq. 30's sum), lit by one emitter sample of Mitsuba's scene (environment map, directional emitter,
   area lights) and one ABSDF sample (`voxel_sample`), combined by MIS; the ABSDF comes from
   `voxel_eval`, self-shadowing from the voxel's interior visibility (`voxel_visibility`), and
   Mitsuba's shadow rays decide whether a mesh blocks the light, so meshes shadow aggregates.
@@ -51,17 +51,15 @@ phases loop over rays in Python (slow: keep images small there). Pixels are box-
 (uniform jitter over the pixel) whatever the film's `rfilter`; the sampler's seed is
 `mi.render`'s `seed` (numpy's PCG64), not the scene's sampler.
 
-An `agg_<name>` may also name an assembly manifest (`.json`, the README's "Assemblies"): each
-instance becomes one placed aggregate, `agg_<name>_to_world` composed with the instance's
-transform, and each aggregate file is opened once however many instances share it.
+An `agg_<name>` may also name an assembly manifest (`.json`, the README's "Assemblies"),
+placed by `agg_<name>_to_world`: it is opened as one `aggtool.Scene` (each aggregate file
+once), whose instances the runtime walks through one instance BVH and composes front to back
+into one layer, so the integrator's loops run over `agg_` properties, not instances.
 
 Limits: `to_world` must be a similarity (rotation, uniform scale, translation): cone apertures
-and ABSDF directions do not survive shear or non-uniform scale, so those are refused. Every
-instance of a manifest is an aggregate of its own in the integrator's loops: fine for tens of
-instances, slow for thousands (`aggtool render MANIFEST` traces those through one instance
-BVH). Where a mesh pierces an
-aggregate (the cone clipped inside its bounds), the transmittance in front of the mesh is
-max(ABV, 1 − coverage in front), an approximation.
+and ABSDF directions do not survive shear or non-uniform scale, so those are refused. Where a
+mesh pierces an aggregate (the cone clipped inside its bounds), the transmittance in front of
+the mesh is max(ABV, 1 − coverage in front), an approximation.
 """
 from __future__ import annotations
 
@@ -196,6 +194,9 @@ class Aggregate:
         self.path = path
         # aggtool.AggError naming the file; a manifest's instances share one opened scene.
         self.scene = scene if scene is not None else aggtool.open(str(path))
+        # An assembly manifest: every instance in one scene (one instance BVH), picked and
+        # shaded by instance.
+        self.assembly = path.suffix.lower() == ".json"
         self.to_world = _matrix(to_world, f"{name}_to_world")
         self.linear = self.to_world[:3, :3]
         self.scale = float(np.sqrt(np.trace(self.linear.T @ self.linear) / 3))
@@ -217,68 +218,11 @@ class Aggregate:
         """World distances along unit directions → local ones (inf stays inf)."""
         return (np.asarray(t, np.float64) / self.scale).astype(np.float32)
 
-    def exit_t(self, o_l, d_l):
-        """Local ray parameter where rays leave the asset's bounds (−inf when they miss)."""
-        lo, hi = self.bounds
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / d_l
-            t0, t1 = (lo - o_l) * inv, (hi - o_l) * inv
-        tn = np.nanmax(np.minimum(t0, t1), axis=1)
-        tf = np.nanmin(np.maximum(t0, t1), axis=1)
-        return np.where(tn <= tf, tf, -np.inf)
-
-    def transmittance(self, p, d, aperture, tmax):
-        """What this aggregate lets through along world rays p + t d, t < tmax."""
+    def transmittance(self, p, d, aperture, tmax, skip=None):
+        """What this aggregate lets through along world rays p + t d, t < tmax; `skip`
+        (per ray, an assembly's instance or −1) leaves that instance out."""
         return self.scene.transmittance(self.point_to_local(p), self.dir_to_local(d),
-                                        aperture, self.t_to_local(tmax))
-
-
-def _quat_matrix(q):
-    x, y, z, w = (float(v) for v in q)
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    if not (abs(n - 1.0) < 1e-3):
-        raise ValueError(f"rotation {q} is not a unit quaternion [x, y, z, w]")
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def manifest_instances(path):
-    """The (aggregate path, 4×4 to_world) of every instance of an assembly manifest (version
-    1: paths relative to its folder, `aggregate` defaulting to the source with `.agg`,
-    translation/rotation [x, y, z, w]/scale or a column-major `matrix`, as glTF)."""
-    import json
-    path = Path(path)
-    try:
-        m = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{path}: {e}") from None
-    if not isinstance(m, dict) or m.get("version") != 1:
-        raise ValueError(f"{path}: not a version 1 assembly manifest")
-    assets = {}
-    for aid, a in (m.get("assets") or {}).items():
-        src = a.get("source") if isinstance(a, dict) else None
-        agg = a.get("aggregate") if isinstance(a, dict) else None
-        if not isinstance(src, str):
-            raise ValueError(f"{path}: asset '{aid}': no source")
-        assets[aid] = path.parent / (agg if isinstance(agg, str) else str(Path(src).with_suffix(".agg")))
-    out = []
-    for i, inst in enumerate(m.get("instances") or []):
-        aid = inst.get("asset") if isinstance(inst, dict) else None
-        if aid not in assets:
-            raise ValueError(f"{path}: instance {i}: unknown asset {aid!r}")
-        if "matrix" in inst:
-            mat = np.array(inst["matrix"], np.float64).reshape(4, 4).T
-        else:
-            mat = np.eye(4)
-            mat[:3, :3] = _quat_matrix(inst.get("rotation", [0, 0, 0, 1])) * \
-                np.array(inst.get("scale", [1, 1, 1]), np.float64)[None, :]
-            mat[:3, 3] = inst.get("translation", [0, 0, 0])
-        if not np.all(np.isfinite(mat)):
-            raise ValueError(f"{path}: instance {i}: non-finite transform")
-        out.append((assets[aid], mat))
-    return out
+                                        aperture, self.t_to_local(tmax), skip)
 
 
 def _parse(props):
@@ -292,14 +236,6 @@ def _parse(props):
         if not isinstance(path, str):
             raise ValueError(f"aggtool_lod: {k} must be the path of an .agg file or manifest")
         tw = props[k + "_to_world"] if (k + "_to_world") in keys else None
-        if Path(path).suffix.lower() == ".json":
-            outer = _matrix(tw, f"{k}_to_world")
-            opened = {}
-            for i, (agg, mat) in enumerate(manifest_instances(path)):
-                if agg not in opened:
-                    opened[agg] = aggtool.open(str(agg))
-                aggs.append(Aggregate(agg, outer @ mat, f"{k}[{i}]", opened[agg]))
-            continue
         aggs.append(Aggregate(path, tw, k))
     for k in keys:
         if k.endswith("_to_world") and k[: -len("_to_world")] not in keys:
@@ -406,17 +342,22 @@ class _AggtoolLod:
 
     # -- aggregates ---------------------------------------------------------------------------
 
-    def _through_others(self, skip, p, d, tmax, aperture):
-        """Transmittance of every aggregate but `skip` along world rays (shadow cones)."""
+    def _through_others(self, skip, p, d, tmax, aperture, instance=None):
+        """Transmittance of every aggregate but `skip` along world rays (shadow cones); of
+        aggregate `skip`, when it is an assembly, every instance but `instance` (per ray)."""
         t = np.ones(len(p))
         for j, a in enumerate(self.aggregates):
-            if j != skip and a.bounds is not None and len(p):
+            if a.bounds is None or not len(p):
+                continue
+            if j != skip:
                 t *= a.transmittance(p, d, aperture, tmax)
+            elif a.assembly and a.scene.instances > 1:
+                t *= a.transmittance(p, d, aperture, tmax, instance.astype(np.int64))
         return t
 
-    def _shade_hits(self, scene, rng, agg_of, level, key, p, wo, aperture):
-        """Reflected radiance of M aggregate hits towards wo (world), lit by Mitsuba's
-        emitters: one emitter sample and one ABSDF sample, MIS."""
+    def _shade_hits(self, scene, rng, agg_of, inst, level, key, p, wo, aperture):
+        """Reflected radiance of M aggregate hits (aggregate, instance, level, key) towards
+        wo (world), lit by Mitsuba's emitters: one emitter sample and one ABSDF sample, MIS."""
         m = len(p)
         out = np.zeros((m, 3))
         if m == 0:
@@ -429,77 +370,61 @@ class _AggtoolLod:
             sel = np.nonzero(agg_of == j)[0]
             if len(sel) == 0:
                 continue
-            lv, ky = level[sel], key[sel]
+            ins, lv, ky = inst[sel], level[sel], key[sel]
             wo_l = a.dir_to_local(wo[sel])
             # Emitter sample.
             lit = sel[(em_w[sel].max(axis=1) > 0) & (pdf_e[sel] > 0)]
             if len(lit):
                 k = np.searchsorted(sel, lit)
                 wi_l = a.dir_to_local(d_e[lit])
-                f, pdf_b = a.scene.voxel_eval(lv[k], ky[k], wi_l, wo_l[k])
-                _, inc = a.scene.voxel_visibility(lv[k], ky[k], wi_l)
-                tr = self._through_others(j, p[lit], d_e[lit], dist_e[lit], aperture)
+                f, pdf_b = a.scene.voxel_eval(lv[k], ky[k], wi_l, wo_l[k], ins[k])
+                _, inc = a.scene.voxel_visibility(lv[k], ky[k], wi_l, ins[k])
+                tr = self._through_others(j, p[lit], d_e[lit], dist_e[lit], aperture, ins[k])
                 mis = np.where(delta[lit].astype(bool), 1.0, _power_np(pdf_e[lit], pdf_b))
                 out[lit] += f * em_w[lit] * (inc * tr * mis)[:, None]
             # ABSDF sample.
-            wi_l, val, pdf = a.scene.voxel_sample(lv, ky, wo_l, u_b[sel])
+            wi_l, val, pdf = a.scene.voxel_sample(lv, ky, wo_l, u_b[sel], ins)
             ok = pdf > 0
             if ok.any():
                 s = sel[ok]
                 d_w = a.dir_to_world(wi_l[ok]).astype(np.float32)
                 le, pdf_l, dist = _batch(self._agg_bsdf(scene), len(s), (p[s], "p3"),
                                          (d_w, "v3"))
-                _, inc = a.scene.voxel_visibility(lv[ok], ky[ok], wi_l[ok])
-                tr = self._through_others(j, p[s], d_w, dist, aperture)
+                _, inc = a.scene.voxel_visibility(lv[ok], ky[ok], wi_l[ok], ins[ok])
+                tr = self._through_others(j, p[s], d_w, dist, aperture, ins[ok])
                 mis = _power_np(pdf[ok], pdf_l)
                 out[s] += val[ok] * le * (inc * tr * mis / pdf[ok])[:, None]
         return out
 
     def _aggregate_layers(self, scene, rng, o, d, t_mesh, aperture):
-        """Per aggregate: (entry distance, surfaces' radiance, transmittance) of every ray."""
+        """Per aggregate: (entry distance, surfaces' radiance, transmittance) of every ray.
+        The runtime picks one primitive per cone in proportion to its weight (`Scene.pick`:
+        an assembly's instances composed into one layer) and gives the weights' sum, an
+        unbiased estimate of Eq. 30's sum with the picked primitive's radiance."""
         n = len(o)
         picks, layers = [], []
         for j, a in enumerate(self.aggregates):
             if a.bounds is None:
                 continue
-            o_l, d_l = a.point_to_local(o), a.dir_to_local(d)
-            tmax_l = a.t_to_local(t_mesh)
-            h = a.scene.hits(o_l, d_l, aperture, tmax_l)
-            off, w = h["offsets"], h["weight"].astype(np.float64)
-            cnt = np.diff(off)
-            csum = np.concatenate([[0.0], np.cumsum(w)])
-            wsum = csum[off[1:]] - csum[off[:-1]]
-            tr = h["transmittance"].astype(np.float64)
-            # Clipped by a mesh inside the aggregate's bounds: what lies in front lets through
-            # at least 1 − its coverage.
-            clipped = (cnt > 0) & (tmax_l < a.exit_t(o_l, d_l))
-            tr = np.where(clipped, np.maximum(tr, np.clip(1.0 - wsum, 0.0, 1.0)), tr)
-            # As the runtime's own shading (TraceSettings::normalize): an unclipped cone's
-            # surfaces and transmittance divided by the sum of its weights, 1 where the baked
-            # visibility is consistent.
-            total = wsum + tr
-            norm = np.where(~clipped & (total > 0), 1.0 / np.where(total > 0, total, 1.0), 1.0)
-            tr, weight = tr * norm, wsum * norm
-            entry = np.full(n, np.inf)
-            hit = cnt > 0
-            entry[hit] = h["t"][off[:-1][hit]] * a.scale
-            # One primitive per cone, in proportion to its weight.
-            rays = np.nonzero(hit & (wsum > 0))[0]
-            target = csum[off[rays]] + rng.random(len(rays)) * wsum[rays]
-            k = np.searchsorted(csum, target, side="right") - 1
-            k = np.clip(k, off[rays], off[rays + 1] - 1)
-            p = o[rays] + (h["t"][k].astype(np.float64) * a.scale)[:, None] * d[rays]
-            picks.append((j, rays, h["level"][k], h["key"][k], p))
-            layers.append([entry, np.zeros((n, 3)), tr, weight])
+            r = a.scene.pick(a.point_to_local(o), a.dir_to_local(d), aperture,
+                             rng.random(n, dtype=np.float32), a.t_to_local(t_mesh))
+            weight = r["weight"].astype(np.float64)
+            entry = r["entry"].astype(np.float64) * a.scale
+            rays = np.nonzero(weight > 0)[0]
+            p = o[rays] + (r["t"][rays].astype(np.float64) * a.scale)[:, None] * d[rays]
+            picks.append((j, rays, r["instance"][rays], r["level"][rays], r["key"][rays], p))
+            layers.append([entry, np.zeros((n, 3)), r["transmittance"].astype(np.float64),
+                           weight])
         if not picks:
             return []
         agg_of = np.concatenate([np.full(len(r), j) for j, r, *_ in picks])
-        level = np.concatenate([x[2] for x in picks])
-        key = np.concatenate([x[3] for x in picks])
-        p = np.concatenate([x[4] for x in picks]).astype(np.float32)
+        inst = np.concatenate([x[2] for x in picks])
+        level = np.concatenate([x[3] for x in picks])
+        key = np.concatenate([x[4] for x in picks])
+        p = np.concatenate([x[5] for x in picks]).astype(np.float32)
         rays = np.concatenate([x[1] for x in picks])
         wo = (-d[rays]).astype(np.float32)
-        lo = self._shade_hits(scene, rng, agg_of, level, key, p, wo, aperture)
+        lo = self._shade_hits(scene, rng, agg_of, inst, level, key, p, wo, aperture)
         start = 0
         for (j, r, *_), layer in zip(picks, layers):
             layer[1][r] = lo[start:start + len(r)] * layer[3][r][:, None]

@@ -45,7 +45,9 @@ use super::manifest::Manifest;
 use crate::film::{Camera, Image, ImageStats};
 use crate::lights::Lights;
 use crate::math::sampling::Sampler;
-use crate::runtime::{Cone, ConeResult, LodScene, Placement, RuntimeError, TraceSettings};
+use crate::runtime::{
+    Cone, ConeResult, LayerHit, LodScene, Placement, RuntimeError, TraceSettings,
+};
 use crate::spatial::box_interval;
 use crate::trace::{offset_origin, Hit as MeshHit, Ray, SurfacePoint};
 
@@ -151,8 +153,18 @@ struct TraceScratch {
     pending: Vec<(f32, ConeResult)>,
 }
 
+/// Per-thread scratch of [`Assembly::layer_into`]: the instances along the cone, the layers
+/// traced but not composed yet (first hit, range in `raw`, transmittance), and their hits.
+#[derive(Default)]
+struct LayerScratch {
+    list: Vec<(f32, u32)>,
+    pending: Vec<(f32, usize, usize, f32)>,
+    raw: Vec<LayerHit>,
+}
+
 thread_local! {
     static TRACE_SCRATCH: RefCell<TraceScratch> = RefCell::default();
+    static LAYER_SCRATCH: RefCell<LayerScratch> = RefCell::default();
     /// [`Assembly::transmittance`]'s list (called from inside a trace, so its own).
     static SHADOW_SCRATCH: RefCell<Vec<(f32, u32)>> = RefCell::default();
 }
@@ -642,6 +654,73 @@ impl Assembly {
         })
     }
 
+    /// The primitives the world `cone` meets in every instance's aggregate, appended to `out`
+    /// as one layer for a host that shades them itself and composites the assembly over what
+    /// lies behind it (the Mitsuba host): each instance's layer ([`LodScene::layer_into`],
+    /// meshes not drawn), its weights times the transmittance of the instances composed in
+    /// front of it, in the order [`Assembly::trace`] composes them (by first hit), until what
+    /// is left to see falls below [`MIN_TRANSMITTANCE`]. Hits carry their instance, and their
+    /// `t` is the world cone's. Returns the transmittance behind the assembly.
+    pub fn layer_into(
+        &self,
+        cone: &Cone,
+        settings: &TraceSettings,
+        out: &mut Vec<LayerHit>,
+    ) -> f32 {
+        with_scratch(&LAYER_SCRATCH, |scratch| {
+            let LayerScratch { list, pending, raw } = scratch;
+            raw.clear();
+            pending.clear();
+            self.along(cone, None, true, list);
+            let mut acc = 1.0f32;
+            for &(entry, i) in list.iter() {
+                flush_layers(pending, raw, out, &mut acc, entry);
+                if acc <= MIN_TRANSMITTANCE {
+                    break;
+                }
+                let xf = self.xf(i as usize);
+                let (local, k) = local_cone(&xf, cone);
+                let a = raw.len();
+                let tr = self.scenes[self.manifest.asset_of(i as usize)]
+                    .layer_into(&local, settings, i, raw);
+                if raw.len() == a && tr >= 1.0 {
+                    continue;
+                }
+                for h in &mut raw[a..] {
+                    h.t /= k;
+                }
+                let first = raw.get(a).map_or(entry, |h| h.t);
+                let at = pending.partition_point(|p| p.0 > first);
+                pending.insert(at, (first, a, raw.len(), tr));
+            }
+            flush_layers(pending, raw, out, &mut acc, f32::INFINITY);
+            if acc <= MIN_TRANSMITTANCE {
+                0.0
+            } else {
+                acc
+            }
+        })
+    }
+
+    /// The aggregate instance `i` draws.
+    pub fn instance_scene(&self, i: usize) -> &LodScene {
+        &self.scenes[self.manifest.asset_of(i)]
+    }
+
+    /// World direction `w` in instance `i`'s space, unit length (zero for a zero vector).
+    pub fn direction_to_local(&self, i: usize, w: Vec3) -> Vec3 {
+        let m = Affine3A::from_cols_array(&self.world_to_local[i]);
+        m.transform_vector3(w).normalize_or_zero()
+    }
+
+    /// Instance `i`'s direction `v` in world space, unit length (zero for a zero vector).
+    pub fn direction_to_world(&self, i: usize, v: Vec3) -> Vec3 {
+        self.manifest
+            .transform(i)
+            .transform_vector3(v)
+            .normalize_or_zero()
+    }
+
     /// The first instance `cone` meets and how it is drawn there (mesh, or the level of its
     /// aggregate's first primitive), as [`Assembly::trace`] would draw it; `None` when the cone
     /// meets nothing. Shades nothing: what the level picture (`render --level-map`) shows.
@@ -699,6 +778,29 @@ impl Composite {
             self.primitives += r.primitives;
             self.transmittance *= r.transmittance;
         }
+    }
+}
+
+/// Appends, nearest first, the pending layers (first hit, range of `raw`, transmittance;
+/// nearest last) whose first hit is before `t` to `out`, their weights times what is left to
+/// see (`acc`), which each attenuates in turn ([`Assembly::layer_into`]).
+fn flush_layers(
+    pending: &mut Vec<(f32, usize, usize, f32)>,
+    raw: &[LayerHit],
+    out: &mut Vec<LayerHit>,
+    acc: &mut f32,
+    t: f32,
+) {
+    while let Some(&(first, a, b, tr)) = pending.last() {
+        if first > t {
+            break;
+        }
+        pending.pop();
+        out.extend(raw[a..b].iter().map(|h| LayerHit {
+            weight: h.weight * *acc,
+            ..*h
+        }));
+        *acc *= tr;
     }
 }
 

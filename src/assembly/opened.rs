@@ -8,7 +8,7 @@ use glam::Vec3;
 
 use super::{is_manifest, Assembly, AssemblyError};
 use crate::lights::Lights;
-use crate::runtime::{Cone, LodScene, PixelSamples, RuntimeError, TraceSettings};
+use crate::runtime::{Cone, LayerHit, LodScene, PixelSamples, RuntimeError, TraceSettings};
 
 /// Why a path could not be opened.
 #[derive(Debug, thiserror::Error)]
@@ -114,6 +114,71 @@ impl Opened {
         match self {
             Opened::Aggregate(s) => s.transmittance(cone, settings),
             Opened::Assembly(a) => a.transmittance(cone, settings, None),
+        }
+    }
+
+    /// [`Opened::transmittance`] leaving instance `skip` of an assembly out (a host's shadow
+    /// cone from a hit on that instance, whose own occlusion its interior visibility already
+    /// counts); ignored for an aggregate.
+    pub fn transmittance_skipping(
+        &self,
+        cone: &Cone,
+        settings: &TraceSettings,
+        skip: Option<usize>,
+    ) -> f32 {
+        match self {
+            Opened::Aggregate(s) => s.transmittance(cone, settings),
+            Opened::Assembly(a) => a.transmittance(cone, settings, skip),
+        }
+    }
+
+    /// The primitives `cone` meets, as one layer that a host shades and composites over what
+    /// lies behind: [`LodScene::layer_into`] (instance 0) or [`Assembly::layer_into`].
+    /// Returns the transmittance.
+    pub fn layer_into(
+        &self,
+        cone: &Cone,
+        settings: &TraceSettings,
+        out: &mut Vec<LayerHit>,
+    ) -> f32 {
+        match self {
+            Opened::Aggregate(s) => s.layer_into(cone, settings, 0, out),
+            Opened::Assembly(a) => a.layer_into(cone, settings, out),
+        }
+    }
+
+    /// Instances: the assembly's, 1 for an aggregate.
+    pub fn instance_count(&self) -> usize {
+        match self {
+            Opened::Aggregate(_) => 1,
+            Opened::Assembly(a) => a.manifest().instance_count(),
+        }
+    }
+
+    /// The aggregate that `instance` draws (0 for an aggregate), `None` out of range.
+    pub fn instance_scene(&self, instance: usize) -> Option<&LodScene> {
+        match self {
+            Opened::Aggregate(s) => (instance == 0).then_some(s),
+            Opened::Assembly(a) => {
+                (instance < a.manifest().instance_count()).then(|| a.instance_scene(instance))
+            }
+        }
+    }
+
+    /// A direction of the opened frame in `instance`'s own (the same for an aggregate), unit.
+    /// `instance` must be in range.
+    pub fn direction_to_local(&self, instance: usize, w: Vec3) -> Vec3 {
+        match self {
+            Opened::Aggregate(_) => crate::math::unit_or_zero(w),
+            Opened::Assembly(a) => a.direction_to_local(instance, w),
+        }
+    }
+
+    /// `instance`'s direction `v` in the opened frame, unit. `instance` must be in range.
+    pub fn direction_to_world(&self, instance: usize, v: Vec3) -> Vec3 {
+        match self {
+            Opened::Aggregate(_) => crate::math::unit_or_zero(v),
+            Opened::Assembly(a) => a.direction_to_world(instance, v),
         }
     }
 

@@ -594,6 +594,55 @@ impl LodScene {
         });
     }
 
+    /// The primitives `cone` meets, appended to `out` (tagged `instance`), with their weights
+    /// as a host compositing the aggregate over what lies behind it uses them; returns the
+    /// transmittance. A cone that leaves the aggregate's bounds before `cone.tmax` gets the
+    /// runtime's shading weights: Eq. 30's coverage weights (attenuated front to back) and the
+    /// background's weight, each divided by their sum ([`TraceSettings::normalize`]). A cone
+    /// that ends inside the bounds (at a host's surface, `cone.tmax`) keeps its weights and
+    /// lets through max(T, 1 − Σw): the surfaces behind the cut are not there to make up the
+    /// sum (an approximation where a mesh pierces an aggregate). The Mitsuba host's layer of
+    /// an aggregate; [`crate::assembly::Assembly::layer_into`] composes instances' layers.
+    pub fn layer_into(
+        &self,
+        cone: &Cone,
+        settings: &TraceSettings,
+        instance: u32,
+        out: &mut Vec<LayerHit>,
+    ) -> f32 {
+        let start = out.len();
+        let mut hits = self.hits(cone, settings);
+        let mut sum = 0.0f32;
+        for h in &mut hits {
+            let weight = crate::math::finite_or_zero(h.weight);
+            sum += weight;
+            out.push(LayerHit {
+                instance,
+                level: h.voxel.level() as u32,
+                key: h.voxel.key(),
+                t: h.t,
+                weight,
+            });
+        }
+        let transmittance = crate::math::finite_or_zero(hits.transmittance());
+        if out.len() > start {
+            let (lo, hi) = self.aggregate().bounds();
+            let (_, exit) = crate::spatial::box_interval(lo, hi, cone.origin, cone.dir.recip());
+            if cone.tmax < exit {
+                return transmittance.max((1.0 - sum).clamp(0.0, 1.0));
+            }
+        }
+        let total = sum + transmittance;
+        if total > 0.0 && total.is_finite() {
+            for h in &mut out[start..] {
+                h.weight /= total;
+            }
+            transmittance / total
+        } else {
+            transmittance
+        }
+    }
+
     /// The background's weight along a cone, the ABV of the face it enters the aggregate by
     /// (1 when it meets no primitive): what the aggregate lets through, for a host's shadow
     /// rays.
@@ -607,6 +656,21 @@ impl LodScene {
             1.0
         }
     }
+}
+
+/// One primitive of a host's layer ([`LodScene::layer_into`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct LayerHit {
+    /// The instance of an assembly (0 for a single aggregate).
+    pub instance: u32,
+    /// The voxel's level (0 = finest).
+    pub level: u32,
+    /// The voxel's Morton key in its level.
+    pub key: u64,
+    /// Where the cone's centre ray enters the primitive (the cone's ray parameter).
+    pub t: f32,
+    /// Its weight in the layer (see [`LodScene::layer_into`]).
+    pub weight: f32,
 }
 
 /// A voxel met by a cone: its ABSDF and its interior visibility. It holds the voxel's

@@ -201,10 +201,15 @@ def test_bad_input(tree, variant_guard, tmp_path):
 
 def test_a_manifest_renders_as_its_instances_placed_one_by_one(tree, variant_guard, tmp_path):
     """An `agg_` property naming an assembly manifest: its instances (here the tree twice, the
-    second moved, turned and scaled ×2, the whole manifest placed by `_to_world`) render exactly
-    as the same aggregates placed one by one with the composed transforms (same seed: the
-    integrator walks the same aggregates in the same order); a manifest naming an unknown
-    asset or a missing aggregate is a clear error."""
+    second moved, turned and scaled ×2, the whole manifest placed by `_to_world`) render as the
+    same aggregates placed one by one with the composed transforms. Not the same bits: the
+    manifest is one scene whose instances the runtime composes into one layer and picks one
+    hit from (`Scene.pick`), where separate aggregates are a layer and a pick each. With the
+    same seed the two draw mostly the same numbers (the trees barely overlap on screen), so
+    their difference is far below the noise between seeds: measured 0.005 relative RMSE
+    against 0.046 between seeds (scalar_rgb, 16 spp); allowed a quarter of the latter, and
+    the means within 1% (measured 0.00%). A manifest naming an unknown asset or a missing
+    aggregate is a clear error."""
     use_variant("scalar_rgb")
     import aggtool_mitsuba
     aggtool_mitsuba.register()
@@ -232,14 +237,17 @@ def test_a_manifest_renders_as_its_instances_placed_one_by_one(tree, variant_gua
     one_by_one = mi.load_dict({"type": "scene", "sensor": sensor, "sky": sky, "integrator": {
         "type": "aggtool_lod", "agg_a": str(agg), "agg_a_to_world": outer,
         "agg_b": str(agg), "agg_b_to_world": outer @ second}})
-    a = np.array(mi.render(by_manifest, spp=4, seed=3))
-    b = np.array(mi.render(one_by_one, spp=4, seed=3))
+    a = np.array(mi.render(by_manifest, spp=16, seed=3), np.float64)[..., :3]
+    b = np.array(mi.render(one_by_one, spp=16, seed=3), np.float64)[..., :3]
+    b2 = np.array(mi.render(one_by_one, spp=16, seed=5), np.float64)[..., :3]
     assert np.isfinite(a).all() and a.max() > 0
-    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+    assert abs(a.mean() / b.mean() - 1) < 0.01, (a.mean(), b.mean())
+    assert rel_rmse(a, b) < 0.25 * rel_rmse(b2, b), (rel_rmse(a, b), rel_rmse(b2, b))
     # Not the same picture as one tree alone: the second instance shows.
     alone = mi.load_dict({"type": "scene", "sensor": sensor, "sky": sky, "integrator": {
         "type": "aggtool_lod", "agg_a": str(agg), "agg_a_to_world": outer}})
-    assert np.abs(np.array(mi.render(alone, spp=4, seed=3)) - a).max() > 1e-3
+    assert rel_rmse(np.array(mi.render(alone, spp=16, seed=3), np.float64)[..., :3], a) > \
+        rel_rmse(b2, b)
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"version": 1, "assets": {"tree": {"source": str(glb)}},
                                "instances": [{"asset": "oak"}]}))

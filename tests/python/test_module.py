@@ -303,6 +303,48 @@ def test_traversal_layer(aggtool_module):
         host /= np.where(total > 0, total, 1)[:, None]
         print(f"host shading {host.mean():.5f}, trace {bare[:, :3].mean():.5f}")
         assert abs(host.mean() / bare[:, :3].mean() - 1) < 0.03
+        # pick: one primitive per cone in proportion to its weight, with the layer's weight
+        # sum and transmittance as the runtime normalises them (each cone's hits and
+        # transmittance divided by their sum), unnormalised where tmax ends the cone inside
+        # the bounds (transmittance max(T, 1 − Σw)).
+        u = rng.random(n, dtype=np.float32)
+        pk = scene.pick(o, dirs, ap, u)
+        assert pk["instance"].dtype == np.uint32 and pk["key"].dtype == np.uint64
+        assert (pk["instance"] == 0).all() and scene.instances == 1
+        met = np.diff(off) > 0
+        total = wsum + tr
+        assert np.allclose(pk["weight"][met], (wsum / total)[met], rtol=1e-5, atol=1e-7)
+        # (A cone whose primitives all weigh 0 lets everything through, as in the runtime.)
+        want = np.where(total > 0, tr / np.where(total > 0, total, 1), 1)
+        assert np.allclose(pk["transmittance"], want, rtol=1e-5, atol=1e-7)
+        assert np.array_equal(pk["entry"][met], t[off[:-1][met]])
+        assert np.isinf(pk["entry"][~met]).all() and np.isinf(pk["t"][pk["weight"] == 0]).all()
+        # The pick is the hit where the running weight passes u·Σw.
+        for i in np.nonzero(met)[0][:200]:
+            ws = w[off[i]:off[i + 1]]
+            k = min(int(np.searchsorted(np.cumsum(ws), u[i] * ws.sum(), side="right")), len(ws) - 1)
+            while ws[k] == 0:
+                k -= 1
+            j = off[i] + k
+            assert (pk["level"][i], pk["key"][i], pk["t"][i]) == (lv[j], ky[j], t[j]), i
+        pc = scene.pick(o, dirs, ap, u, cut)
+        wc = np.zeros(n)
+        np.add.at(wc, np.repeat(np.arange(n), np.diff(hc["offsets"])), hc["weight"])
+        with np.errstate(divide="ignore"):
+            inv = 1 / dirs.astype(np.float64)
+        exit_t = np.maximum((lo - o) * inv, (hi - o) * inv).min(axis=1)
+        inside = (wc > 0) & (cut < exit_t)
+        assert inside.any()
+        assert np.allclose(pc["weight"][inside], wc[inside], rtol=1e-5)
+        # (1 − Σw in float32 there: a few 1e-8 off near Σw = 1.)
+        assert np.allclose(pc["transmittance"][inside],
+                           np.maximum(hc["transmittance"], 1 - wc)[inside], rtol=1e-5, atol=1e-6)
+        with pytest.raises(ValueError, match=r"u must have shape"):
+            scene.pick(o, dirs, ap, u[:3])
+        with pytest.raises(ValueError, match="u 1: not finite"):
+            scene.pick(o[:2], dirs[:2], ap, np.float32([0.5, np.nan]))
+        with pytest.raises(ValueError, match="instance 0: 1 is out of range"):
+            scene.voxel_eval(lv[:1], ky[:1], wi[:1], wo[:1], np.uint32([1]))
         # Bad input.
         with pytest.raises(TypeError):
             scene.voxel_eval(lv.astype(np.int64), ky, wi, wo)
@@ -359,6 +401,27 @@ def test_open_a_manifest(aggtool_module):
         assert info["assets"][0]["instances"] == 2
         with pytest.raises(aggtool.AggError, match="assembly"):
             scene.hits(o, d, 0.001)
+        # The traversal layer a host shades from: one layer of every instance (`pick`), the
+        # voxels by instance, shadow cones leaving an instance out.
+        assert scene.instances == 2
+        u = np.float32([0.3, 0.3, 0.3])
+        pk = scene.pick(o, d, 0.001, u)
+        alone = single.pick(o[:1], d[:1], 0.001, u[:1])
+        assert pk["instance"][:2].tolist() == [0, 1] and pk["weight"][2] == 0
+        assert pk["transmittance"][2] == 1 and np.isinf(pk["t"][2])
+        # The second tree is the first moved by 3 widths: the same layer.
+        for k in ("weight", "transmittance", "t", "entry"):
+            assert np.allclose(pk[k][:2], alone[k][0], rtol=1e-5), k
+        assert pk["level"][1] == alone["level"][0] and pk["key"][1] == alone["key"][0]
+        wo = -d[:2]
+        wi = np.float32([[0, 1, 0], [0.6, 0.8, 0]])
+        f, p = scene.voxel_eval(pk["level"][:2], pk["key"][:2], wi, wo, pk["instance"][:2])
+        f1, p1 = single.voxel_eval(alone["level"].repeat(2), alone["key"].repeat(2), wi, wo)
+        assert np.allclose(f, f1, rtol=1e-5) and np.allclose(p, p1, rtol=1e-5)
+        with pytest.raises(ValueError, match="need `instance`"):
+            scene.voxel_visibility(pk["level"][:1], pk["key"][:1], wi[:1])
+        t_skip = scene.transmittance(o, d, 0.001, None, np.int64([0, 0, -1]))
+        assert t_skip[0] == 1 and t_skip[1] == t[1] and t_skip[2] == 1
         m.write_text(json.dumps({"version": 1,
                                  "assets": {"oak": {"source": "foliage.glb", "aggregate": "gone.agg"}},
                                  "instances": [{"asset": "oak"}]}))

@@ -7,10 +7,12 @@
 //!   `tmax` clips each cone at a host's own surface and `background=False` leaves the
 //!   environment out, for compositing over what lies behind;
 //! - the traversal layer for hosts that shade aggregate hits themselves (as the Mitsuba host
-//!   does): `.hits(...)` (every primitive each cone meets: level, Morton key, t, coverage
-//!   weight, and the transmittance), `.transmittance(...)` (shadow cones),
-//!   `.voxel_eval(...)`, `.voxel_sample(...)` and `.voxel_visibility(...)`, all batched over
-//!   numpy arrays with the GIL released;
+//!   does): `.pick(...)` (one primitive per cone picked by weight, with the layer's weight sum
+//!   and transmittance; an assembly's instances composed into one layer), `.hits(...)` (every
+//!   primitive each cone meets: level, Morton key, t, coverage weight, and the
+//!   transmittance), `.transmittance(...)` (shadow cones, optionally leaving an instance out),
+//!   `.voxel_eval(...)`, `.voxel_sample(...)` and `.voxel_visibility(...)` (by instance for an
+//!   assembly), all batched over numpy arrays with the GIL released;
 //! - `aggtool.Lights(constant=(1, 1, 1), sun_direction=None, sun_irradiance=None)` and
 //!   `.set_environment(pixels (H, W, 3) float32, intensity=1, rotation_deg=0)`;
 //! - `aggtool.convert(source, output=None, preset="default", progress=None, **overrides)` →
@@ -27,7 +29,7 @@ use std::path::PathBuf;
 use aggtool::assembly::Opened;
 use aggtool::bsdf::Bsdf;
 use aggtool::lights::{EnvMap, Environment, Lights as RtLights, Sun};
-use aggtool::runtime::{Cone, LodScene, TraceSettings};
+use aggtool::runtime::{Cone, LayerHit, LodScene, TraceSettings, VoxelHandle};
 use glam::Vec2;
 use glam::Vec3;
 use numpy::{
@@ -186,8 +188,8 @@ impl Scene {
     fn lod(&self) -> PyResult<&LodScene> {
         self.scene.aggregate().ok_or_else(|| {
             agg_err(format!(
-                "{}: an assembly: hits and voxel_* take one aggregate (open an asset's .agg); \
-                 trace and transmittance take either",
+                "{}: an assembly: hits takes one aggregate (open an asset's .agg); pick, \
+                 voxel_*, trace and transmittance take either",
                 self.path.display()
             ))
         })
@@ -199,6 +201,41 @@ impl Scene {
             Some(e) => Err(agg_err(format!("{}: {e}", self.path.display()))),
             None => Ok(()),
         }
+    }
+
+    /// The instances of M voxels: `instance` (M,) uint32 as `pick` gives them, checked
+    /// against the instance count; all 0 for an aggregate when omitted (an assembly needs
+    /// them).
+    fn instance_ids(
+        &self,
+        instance: Option<&PyReadonlyArray1<'_, u32>>,
+        m: usize,
+    ) -> PyResult<Vec<u32>> {
+        let Some(a) = instance else {
+            return match self.scene {
+                Opened::Aggregate(_) => Ok(vec![0; m]),
+                Opened::Assembly(_) => Err(PyValueError::new_err(
+                    "an assembly's voxels need `instance` (as `pick` gives it)",
+                )),
+            };
+        };
+        let s = a
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("instance must be C-contiguous"))?;
+        if s.len() != m {
+            return Err(PyValueError::new_err(format!(
+                "{m} voxels but {} instances",
+                s.len()
+            )));
+        }
+        let count = self.scene.instance_count();
+        if let Some(i) = s.iter().position(|&x| x as usize >= count) {
+            return Err(PyValueError::new_err(format!(
+                "instance {i}: {} is out of range ({count} instances)",
+                s[i]
+            )));
+        }
+        Ok(s.to_vec())
     }
 
     /// The per-voxel results, or an error naming the first voxel that does not exist.
@@ -299,6 +336,13 @@ fn cones(
     Ok(cones)
 }
 
+/// Voxel (`level`, `key`) of the aggregate `instance` draws (checked by `instance_ids`).
+fn voxel_of(scene: &Opened, instance: u32, level: u32, key: u64) -> Option<VoxelHandle<'_>> {
+    scene
+        .instance_scene(instance as usize)?
+        .voxel(level as usize, key)
+}
+
 /// The voxels of a batch: `level` (M,) uint32 and `key` (M,) uint64 of the same length.
 fn voxel_ids<'a>(
     level: &'a PyReadonlyArray1<'_, u32>,
@@ -352,6 +396,12 @@ impl Scene {
         self.scene
             .bounds()
             .map(|(a, b)| (a.to_array(), b.to_array()))
+    }
+
+    /// Instances: an assembly's, 1 for an aggregate (`pick`'s `instance` indexes them).
+    #[getter]
+    fn instances(&self) -> usize {
+        self.scene.instance_count()
     }
 
     /// The levels' resolutions, finest first.
@@ -526,7 +576,11 @@ impl Scene {
     /// What the aggregate lets through along each cone (`LodScene::transmittance`): the ABV
     /// of the face a cone enters by, 1 when it meets no primitive before `tmax`. For a host's
     /// shadow cones from its own surfaces towards its lights. (N,) float32; releases the GIL.
-    #[pyo3(signature = (origins, directions, aperture, tmax = None))]
+    ///
+    /// `skip`, (N,) int64, leaves instance skip[i] of an assembly out of cone i (a shadow cone
+    /// from a hit on that instance: its own occlusion is in the hit's `voxel_visibility`);
+    /// negative for none.
+    #[pyo3(signature = (origins, directions, aperture, tmax = None, skip = None))]
     fn transmittance<'py>(
         &self,
         py: Python<'py>,
@@ -534,18 +588,143 @@ impl Scene {
         directions: PyReadonlyArray2<'py, f32>,
         aperture: f32,
         tmax: Option<PyReadonlyArray1<'py, f32>>,
+        skip: Option<PyReadonlyArray1<'py, i64>>,
     ) -> PyResult<Bound<'py, PyArray1<f32>>> {
         let cones = cones(&origins, &directions, aperture, tmax.as_ref())?;
+        let skip = match &skip {
+            None => None,
+            Some(a) => {
+                let s = a
+                    .as_slice()
+                    .map_err(|_| PyValueError::new_err("skip must be C-contiguous"))?;
+                if s.len() != cones.len() {
+                    return Err(PyValueError::new_err(format!(
+                        "skip must have shape ({},), not ({},)",
+                        cones.len(),
+                        s.len()
+                    )));
+                }
+                Some(s)
+            }
+        };
         let scene = &self.scene;
         let out: Vec<f32> = py.detach(|| {
             let settings = TraceSettings::default();
             cones
                 .par_iter()
-                .map(|c| scene.transmittance(c, &settings))
+                .enumerate()
+                .map(|(i, c)| {
+                    let skip = skip.and_then(|s| usize::try_from(s[i]).ok());
+                    scene.transmittance_skipping(c, &settings, skip)
+                })
                 .collect()
         });
         self.check()?;
         Ok(PyArray1::from_vec(py, out))
+    }
+
+    /// One primitive per cone for a host that shades one hit a cone and composites the
+    /// aggregate (or the assembly: every instance in one layer) over what lies behind it, as
+    /// the Mitsuba host does. Cones as for `trace` (`tmax` clips them at the host's surface);
+    /// `u` (N,) float32 in [0, 1) picks each cone's primitive in proportion to its weight.
+    /// Returns a dict of (N,) numpy arrays:
+    /// - `weight` float32: the sum of the layer's weights, the share of the pixel its
+    ///   surfaces cover: the picked primitive's radiance times it estimates the layer's
+    ///   (`LodScene::layer_into`: the runtime's normalised weights, or unnormalised where the
+    ///   cone ends inside the bounds);
+    /// - `transmittance` float32: what the layer lets through to what lies behind;
+    /// - `entry` float32: where the cone meets its first primitive (inf for none);
+    /// - `instance` uint32 (0 for an aggregate), `level` uint32, `key` uint64 and `t` float32:
+    ///   the picked primitive (zeros and t = inf where `weight` is 0).
+    ///
+    /// Distances are the cone's (world units of the opened frame). Releases the GIL.
+    #[pyo3(signature = (origins, directions, aperture, u, tmax = None))]
+    fn pick<'py>(
+        &self,
+        py: Python<'py>,
+        origins: PyReadonlyArray2<'py, f32>,
+        directions: PyReadonlyArray2<'py, f32>,
+        aperture: f32,
+        u: PyReadonlyArray1<'py, f32>,
+        tmax: Option<PyReadonlyArray1<'py, f32>>,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let cones = cones(&origins, &directions, aperture, tmax.as_ref())?;
+        let u = u
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("u must be C-contiguous"))?;
+        if u.len() != cones.len() {
+            return Err(PyValueError::new_err(format!(
+                "u must have shape ({},), not ({},)",
+                cones.len(),
+                u.len()
+            )));
+        }
+        if let Some(i) = u.iter().position(|x| !x.is_finite()) {
+            return Err(PyValueError::new_err(format!("u {i}: not finite")));
+        }
+        let scene = &self.scene;
+        let picks: Vec<(f32, f32, f32, LayerHit)> = py.detach(|| {
+            let settings = TraceSettings::default();
+            cones
+                .par_iter()
+                .zip(u)
+                .map_init(Vec::new, |buf: &mut Vec<LayerHit>, (c, &u)| {
+                    buf.clear();
+                    let tr = scene.layer_into(c, &settings, buf);
+                    let sum: f32 = buf.iter().map(|h| h.weight).sum();
+                    let entry = buf.first().map_or(f32::INFINITY, |h| h.t);
+                    let none = LayerHit {
+                        t: f32::INFINITY,
+                        ..LayerHit::default()
+                    };
+                    if !(sum > 0.0) {
+                        return (0.0, tr, entry, none);
+                    }
+                    // The first hit whose running sum passes u·Σw; the last with a weight
+                    // where rounding leaves the target past the end.
+                    let target = u.clamp(0.0, 1.0) * sum;
+                    let mut run = 0.0f32;
+                    let mut picked = None;
+                    for h in buf.iter().filter(|h| h.weight > 0.0) {
+                        run += h.weight;
+                        picked = Some(*h);
+                        if run > target {
+                            break;
+                        }
+                    }
+                    (sum, tr, entry, picked.unwrap_or(none))
+                })
+                .collect()
+        });
+        self.check()?;
+        let n = picks.len();
+        let mut cols = (
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+        );
+        for (w, tr, entry, h) in picks {
+            cols.0.push(w);
+            cols.1.push(tr);
+            cols.2.push(entry);
+            cols.3.push(h.instance);
+            cols.4.push(h.level);
+            cols.5.push(h.key);
+            cols.6.push(h.t);
+        }
+        let d = PyDict::new(py);
+        d.set_item("weight", PyArray1::from_vec(py, cols.0))?;
+        d.set_item("transmittance", PyArray1::from_vec(py, cols.1))?;
+        d.set_item("entry", PyArray1::from_vec(py, cols.2))?;
+        d.set_item("instance", PyArray1::from_vec(py, cols.3))?;
+        d.set_item("level", PyArray1::from_vec(py, cols.4))?;
+        d.set_item("key", PyArray1::from_vec(py, cols.5))?;
+        d.set_item("t", PyArray1::from_vec(py, cols.6))?;
+        Ok(d)
     }
 
     /// The ABSDF of M voxels (`level` (M,) uint32 and `key` (M,) uint64, as `hits` gives
@@ -553,6 +732,7 @@ impl Scene {
     /// viewer, in the aggregate's frame; normalised here): returns (value (M, 3), pdf (M,))
     /// float32, f̂(ω_i, ω_o) (it carries its own cosines: reflected radiance is
     /// ∫ f̂ L_i V̂ dω_i) and the solid-angle pdf of `voxel_sample` drawing ω_i.
+    #[pyo3(signature = (level, key, wi, wo, instance = None))]
     fn voxel_eval<'py>(
         &self,
         py: Python<'py>,
@@ -560,17 +740,24 @@ impl Scene {
         key: PyReadonlyArray1<'py, u64>,
         wi: PyReadonlyArray2<'py, f32>,
         wo: PyReadonlyArray2<'py, f32>,
+        instance: Option<PyReadonlyArray1<'py, u32>>,
     ) -> PyResult<(Array<'py>, F32s<'py>)> {
         let (lv, ky) = voxel_ids(&level, &key)?;
         let wi = unit_rows(&wi, "wi", lv.len())?;
         let wo = unit_rows(&wo, "wo", lv.len())?;
-        let scene = self.lod()?;
+        let inst = self.instance_ids(instance.as_ref(), lv.len())?;
+        let scene = &self.scene;
         let r: Vec<Option<(Vec3, f32)>> = py.detach(|| {
             (0..lv.len())
                 .into_par_iter()
                 .map(|i| {
-                    let v = scene.voxel(lv[i] as usize, ky[i])?;
-                    Some(v.eval_pdf(wi[i], wo[i]))
+                    let v = voxel_of(scene, inst[i], lv[i], ky[i])?;
+                    let j = inst[i] as usize;
+                    let (wi, wo) = (
+                        scene.direction_to_local(j, wi[i]),
+                        scene.direction_to_local(j, wo[i]),
+                    );
+                    Some(v.eval_pdf(wi, wo))
                 })
                 .collect()
         });
@@ -591,6 +778,7 @@ impl Scene {
     /// uniform numbers `u` (M, 3) in [0, 1): returns (wi (M, 3), value (M, 3), pdf (M,))
     /// float32: the direction, f̂(ω_i, ω_o) for it (as `voxel_eval` gives it, not divided by
     /// the pdf) and its solid-angle pdf; pdf 0 (and zeros) where no direction was drawn.
+    #[pyo3(signature = (level, key, wo, u, instance = None))]
     fn voxel_sample<'py>(
         &self,
         py: Python<'py>,
@@ -598,6 +786,7 @@ impl Scene {
         key: PyReadonlyArray1<'py, u64>,
         wo: PyReadonlyArray2<'py, f32>,
         u: PyReadonlyArray2<'py, f32>,
+        instance: Option<PyReadonlyArray1<'py, u32>>,
     ) -> PyResult<(Array<'py>, Array<'py>, F32s<'py>)> {
         let (lv, ky) = voxel_ids(&level, &key)?;
         let wo = unit_rows(&wo, "wo", lv.len())?;
@@ -611,16 +800,21 @@ impl Scene {
         if let Some(i) = us.iter().position(|x| !x.is_finite()) {
             return Err(PyValueError::new_err(format!("u {}: not finite", i / 3)));
         }
-        let scene = self.lod()?;
+        let inst = self.instance_ids(instance.as_ref(), lv.len())?;
+        let scene = &self.scene;
         let r: Vec<Option<(Vec3, Vec3, f32)>> = py.detach(|| {
             (0..lv.len())
                 .into_par_iter()
                 .map(|i| {
-                    let v = scene.voxel(lv[i] as usize, ky[i])?;
+                    let v = voxel_of(scene, inst[i], lv[i], ky[i])?;
+                    let j = inst[i] as usize;
                     let x = Vec3::from_slice(&us[3 * i..])
                         .clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
-                    Some(match v.sample(wo[i], x.x, Vec2::new(x.y, x.z)) {
-                        Some(s) if s.pdf > 0.0 && s.pdf.is_finite() => (s.wi, s.value, s.pdf),
+                    let wo = scene.direction_to_local(j, wo[i]);
+                    Some(match v.sample(wo, x.x, Vec2::new(x.y, x.z)) {
+                        Some(s) if s.pdf > 0.0 && s.pdf.is_finite() => {
+                            (scene.direction_to_world(j, s.wi), s.value, s.pdf)
+                        }
                         _ => (Vec3::ZERO, Vec3::ZERO, 0.0),
                     })
                 })
@@ -649,22 +843,26 @@ impl Scene {
     /// incident (M,)) float32, the AIV V̂(d) (Eq. 25) and the visibility the runtime uses for
     /// light arriving from d, min(1, V̂(d)/η): what stands in for a shadow ray inside the
     /// aggregate (a host multiplies it with its own shadow rays outside).
+    #[pyo3(signature = (level, key, d, instance = None))]
     fn voxel_visibility<'py>(
         &self,
         py: Python<'py>,
         level: PyReadonlyArray1<'py, u32>,
         key: PyReadonlyArray1<'py, u64>,
         d: PyReadonlyArray2<'py, f32>,
+        instance: Option<PyReadonlyArray1<'py, u32>>,
     ) -> PyResult<(F32s<'py>, F32s<'py>)> {
         let (lv, ky) = voxel_ids(&level, &key)?;
         let d = unit_rows(&d, "d", lv.len())?;
-        let scene = self.lod()?;
+        let inst = self.instance_ids(instance.as_ref(), lv.len())?;
+        let scene = &self.scene;
         let r: Vec<Option<(f32, f32)>> = py.detach(|| {
             (0..lv.len())
                 .into_par_iter()
                 .map(|i| {
-                    let v = scene.voxel(lv[i] as usize, ky[i])?;
-                    Some((v.aiv(d[i]), v.incident_visibility(d[i])))
+                    let v = voxel_of(scene, inst[i], lv[i], ky[i])?;
+                    let d = scene.direction_to_local(inst[i] as usize, d[i]);
+                    Some((v.aiv(d), v.incident_visibility(d)))
                 })
                 .collect()
         });
