@@ -503,6 +503,58 @@ fn continuous_lod_blends_neighbouring_levels() {
 /// see anything, so the AIV averages are at most 1/2 and their product (Eq. 25) rendered the
 /// lattice at 57% of the reference's mean radiance. With the exposure correction the mean over
 /// the rays that meet the object matches the reference's within 15%.
+/// The level-of-detail bias walks the level the footprint 2^bias times as wide would ask for:
+/// +1 the next coarser level, −1 the next finer, under the discrete choice and (shifted by the
+/// same amount) under the continuous one; a non-finite bias is no bias; a forced level ignores
+/// it.
+#[test]
+fn lod_bias_shifts_the_level_by_whole_levels() {
+    let lod = baked(&white_plane(), &small(16));
+    assert!(lod.level_count() >= 4, "{} levels", lod.level_count());
+    let base = lod.grid(0).voxel_size();
+    let aperture = 1e-3f32;
+    // The footprint's level 1.75 (discrete: 1) at the plane.
+    let t = 1.75f32.exp2() * base / (0.5 * aperture).tan();
+    let c = cone(Vec3::new(0.13, t, 0.21), Vec3::NEG_Y, aperture);
+    let level = |s: TraceSettings, u: f32| {
+        let h = lod.hits_dithered(&c, &s, u).next().expect("the plane");
+        h.voxel.level()
+    };
+    let discrete = TraceSettings {
+        continuous_lod: false,
+        ..Default::default()
+    };
+    for (bias, want) in [
+        (0.0, 1),
+        (1.0, 2),
+        (-1.0, 0),
+        (0.1, 1),
+        (0.4, 2),
+        (f32::NAN, 1),
+    ] {
+        let s = TraceSettings {
+            lod_bias: bias,
+            ..discrete
+        };
+        assert_eq!(level(s, 0.5), want, "discrete, bias {bias}");
+    }
+    // Continuous, level ⌊f + u − 1/2⌋: u = 0.1 takes the finer of levels 1 and 2 at
+    // f = 1.75 and u = 0.9 the coarser; with bias 1, levels 2 and 3.
+    for (bias, u, want) in [(0.0, 0.1, 1), (0.0, 0.9, 2), (1.0, 0.1, 2), (1.0, 0.9, 3)] {
+        let s = TraceSettings {
+            lod_bias: bias,
+            ..Default::default()
+        };
+        assert_eq!(level(s, u), want, "continuous, bias {bias}, u {u}");
+    }
+    let forced = TraceSettings {
+        level: Some(0),
+        lod_bias: 2.0,
+        ..Default::default()
+    };
+    assert_eq!(level(forced, 0.5), 0, "a forced level");
+}
+
 #[test]
 fn closed_geometry_keeps_its_brightness() {
     let scene = generated("lattice", 6000);

@@ -21,6 +21,9 @@ Parameters (properties of the integrator):
                                      projective or non-finite transforms are refused)
     hide_emitters         boolean    hide the environment where camera rays escape
                                      (default: false)
+    lod_bias              float      level-of-detail bias in levels (default 0, the
+                                     footprint's level; 1 walks the next coarser level:
+                                     faster where cones cross many voxels, blurrier)
 
 `mi.render(scene, spp=N, seed=S)`: N samples per pixel (default: the sensor's sampler's
 count), S seeds numpy's PCG64 (one stream per batch of rays).
@@ -218,11 +221,11 @@ class Aggregate:
         """World distances along unit directions → local ones (inf stays inf)."""
         return (np.asarray(t, np.float64) / self.scale).astype(np.float32)
 
-    def transmittance(self, p, d, aperture, tmax, skip=None):
+    def transmittance(self, p, d, aperture, tmax, skip=None, lod_bias=0.0):
         """What this aggregate lets through along world rays p + t d, t < tmax; `skip`
         (per ray, an assembly's instance or −1) leaves that instance out."""
         return self.scene.transmittance(self.point_to_local(p), self.dir_to_local(d),
-                                        aperture, self.t_to_local(tmax), skip)
+                                        aperture, self.t_to_local(tmax), skip, lod_bias)
 
 
 def _parse(props):
@@ -240,9 +243,9 @@ def _parse(props):
     for k in keys:
         if k.endswith("_to_world") and k[: -len("_to_world")] not in keys:
             raise ValueError(f"aggtool_lod: {k} has no {k[:-len('_to_world')]} path beside it")
-        if not k.startswith("agg_") and k not in ("hide_emitters",):
+        if not k.startswith("agg_") and k not in ("hide_emitters", "lod_bias"):
             raise ValueError(f"aggtool_lod: unknown property {k!r} (agg_<name>, "
-                             f"agg_<name>_to_world, hide_emitters)")
+                             f"agg_<name>_to_world, hide_emitters, lod_bias)")
     return aggs
 
 
@@ -257,6 +260,11 @@ class _AggtoolLod:
         self.aggregates += list(aggregates or [])
         self.hide_emitters = bool(props["hide_emitters"]) if (
             props is not None and "hide_emitters" in props.keys()) else False
+        self.lod_bias = float(props["lod_bias"]) if (
+            props is not None and "lod_bias" in props.keys()) else 0.0
+        if not (math.isfinite(self.lod_bias) and -8 <= self.lod_bias <= 8):
+            raise ValueError(f"aggtool_lod: lod_bias must be between -8 and 8 levels, "
+                             f"not {self.lod_bias}")
 
     # -- Mitsuba-side phases (written once for scalar and JIT variants) --------------------
 
@@ -350,9 +358,10 @@ class _AggtoolLod:
             if a.bounds is None or not len(p):
                 continue
             if j != skip:
-                t *= a.transmittance(p, d, aperture, tmax)
+                t *= a.transmittance(p, d, aperture, tmax, None, self.lod_bias)
             elif a.assembly and a.scene.instances > 1:
-                t *= a.transmittance(p, d, aperture, tmax, instance.astype(np.int64))
+                t *= a.transmittance(p, d, aperture, tmax, instance.astype(np.int64),
+                                     self.lod_bias)
         return t
 
     def _shade_hits(self, scene, rng, agg_of, inst, level, key, p, wo, aperture):
@@ -407,7 +416,8 @@ class _AggtoolLod:
             if a.bounds is None:
                 continue
             r = a.scene.pick(a.point_to_local(o), a.dir_to_local(d), aperture,
-                             rng.random(n, dtype=np.float32), a.t_to_local(t_mesh))
+                             rng.random(n, dtype=np.float32), a.t_to_local(t_mesh),
+                             self.lod_bias)
             weight = r["weight"].astype(np.float64)
             entry = r["entry"].astype(np.float64) * a.scale
             rays = np.nonzero(weight > 0)[0]

@@ -152,7 +152,7 @@ pub struct Hits<'s> {
     /// The ray parameter from which the footprint asks for a coarser level than `li`.
     t_switch: f32,
     /// tan(θ/2) as the level choice reads it: times 2^(u − 1/2) for the cone's dither u under
-    /// [`TraceSettings::continuous_lod`].
+    /// [`TraceSettings::continuous_lod`], and 2^bias for [`TraceSettings::lod_bias`].
     lod_tan: f32,
 }
 
@@ -206,10 +206,16 @@ impl LodScene {
     ) -> Hits<'_> {
         let inv = cone.dir.recip();
         let tan_half = half_tan(cone.aperture);
+        let bias = if settings.lod_bias.is_finite() {
+            settings.lod_bias.clamp(-16.0, 16.0)
+        } else {
+            0.0
+        };
         let lod_tan = match dither {
             Some(u) if super::shade::draws_dither(settings) && u.is_finite() => {
-                tan_half * (u.clamp(0.0, 1.0) - 0.5).exp2()
+                tan_half * (u.clamp(0.0, 1.0) - 0.5 + bias).exp2()
             }
+            _ if bias != 0.0 => tan_half * bias.exp2(),
             _ => tan_half,
         };
         let mut h = Hits {

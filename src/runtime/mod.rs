@@ -171,6 +171,12 @@ pub struct TraceSettings {
     /// about half of a cone's time. Hosts' batches ([`LodScene::trace_batch`]) trace their
     /// own cones.
     pub samples_per_walk: u32,
+    /// Level-of-detail bias, in levels: each cone chooses its level as if its footprint were
+    /// 2^bias times as wide (a texture sampler's LOD bias). +1 walks the next coarser level,
+    /// whose voxels a cone crosses half as many of, for about half the walk's time and a
+    /// blurrier picture; negative values are sharper and slower. 0 (the default) is
+    /// Algorithm 1's choice. Non-finite values count as 0.
+    pub lod_bias: f32,
 }
 
 /// The fewest walks a pixel gets when [`TraceSettings::samples_per_walk`] is left to choose:
@@ -201,6 +207,7 @@ impl Default for TraceSettings {
             normalize: true,
             continuous_lod: true,
             samples_per_walk: 0,
+            lod_bias: 0.0,
         }
     }
 }

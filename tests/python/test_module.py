@@ -343,6 +343,12 @@ def test_traversal_layer(aggtool_module):
             scene.pick(o, dirs, ap, u[:3])
         with pytest.raises(ValueError, match="u 1: not finite"):
             scene.pick(o[:2], dirs[:2], ap, np.float32([0.5, np.nan]))
+        # A level-of-detail bias walks coarser levels; a bad one is refused.
+        coarse = scene.pick(o, dirs, ap, u, lod_bias=5.0)
+        seen, seen2 = pk["weight"] > 0, coarse["weight"] > 0
+        assert coarse["level"][seen2].mean() > pk["level"][seen].mean() + 1
+        with pytest.raises(ValueError, match="lod_bias must be"):
+            scene.trace(o[:2], dirs[:2], ap, lod_bias=float("nan"))
         with pytest.raises(ValueError, match="instance 0: 1 is out of range"):
             scene.voxel_eval(lv[:1], ky[:1], wi[:1], wo[:1], np.uint32([1]))
         # Bad input.
