@@ -21,6 +21,19 @@ pub enum OpenError {
     Assembly(#[from] AssemblyError),
 }
 
+/// One cone's pick from its layer: [`Opened::pick`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LayerPick {
+    /// The sum of the layer's weights (0 when nothing was picked).
+    pub weight: f32,
+    /// What the layer lets through to what lies behind.
+    pub transmittance: f32,
+    /// The cone's ray parameter at its first hit (infinite for none).
+    pub entry: f32,
+    /// The picked primitive; `None` where no hit weighs anything.
+    pub hit: Option<LayerHit>,
+}
+
 /// An opened aggregate or assembly.
 pub enum Opened {
     /// One `.agg` file.
@@ -145,6 +158,67 @@ impl Opened {
             Opened::Aggregate(s) => s.layer_into(cone, settings, 0, out),
             Opened::Assembly(a) => a.layer_into(cone, settings, out),
         }
+    }
+
+    /// One primitive of `cone`'s layer ([`Opened::layer_into`]) picked in proportion to its
+    /// weight by the uniform number `u` (the first whose running sum passes u·Σw), with the
+    /// layer's weight sum, transmittance and first hit: what a host that shades one hit a cone
+    /// needs (the picked hit's radiance times `weight` is an unbiased estimate of Eq. 30's
+    /// sum). `scratch` holds the layer (reused between calls).
+    pub fn pick(
+        &self,
+        cone: &Cone,
+        settings: &TraceSettings,
+        u: f32,
+        scratch: &mut Vec<LayerHit>,
+    ) -> LayerPick {
+        scratch.clear();
+        let transmittance = self.layer_into(cone, settings, scratch);
+        let weight: f32 = scratch.iter().map(|h| h.weight).sum();
+        let entry = scratch.first().map_or(f32::INFINITY, |h| h.t);
+        let mut hit = None;
+        if weight > 0.0 {
+            let target = if u.is_finite() {
+                u.clamp(0.0, 1.0)
+            } else {
+                0.0
+            } * weight;
+            let mut run = 0.0f32;
+            // The last hit with a weight where rounding leaves the target past the end.
+            for h in scratch.iter().filter(|h| h.weight > 0.0) {
+                run += h.weight;
+                hit = Some(*h);
+                if run > target {
+                    break;
+                }
+            }
+        }
+        LayerPick {
+            weight: if hit.is_some() { weight } else { 0.0 },
+            transmittance,
+            entry,
+            hit,
+        }
+    }
+
+    /// [`Opened::pick`] for a batch of cones in parallel, cone i with uniform number `u[i]`
+    /// (`u` as long as `cones`): what the Python module's `Scene.pick` and the C ABI's
+    /// `agg_pick_cones` call.
+    pub fn pick_batch(
+        &self,
+        cones: &[Cone],
+        u: &[f32],
+        settings: &TraceSettings,
+    ) -> Vec<LayerPick> {
+        use rayon::prelude::*;
+        assert_eq!(cones.len(), u.len(), "one uniform number a cone");
+        cones
+            .par_iter()
+            .zip(u)
+            .map_init(Vec::new, |scratch, (c, &u)| {
+                self.pick(c, settings, u, scratch)
+            })
+            .collect()
     }
 
     /// Instances: the assembly's, 1 for an aggregate.

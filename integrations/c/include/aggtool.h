@@ -128,6 +128,41 @@ typedef struct AggHit {
   float weight;
 } AggHit;
 
+/*
+ One cone's picked primitive (see [`agg_pick_cones`]).
+ */
+typedef struct AggPick {
+  /*
+   Morton key of the picked voxel in its level.
+   */
+  uint64_t key;
+  /*
+   The instance it belongs to (0 for an aggregate).
+   */
+  uint32_t instance;
+  /*
+   Its level, 0 = finest.
+   */
+  uint32_t level;
+  /*
+   Ray parameter where the centre ray enters it (infinity where nothing was picked).
+   */
+  float t;
+  /*
+   The sum of the cone's layer weights (0 where nothing was picked): the picked voxel's
+   radiance times it estimates the layer's radiance.
+   */
+  float weight;
+  /*
+   What the layer lets through to what lies behind it.
+   */
+  float transmittance;
+  /*
+   Ray parameter of the cone's first hit (infinity for none).
+   */
+  float entry;
+} AggPick;
+
 #ifdef __cplusplus
 extern "C" {
 #endif // __cplusplus
@@ -260,6 +295,61 @@ int agg_hits(const struct AggScene *scene,
              size_t capacity,
              size_t *count,
              float *transmittance);
+
+/*
+ One primitive a cone for each of `n` cones, for a host that shades one hit a cone and
+ composites the aggregate, or the assembly (every instance in one layer, composed front to
+ back through its instance BVH), over what lies behind it: the runtime walks each cone,
+ weighs its hits as its own shading does (normalised by their sum and the transmittance;
+ where `tmax[i]` ends cone i inside the bounds, at the host's surface, unnormalised with
+ transmittance max(T, 1 − Σw)) and picks one in proportion to its weight with `u[i]` in
+ [0, 1). `tmax` may be NULL (no limit). `out` receives `n` [`AggPick`]s. The voxels are
+ then shaded with [`agg_instance_voxel_eval`] and its siblings, directions in the opened
+ frame. Cones run in parallel; the result does not depend on the thread count.
+ */
+int agg_pick_cones(const struct AggScene *scene,
+                   const struct AggCone *cones,
+                   size_t n,
+                   const float *u,
+                   const float *tmax,
+                   struct AggPick *out);
+
+/*
+ [`agg_voxel_eval`] of a voxel of `instance` (as [`agg_pick_cones`] gives it; 0 for an
+ aggregate), `wi` and `wo` in the opened frame (the manifest's for an assembly: turned into
+ the instance's here).
+ */
+int agg_instance_voxel_eval(const struct AggScene *scene,
+                            uint32_t instance,
+                            uint32_t level,
+                            uint64_t key,
+                            const float *wi,
+                            const float *wo,
+                            float *rgb_out);
+
+/*
+ [`agg_voxel_sample`] of a voxel of `instance`, `wo` and `wi_out` in the opened frame.
+ */
+int agg_instance_voxel_sample(const struct AggScene *scene,
+                              uint32_t instance,
+                              uint32_t level,
+                              uint64_t key,
+                              const float *wo,
+                              const float *u,
+                              float *wi_out,
+                              float *value_out,
+                              float *pdf);
+
+/*
+ [`agg_voxel_visibility`] of a voxel of `instance`, `d` in the opened frame.
+ */
+int agg_instance_voxel_visibility(const struct AggScene *scene,
+                                  uint32_t instance,
+                                  uint32_t level,
+                                  uint64_t key,
+                                  const float *d,
+                                  float *aiv,
+                                  float *incident);
 
 /*
  The ABSDF f̂(ω_i, ω_o) of a voxel (Eq. 7–23; it carries its own cosines, so reflected

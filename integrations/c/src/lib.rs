@@ -59,7 +59,7 @@ impl AggScene {
         self.scene.aggregate().ok_or((
             AGG_ERR_VALUE,
             "an assembly: agg_hits and agg_voxel_* take one aggregate (open an asset's .agg); \
-             agg_trace_cones takes either"
+             agg_trace_cones, agg_pick_cones and agg_instance_voxel_* take either"
                 .to_string(),
         ))
     }
@@ -101,6 +101,27 @@ pub struct AggHit {
     pub t: f32,
     /// Coverage weight of the primitive.
     pub weight: f32,
+}
+
+/// One cone's picked primitive (see [`agg_pick_cones`]).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default)]
+pub struct AggPick {
+    /// Morton key of the picked voxel in its level.
+    pub key: u64,
+    /// The instance it belongs to (0 for an aggregate).
+    pub instance: u32,
+    /// Its level, 0 = finest.
+    pub level: u32,
+    /// Ray parameter where the centre ray enters it (infinity where nothing was picked).
+    pub t: f32,
+    /// The sum of the cone's layer weights (0 where nothing was picked): the picked voxel's
+    /// radiance times it estimates the layer's radiance.
+    pub weight: f32,
+    /// What the layer lets through to what lies behind it.
+    pub transmittance: f32,
+    /// Ray parameter of the cone's first hit (infinity for none).
+    pub entry: f32,
 }
 
 thread_local! {
@@ -555,6 +576,182 @@ fn voxel<'s>(
         AGG_ERR_NOT_FOUND,
         format!("no voxel with key {key} at level {level}"),
     ))
+}
+
+/// Voxel (`level`, `key`) of the aggregate that `instance` draws (0 for an aggregate).
+fn instance_voxel(
+    s: &AggScene,
+    instance: u32,
+    level: u32,
+    key: u64,
+) -> Result<aggtool::runtime::VoxelHandle<'_>, (c_int, String)> {
+    let count = s.scene.instance_count();
+    let scene = s.scene.instance_scene(instance as usize).ok_or((
+        AGG_ERR_VALUE,
+        format!("instance {instance} is out of range ({count} instances)"),
+    ))?;
+    scene.voxel(level as usize, key).ok_or((
+        AGG_ERR_NOT_FOUND,
+        format!("no voxel with key {key} at level {level} of instance {instance}"),
+    ))
+}
+
+/// One primitive a cone for each of `n` cones, for a host that shades one hit a cone and
+/// composites the aggregate, or the assembly (every instance in one layer, composed front to
+/// back through its instance BVH), over what lies behind it: the runtime walks each cone,
+/// weighs its hits as its own shading does (normalised by their sum and the transmittance;
+/// where `tmax[i]` ends cone i inside the bounds, at the host's surface, unnormalised with
+/// transmittance max(T, 1 − Σw)) and picks one in proportion to its weight with `u[i]` in
+/// [0, 1). `tmax` may be NULL (no limit). `out` receives `n` [`AggPick`]s. The voxels are
+/// then shaded with [`agg_instance_voxel_eval`] and its siblings, directions in the opened
+/// frame. Cones run in parallel; the result does not depend on the thread count.
+#[no_mangle]
+pub unsafe extern "C" fn agg_pick_cones(
+    scene: *const AggScene,
+    cones: *const AggCone,
+    n: usize,
+    u: *const f32,
+    tmax: *const f32,
+    out: *mut AggPick,
+) -> c_int {
+    guard(|| {
+        let s = scene_ref(scene)?;
+        if n == 0 {
+            return Ok(());
+        }
+        if cones.is_null() || u.is_null() || out.is_null() {
+            return Err(arg("cones, u or out"));
+        }
+        let u = std::slice::from_raw_parts(u, n);
+        if let Some(i) = u.iter().position(|x| !x.is_finite()) {
+            return Err((AGG_ERR_VALUE, format!("u {i}: not finite")));
+        }
+        let tmax = (!tmax.is_null()).then(|| std::slice::from_raw_parts(tmax, n));
+        let cs: Vec<Cone> = std::slice::from_raw_parts(cones, n)
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                let mut k = cone(c).map_err(|e| (AGG_ERR_VALUE, format!("cone {i}: {e}")))?;
+                if let Some(t) = tmax {
+                    if !(t[i] >= 0.0) {
+                        return Err((
+                            AGG_ERR_VALUE,
+                            format!("cone {i}: tmax must be non-negative, not {}", t[i]),
+                        ));
+                    }
+                    k.tmax = t[i];
+                }
+                Ok(k)
+            })
+            .collect::<Result<_, _>>()?;
+        let picks = s.scene.pick_batch(&cs, u, &TraceSettings::default());
+        if let Some(e) = s.scene.first_error() {
+            return Err((AGG_ERR_FILE, format!("damaged level: {e}")));
+        }
+        let out = std::slice::from_raw_parts_mut(out, n);
+        for (o, p) in out.iter_mut().zip(picks) {
+            let h = p.hit.unwrap_or_default();
+            *o = AggPick {
+                key: h.key,
+                instance: h.instance,
+                level: h.level,
+                t: if p.hit.is_some() { h.t } else { f32::INFINITY },
+                weight: p.weight,
+                transmittance: p.transmittance,
+                entry: p.entry,
+            };
+        }
+        Ok(())
+    })
+}
+
+/// [`agg_voxel_eval`] of a voxel of `instance` (as [`agg_pick_cones`] gives it; 0 for an
+/// aggregate), `wi` and `wo` in the opened frame (the manifest's for an assembly: turned into
+/// the instance's here).
+#[no_mangle]
+pub unsafe extern "C" fn agg_instance_voxel_eval(
+    scene: *const AggScene,
+    instance: u32,
+    level: u32,
+    key: u64,
+    wi: *const f32,
+    wo: *const f32,
+    rgb_out: *mut f32,
+) -> c_int {
+    guard(|| {
+        let s = scene_ref(scene)?;
+        let (wi, wo) = (unit(wi, "wi")?, unit(wo, "wo")?);
+        if rgb_out.is_null() {
+            return Err(arg("rgb_out"));
+        }
+        let v = instance_voxel(s, instance, level, key)?;
+        let j = instance as usize;
+        let f = v.eval(
+            s.scene.direction_to_local(j, wi),
+            s.scene.direction_to_local(j, wo),
+        );
+        write3(rgb_out, f);
+        Ok(())
+    })
+}
+
+/// [`agg_voxel_sample`] of a voxel of `instance`, `wo` and `wi_out` in the opened frame.
+#[no_mangle]
+#[allow(clippy::too_many_arguments)]
+pub unsafe extern "C" fn agg_instance_voxel_sample(
+    scene: *const AggScene,
+    instance: u32,
+    level: u32,
+    key: u64,
+    wo: *const f32,
+    u: *const f32,
+    wi_out: *mut f32,
+    value_out: *mut f32,
+    pdf: *mut f32,
+) -> c_int {
+    guard(|| {
+        let s = scene_ref(scene)?;
+        let wo = unit(wo, "wo")?;
+        let u = vec3(u, "u")?;
+        if wi_out.is_null() || value_out.is_null() || pdf.is_null() {
+            return Err(arg("wi_out, value_out or pdf"));
+        }
+        let v = instance_voxel(s, instance, level, key)?;
+        let j = instance as usize;
+        let u = u.clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
+        let smp = v
+            .sample(s.scene.direction_to_local(j, wo), u.x, Vec2::new(u.y, u.z))
+            .ok_or((AGG_ERR_NOT_FOUND, "no sample".to_string()))?;
+        write3(wi_out, s.scene.direction_to_world(j, smp.wi));
+        write3(value_out, smp.value);
+        *pdf = smp.pdf;
+        Ok(())
+    })
+}
+
+/// [`agg_voxel_visibility`] of a voxel of `instance`, `d` in the opened frame.
+#[no_mangle]
+pub unsafe extern "C" fn agg_instance_voxel_visibility(
+    scene: *const AggScene,
+    instance: u32,
+    level: u32,
+    key: u64,
+    d: *const f32,
+    aiv: *mut f32,
+    incident: *mut f32,
+) -> c_int {
+    guard(|| {
+        let s = scene_ref(scene)?;
+        let d = unit(d, "d")?;
+        if aiv.is_null() || incident.is_null() {
+            return Err(arg("aiv or incident"));
+        }
+        let v = instance_voxel(s, instance, level, key)?;
+        let d = s.scene.direction_to_local(instance as usize, d);
+        *aiv = v.aiv(d);
+        *incident = v.incident_visibility(d);
+        Ok(())
+    })
 }
 
 /// The ABSDF f̂(ω_i, ω_o) of a voxel (Eq. 7–23; it carries its own cosines, so reflected

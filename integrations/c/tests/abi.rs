@@ -361,6 +361,157 @@ fn a_manifest_opens_and_traces_as_the_library_does() {
             AGG_ERR_VALUE
         );
         assert!(last_error().contains("assembly"), "{}", last_error());
+        // One pick a cone through every instance: the library's picks; the picked voxels
+        // shade by instance (a translated instance: the aggregate's own directions). Cones
+        // alternate between the two trees.
+        let cones: Vec<AggCone> = (0..64)
+            .map(|i| AggCone {
+                origin: [
+                    c.x + 40.0 * (i % 2) as f32
+                        + (ahi.x - alo.x) * (((i / 2) % 4) as f32 / 4.0 - 0.375),
+                    c.y + (ahi.y - alo.y) * ((i / 8) as f32 / 8.0 - 0.44),
+                    c.z + 200.0,
+                ],
+                dir: [0.0, 0.0, -1.0],
+                aperture: 0.002,
+            })
+            .collect();
+        let rc: Vec<aggtool::runtime::Cone> = cones
+            .iter()
+            .map(|k| {
+                aggtool::runtime::Cone::new(
+                    glam::Vec3::from(k.origin),
+                    glam::Vec3::from(k.dir),
+                    k.aperture,
+                )
+            })
+            .collect();
+        let u: Vec<f32> = (0..cones.len()).map(|i| (i as f32 + 0.5) / 64.0).collect();
+        let mut picks = vec![AggPick::default(); cones.len()];
+        assert_eq!(
+            agg_pick_cones(
+                s,
+                cones.as_ptr(),
+                cones.len(),
+                u.as_ptr(),
+                std::ptr::null(),
+                picks.as_mut_ptr()
+            ),
+            AGG_OK,
+            "{}",
+            last_error()
+        );
+        let want = lib.pick_batch(&rc, &u, &aggtool::runtime::TraceSettings::default());
+        let single = aggtool::runtime::LodScene::open(agg).unwrap();
+        let mut instances = [0; 2];
+        for (p, w) in picks.iter().zip(&want) {
+            assert_eq!(
+                (p.weight, p.transmittance, p.entry),
+                (w.weight, w.transmittance, w.entry)
+            );
+            let Some(h) = w.hit else {
+                assert!(p.weight == 0.0 && p.t.is_infinite());
+                continue;
+            };
+            assert_eq!(
+                (p.instance, p.level, p.key, p.t),
+                (h.instance, h.level, h.key, h.t)
+            );
+            instances[p.instance as usize] += 1;
+            let (wi, wo) = ([0.0f32, 1.0, 0.0], [0.0f32, 0.0, 1.0]);
+            let mut rgb = [0f32; 3];
+            assert_eq!(
+                agg_instance_voxel_eval(
+                    s,
+                    p.instance,
+                    p.level,
+                    p.key,
+                    wi.as_ptr(),
+                    wo.as_ptr(),
+                    rgb.as_mut_ptr()
+                ),
+                AGG_OK,
+                "{}",
+                last_error()
+            );
+            let v = single.voxel(p.level as usize, p.key).unwrap();
+            use aggtool::bsdf::Bsdf;
+            assert_eq!(
+                rgb,
+                v.eval(glam::Vec3::from(wi), glam::Vec3::from(wo))
+                    .to_array()
+            );
+            let (mut aiv, mut inc) = (0f32, 0f32);
+            assert_eq!(
+                agg_instance_voxel_visibility(
+                    s,
+                    p.instance,
+                    p.level,
+                    p.key,
+                    wi.as_ptr(),
+                    &mut aiv,
+                    &mut inc
+                ),
+                AGG_OK
+            );
+            assert_eq!(
+                (aiv, inc),
+                (v.aiv(glam::Vec3::Y), v.incident_visibility(glam::Vec3::Y))
+            );
+            let (mut wi2, mut val, mut pdf) = ([0f32; 3], [0f32; 3], 0f32);
+            let uu = [0.3f32, 0.6, 0.2];
+            let code = agg_instance_voxel_sample(
+                s,
+                p.instance,
+                p.level,
+                p.key,
+                wo.as_ptr(),
+                uu.as_ptr(),
+                wi2.as_mut_ptr(),
+                val.as_mut_ptr(),
+                &mut pdf,
+            );
+            assert!(
+                code == AGG_OK || code == AGG_ERR_NOT_FOUND,
+                "{}",
+                last_error()
+            );
+        }
+        assert!(instances[0] > 0 && instances[1] > 0, "{instances:?}");
+        let mut rgb = [0f32; 3];
+        let dir = [0.0f32, 1.0, 0.0];
+        assert_eq!(
+            agg_instance_voxel_eval(s, 2, 0, 0, dir.as_ptr(), dir.as_ptr(), rgb.as_mut_ptr()),
+            AGG_ERR_VALUE
+        );
+        assert!(
+            last_error().contains("instance 2 is out of range"),
+            "{}",
+            last_error()
+        );
+        let bad_u = [f32::NAN];
+        assert_eq!(
+            agg_pick_cones(
+                s,
+                cones.as_ptr(),
+                1,
+                bad_u.as_ptr(),
+                std::ptr::null(),
+                picks.as_mut_ptr()
+            ),
+            AGG_ERR_VALUE
+        );
+        assert_eq!(
+            agg_pick_cones(
+                s,
+                cones.as_ptr(),
+                1,
+                std::ptr::null(),
+                std::ptr::null(),
+                picks.as_mut_ptr()
+            ),
+            AGG_ERR_ARGUMENT
+        );
         agg_lights_free(l);
         agg_close(s);
         // A manifest naming a missing aggregate.

@@ -686,38 +686,7 @@ impl Scene {
             return Err(PyValueError::new_err(format!("u {i}: not finite")));
         }
         let scene = &self.scene;
-        let picks: Vec<(f32, f32, f32, LayerHit)> = py.detach(|| {
-            cones
-                .par_iter()
-                .zip(u)
-                .map_init(Vec::new, |buf: &mut Vec<LayerHit>, (c, &u)| {
-                    buf.clear();
-                    let tr = scene.layer_into(c, &settings, buf);
-                    let sum: f32 = buf.iter().map(|h| h.weight).sum();
-                    let entry = buf.first().map_or(f32::INFINITY, |h| h.t);
-                    let none = LayerHit {
-                        t: f32::INFINITY,
-                        ..LayerHit::default()
-                    };
-                    if !(sum > 0.0) {
-                        return (0.0, tr, entry, none);
-                    }
-                    // The first hit whose running sum passes u·Σw; the last with a weight
-                    // where rounding leaves the target past the end.
-                    let target = u.clamp(0.0, 1.0) * sum;
-                    let mut run = 0.0f32;
-                    let mut picked = None;
-                    for h in buf.iter().filter(|h| h.weight > 0.0) {
-                        run += h.weight;
-                        picked = Some(*h);
-                        if run > target {
-                            break;
-                        }
-                    }
-                    (sum, tr, entry, picked.unwrap_or(none))
-                })
-                .collect()
-        });
+        let picks = py.detach(|| scene.pick_batch(&cones, u, &settings));
         self.check()?;
         let n = picks.len();
         let mut cols = (
@@ -729,10 +698,14 @@ impl Scene {
             Vec::with_capacity(n),
             Vec::with_capacity(n),
         );
-        for (w, tr, entry, h) in picks {
-            cols.0.push(w);
-            cols.1.push(tr);
-            cols.2.push(entry);
+        for p in picks {
+            let h = p.hit.unwrap_or(LayerHit {
+                t: f32::INFINITY,
+                ..LayerHit::default()
+            });
+            cols.0.push(p.weight);
+            cols.1.push(p.transmittance);
+            cols.2.push(p.entry);
             cols.3.push(h.instance);
             cols.4.push(h.level);
             cols.5.push(h.key);
