@@ -567,17 +567,6 @@ pub unsafe extern "C" fn agg_hits(
     })
 }
 
-fn voxel<'s>(
-    s: &'s AggScene,
-    level: u32,
-    key: u64,
-) -> Result<aggtool::runtime::VoxelHandle<'s>, (c_int, String)> {
-    s.lod()?.voxel(level as usize, key).ok_or((
-        AGG_ERR_NOT_FOUND,
-        format!("no voxel with key {key} at level {level}"),
-    ))
-}
-
 /// Voxel (`level`, `key`) of the aggregate that `instance` draws (0 for an aggregate).
 fn instance_voxel(
     s: &AggScene,
@@ -590,10 +579,91 @@ fn instance_voxel(
         AGG_ERR_VALUE,
         format!("instance {instance} is out of range ({count} instances)"),
     ))?;
-    scene.voxel(level as usize, key).ok_or((
-        AGG_ERR_NOT_FOUND,
-        format!("no voxel with key {key} at level {level} of instance {instance}"),
-    ))
+    scene.voxel(level as usize, key).ok_or_else(|| {
+        let of = match s.scene {
+            Opened::Aggregate(_) => String::new(),
+            Opened::Assembly(_) => format!(" of instance {instance}"),
+        };
+        (
+            AGG_ERR_NOT_FOUND,
+            format!("no voxel with key {key} at level {level}{of}"),
+        )
+    })
+}
+
+/// [`agg_instance_voxel_eval`]'s work, for it and [`agg_voxel_eval`].
+unsafe fn voxel_eval_in(
+    s: &AggScene,
+    instance: u32,
+    level: u32,
+    key: u64,
+    wi: *const f32,
+    wo: *const f32,
+    rgb_out: *mut f32,
+) -> Result<(), (c_int, String)> {
+    let (wi, wo) = (unit(wi, "wi")?, unit(wo, "wo")?);
+    if rgb_out.is_null() {
+        return Err(arg("rgb_out"));
+    }
+    let v = instance_voxel(s, instance, level, key)?;
+    let j = instance as usize;
+    let f = v.eval(
+        s.scene.direction_to_local(j, wi),
+        s.scene.direction_to_local(j, wo),
+    );
+    write3(rgb_out, f);
+    Ok(())
+}
+
+/// [`agg_instance_voxel_sample`]'s work, for it and [`agg_voxel_sample`].
+#[allow(clippy::too_many_arguments)]
+unsafe fn voxel_sample_in(
+    s: &AggScene,
+    instance: u32,
+    level: u32,
+    key: u64,
+    wo: *const f32,
+    u: *const f32,
+    wi_out: *mut f32,
+    value_out: *mut f32,
+    pdf: *mut f32,
+) -> Result<(), (c_int, String)> {
+    let wo = unit(wo, "wo")?;
+    let u = vec3(u, "u")?;
+    if wi_out.is_null() || value_out.is_null() || pdf.is_null() {
+        return Err(arg("wi_out, value_out or pdf"));
+    }
+    let v = instance_voxel(s, instance, level, key)?;
+    let j = instance as usize;
+    let u = u.clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
+    let smp = v
+        .sample(s.scene.direction_to_local(j, wo), u.x, Vec2::new(u.y, u.z))
+        .ok_or((AGG_ERR_NOT_FOUND, "no sample".to_string()))?;
+    write3(wi_out, s.scene.direction_to_world(j, smp.wi));
+    write3(value_out, smp.value);
+    *pdf = smp.pdf;
+    Ok(())
+}
+
+/// [`agg_instance_voxel_visibility`]'s work, for it and [`agg_voxel_visibility`].
+unsafe fn voxel_visibility_in(
+    s: &AggScene,
+    instance: u32,
+    level: u32,
+    key: u64,
+    d: *const f32,
+    aiv: *mut f32,
+    incident: *mut f32,
+) -> Result<(), (c_int, String)> {
+    let d = unit(d, "d")?;
+    if aiv.is_null() || incident.is_null() {
+        return Err(arg("aiv or incident"));
+    }
+    let v = instance_voxel(s, instance, level, key)?;
+    let d = s.scene.direction_to_local(instance as usize, d);
+    *aiv = v.aiv(d);
+    *incident = v.incident_visibility(d);
+    Ok(())
 }
 
 /// One primitive a cone for each of `n` cones, for a host that shades one hit a cone and
@@ -678,21 +748,7 @@ pub unsafe extern "C" fn agg_instance_voxel_eval(
     wo: *const f32,
     rgb_out: *mut f32,
 ) -> c_int {
-    guard(|| {
-        let s = scene_ref(scene)?;
-        let (wi, wo) = (unit(wi, "wi")?, unit(wo, "wo")?);
-        if rgb_out.is_null() {
-            return Err(arg("rgb_out"));
-        }
-        let v = instance_voxel(s, instance, level, key)?;
-        let j = instance as usize;
-        let f = v.eval(
-            s.scene.direction_to_local(j, wi),
-            s.scene.direction_to_local(j, wo),
-        );
-        write3(rgb_out, f);
-        Ok(())
-    })
+    guard(|| voxel_eval_in(scene_ref(scene)?, instance, level, key, wi, wo, rgb_out))
 }
 
 /// [`agg_voxel_sample`] of a voxel of `instance`, `wo` and `wi_out` in the opened frame.
@@ -710,22 +766,17 @@ pub unsafe extern "C" fn agg_instance_voxel_sample(
     pdf: *mut f32,
 ) -> c_int {
     guard(|| {
-        let s = scene_ref(scene)?;
-        let wo = unit(wo, "wo")?;
-        let u = vec3(u, "u")?;
-        if wi_out.is_null() || value_out.is_null() || pdf.is_null() {
-            return Err(arg("wi_out, value_out or pdf"));
-        }
-        let v = instance_voxel(s, instance, level, key)?;
-        let j = instance as usize;
-        let u = u.clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
-        let smp = v
-            .sample(s.scene.direction_to_local(j, wo), u.x, Vec2::new(u.y, u.z))
-            .ok_or((AGG_ERR_NOT_FOUND, "no sample".to_string()))?;
-        write3(wi_out, s.scene.direction_to_world(j, smp.wi));
-        write3(value_out, smp.value);
-        *pdf = smp.pdf;
-        Ok(())
+        voxel_sample_in(
+            scene_ref(scene)?,
+            instance,
+            level,
+            key,
+            wo,
+            u,
+            wi_out,
+            value_out,
+            pdf,
+        )
     })
 }
 
@@ -740,18 +791,7 @@ pub unsafe extern "C" fn agg_instance_voxel_visibility(
     aiv: *mut f32,
     incident: *mut f32,
 ) -> c_int {
-    guard(|| {
-        let s = scene_ref(scene)?;
-        let d = unit(d, "d")?;
-        if aiv.is_null() || incident.is_null() {
-            return Err(arg("aiv or incident"));
-        }
-        let v = instance_voxel(s, instance, level, key)?;
-        let d = s.scene.direction_to_local(instance as usize, d);
-        *aiv = v.aiv(d);
-        *incident = v.incident_visibility(d);
-        Ok(())
-    })
+    guard(|| voxel_visibility_in(scene_ref(scene)?, instance, level, key, d, aiv, incident))
 }
 
 /// The ABSDF f̂(ω_i, ω_o) of a voxel (Eq. 7–23; it carries its own cosines, so reflected
@@ -768,13 +808,8 @@ pub unsafe extern "C" fn agg_voxel_eval(
 ) -> c_int {
     guard(|| {
         let s = scene_ref(scene)?;
-        let (wi, wo) = (unit(wi, "wi")?, unit(wo, "wo")?);
-        if rgb_out.is_null() {
-            return Err(arg("rgb_out"));
-        }
-        let v = voxel(s, level, key)?;
-        write3(rgb_out, v.eval(wi, wo));
-        Ok(())
+        s.lod()?;
+        voxel_eval_in(s, 0, level, key, wi, wo, rgb_out)
     })
 }
 
@@ -795,20 +830,8 @@ pub unsafe extern "C" fn agg_voxel_sample(
 ) -> c_int {
     guard(|| {
         let s = scene_ref(scene)?;
-        let wo = unit(wo, "wo")?;
-        let u = vec3(u, "u")?;
-        if wi_out.is_null() || value_out.is_null() || pdf.is_null() {
-            return Err(arg("wi_out, value_out or pdf"));
-        }
-        let v = voxel(s, level, key)?;
-        let u = u.clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
-        let smp = v
-            .sample(wo, u.x, Vec2::new(u.y, u.z))
-            .ok_or((AGG_ERR_NOT_FOUND, "no sample".to_string()))?;
-        write3(wi_out, smp.wi);
-        write3(value_out, smp.value);
-        *pdf = smp.pdf;
-        Ok(())
+        s.lod()?;
+        voxel_sample_in(s, 0, level, key, wo, u, wi_out, value_out, pdf)
     })
 }
 
@@ -826,13 +849,7 @@ pub unsafe extern "C" fn agg_voxel_visibility(
 ) -> c_int {
     guard(|| {
         let s = scene_ref(scene)?;
-        let d = unit(d, "d")?;
-        if aiv.is_null() || incident.is_null() {
-            return Err(arg("aiv or incident"));
-        }
-        let v = voxel(s, level, key)?;
-        *aiv = v.aiv(d);
-        *incident = v.incident_visibility(d);
-        Ok(())
+        s.lod()?;
+        voxel_visibility_in(s, 0, level, key, d, aiv, incident)
     })
 }

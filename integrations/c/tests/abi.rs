@@ -11,6 +11,14 @@ fn last_error() -> String {
         .into_owned()
 }
 
+/// The library's cones for the ABI's.
+fn lib_cones(cones: &[AggCone]) -> Vec<aggtool::runtime::Cone> {
+    cones
+        .iter()
+        .map(|k| aggtool::runtime::Cone::new(k.origin.into(), k.dir.into(), k.aperture))
+        .collect()
+}
+
 /// A small baked tree in a temporary folder.
 fn baked() -> (tempfile::TempDir, CString) {
     let dir = tempfile::tempdir().unwrap();
@@ -291,16 +299,7 @@ fn a_manifest_opens_and_traces_as_the_library_does() {
             last_error()
         );
         let lib = aggtool::assembly::Opened::open(&manifest).unwrap();
-        let rc: Vec<aggtool::runtime::Cone> = cones
-            .iter()
-            .map(|k| {
-                aggtool::runtime::Cone::new(
-                    glam::Vec3::from(k.origin),
-                    glam::Vec3::from(k.dir),
-                    k.aperture,
-                )
-            })
-            .collect();
+        let rc = lib_cones(&cones);
         let mut want = vec![0f32; out.len()];
         lib.trace_batch(
             &rc,
@@ -376,16 +375,7 @@ fn a_manifest_opens_and_traces_as_the_library_does() {
                 aperture: 0.002,
             })
             .collect();
-        let rc: Vec<aggtool::runtime::Cone> = cones
-            .iter()
-            .map(|k| {
-                aggtool::runtime::Cone::new(
-                    glam::Vec3::from(k.origin),
-                    glam::Vec3::from(k.dir),
-                    k.aperture,
-                )
-            })
-            .collect();
+        let rc = lib_cones(&cones);
         let u: Vec<f32> = (0..cones.len()).map(|i| (i as f32 + 0.5) / 64.0).collect();
         let mut picks = vec![AggPick::default(); cones.len()];
         assert_eq!(
