@@ -24,6 +24,10 @@ Parameters (properties of the integrator):
     lod_bias              float      level-of-detail bias in levels (default 0, the
                                      footprint's level; 1 walks the next coarser level:
                                      faster where cones cross many voxels, blurrier)
+    samples_per_walk      integer    samples of a pixel that share one camera ray and one
+                                     walk of the aggregates, each with its own pick, light
+                                     and BSDF samples (default 0: pairs from 64 spp up,
+                                     else 1, as `aggtool render`)
 
 `mi.render(scene, spp=N, seed=S)`: N samples per pixel (default: the sensor's sampler's
 count), S seeds numpy's PCG64 (one stream per batch of rays).
@@ -243,9 +247,11 @@ def _parse(props):
     for k in keys:
         if k.endswith("_to_world") and k[: -len("_to_world")] not in keys:
             raise ValueError(f"aggtool_lod: {k} has no {k[:-len('_to_world')]} path beside it")
-        if not k.startswith("agg_") and k not in ("hide_emitters", "lod_bias"):
+        if not k.startswith("agg_") and k not in ("hide_emitters", "lod_bias",
+                                                  "samples_per_walk"):
             raise ValueError(f"aggtool_lod: unknown property {k!r} (agg_<name>, "
-                             f"agg_<name>_to_world, hide_emitters, lod_bias)")
+                             f"agg_<name>_to_world, hide_emitters, lod_bias, "
+                             f"samples_per_walk)")
     return aggs
 
 
@@ -260,6 +266,11 @@ class _AggtoolLod:
         self.aggregates += list(aggregates or [])
         self.hide_emitters = bool(props["hide_emitters"]) if (
             props is not None and "hide_emitters" in props.keys()) else False
+        self.samples_per_walk = int(props["samples_per_walk"]) if (
+            props is not None and "samples_per_walk" in props.keys()) else 0
+        if self.samples_per_walk < 0:
+            raise ValueError(f"aggtool_lod: samples_per_walk must be 0 (the runtime's choice) "
+                             f"or more, not {self.samples_per_walk}")
         self.lod_bias = float(props["lod_bias"]) if (
             props is not None and "lod_bias" in props.keys()) else 0.0
         if not (math.isfinite(self.lod_bias) and -8 <= self.lod_bias <= 8):
@@ -405,19 +416,31 @@ class _AggtoolLod:
                 out[s] += val[ok] * le * (inc * tr * mis / pdf[ok])[:, None]
         return out
 
-    def _aggregate_layers(self, scene, rng, o, d, t_mesh, aperture):
+    def _aggregate_layers(self, scene, rng, o, d, t_mesh, aperture, groups=None):
         """Per aggregate: (entry distance, surfaces' radiance, transmittance) of every ray.
         The runtime picks one primitive per cone in proportion to its weight (`Scene.pick`:
         an assembly's instances composed into one layer) and gives the weights' sum, an
-        unbiased estimate of Eq. 30's sum with the picked primitive's radiance."""
+        unbiased estimate of Eq. 30's sum with the picked primitive's radiance. `groups`
+        (G, k) rows of ray indices with the same camera ray: one walk a row (its first ray's),
+        a pick for each."""
         n = len(o)
         picks, layers = [], []
         for j, a in enumerate(self.aggregates):
             if a.bounds is None:
                 continue
-            r = a.scene.pick(a.point_to_local(o), a.dir_to_local(d), aperture,
-                             rng.random(n, dtype=np.float32), a.t_to_local(t_mesh),
-                             self.lod_bias)
+            if groups is None:
+                r = a.scene.pick(a.point_to_local(o), a.dir_to_local(d), aperture,
+                                 rng.random(n, dtype=np.float32), a.t_to_local(t_mesh),
+                                 self.lod_bias)
+            else:
+                w = groups[:, 0]
+                g = a.scene.pick(a.point_to_local(o[w]), a.dir_to_local(d[w]), aperture,
+                                 rng.random(groups.shape, dtype=np.float32),
+                                 a.t_to_local(t_mesh[w]), self.lod_bias)
+                r = {}
+                for key, v in g.items():
+                    r[key] = np.empty(n, v.dtype)
+                    r[key][groups.ravel()] = v.ravel()
             weight = r["weight"].astype(np.float64)
             entry = r["entry"].astype(np.float64) * a.scale
             rays = np.nonzero(weight > 0)[0]
@@ -443,9 +466,20 @@ class _AggtoolLod:
 
     # -- the image ----------------------------------------------------------------------------
 
-    def _pass(self, scene, sensor, rng, xy, full, aperture):
+    def _pass(self, scene, sensor, rng, xy, full, aperture, blocks=1, share=1):
+        """Radiance of the rays of `blocks` samples of every pixel (`xy`, block-major);
+        `share` consecutive blocks share each pixel's camera ray and the aggregates' walk
+        (each sample still draws its own pick, light and BSDF samples)."""
         n = len(xy)
-        pos = ((xy + rng.random((n, 2))) / full).astype(np.float32)
+        jitter = rng.random((n, 2))
+        groups = None
+        if share > 1 and blocks % share == 0:
+            npix = n // blocks
+            jitter.reshape(blocks // share, share, npix, 2)[:, 1:] = \
+                jitter.reshape(blocks // share, share, npix, 2)[:, :1]
+            groups = np.arange(n).reshape(blocks // share, share, npix).transpose(0, 2, 1) \
+                .reshape(-1, share)
+        pos = ((xy + jitter) / full).astype(np.float32)
         o, d, w = _batch(self._camera(sensor), n, (pos, "p2"))
         d = _normalize(d)
         u = rng.random((n, 5)).astype(np.float32)
@@ -460,7 +494,7 @@ class _AggtoolLod:
                                              aperture)[:, None]
         radiance = le + c_e + c_b
         # Aggregates in front of the mesh (or the background), front to back.
-        layers = self._aggregate_layers(scene, rng, o, d, t_mesh, aperture)
+        layers = self._aggregate_layers(scene, rng, o, d, t_mesh, aperture, groups)
         if layers:
             entry = np.stack([e for e, _, _ in layers])
             order = np.argsort(-entry, axis=0)  # farthest first
@@ -491,13 +525,16 @@ class _AggtoolLod:
         aperture = float(np.arccos(np.clip(np.dot(dd[0], dd[1]), -1.0, 1.0)))
         # Several samples per pixel in one batch, up to BATCH rays.
         npix = len(xy)
-        per = max(1, BATCH // max(npix, 1))
+        # Samples of a pixel sharing one walk: as the runtime's image loop
+        # (TraceSettings::walk_reuse), pairs where a pixel still gets 32 walks.
+        share = self.samples_per_walk or (2 if spp >= 64 else 1)
+        per = max(share, (BATCH // max(npix, 1)) // share * share)
         acc = np.zeros((npix, 3))
         done, b = 0, 0
         while done < spp:
             k = min(per, spp - done)
             rng = np.random.default_rng([int(seed), b])
-            out = self._pass(scene, sensor, rng, np.tile(xy, (k, 1)), full, aperture)
+            out = self._pass(scene, sensor, rng, np.tile(xy, (k, 1)), full, aperture, k, share)
             acc += out.reshape(k, npix, 3).sum(axis=0)
             done, b = done + k, b + 1
         img = (acc / spp).reshape(size[1], size[0], 3)

@@ -22,7 +22,7 @@ pub enum OpenError {
 }
 
 /// One cone's pick from its layer: [`Opened::pick`].
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct LayerPick {
     /// The sum of the layer's weights (0 when nothing was picked).
     pub weight: f32,
@@ -172,37 +172,56 @@ impl Opened {
         u: f32,
         scratch: &mut Vec<LayerHit>,
     ) -> LayerPick {
+        let mut out = [LayerPick::default()];
+        self.picks(cone, settings, &[u], scratch, &mut out);
+        out[0]
+    }
+
+    /// [`Opened::pick`] with one walk of `cone` serving several picks, one a number of `us`
+    /// into `out` (as long): a host's samples of a pixel sharing the pixel's walk, as the
+    /// runtime's own image loop shares them ([`TraceSettings::samples_per_walk`]).
+    pub fn picks(
+        &self,
+        cone: &Cone,
+        settings: &TraceSettings,
+        us: &[f32],
+        scratch: &mut Vec<LayerHit>,
+        out: &mut [LayerPick],
+    ) {
         scratch.clear();
         let transmittance = self.layer_into(cone, settings, scratch);
         let weight: f32 = scratch.iter().map(|h| h.weight).sum();
         let entry = scratch.first().map_or(f32::INFINITY, |h| h.t);
-        let mut hit = None;
-        if weight > 0.0 {
-            let target = if u.is_finite() {
-                u.clamp(0.0, 1.0)
-            } else {
-                0.0
-            } * weight;
-            let mut run = 0.0f32;
-            // The last hit with a weight where rounding leaves the target past the end.
-            for h in scratch.iter().filter(|h| h.weight > 0.0) {
-                run += h.weight;
-                hit = Some(*h);
-                if run > target {
-                    break;
+        for (o, &u) in out.iter_mut().zip(us) {
+            let mut hit = None;
+            if weight > 0.0 {
+                let target = if u.is_finite() {
+                    u.clamp(0.0, 1.0)
+                } else {
+                    0.0
+                } * weight;
+                let mut run = 0.0f32;
+                // The last hit with a weight where rounding leaves the target past the end.
+                for h in scratch.iter().filter(|h| h.weight > 0.0) {
+                    run += h.weight;
+                    hit = Some(*h);
+                    if run > target {
+                        break;
+                    }
                 }
             }
-        }
-        LayerPick {
-            weight: if hit.is_some() { weight } else { 0.0 },
-            transmittance,
-            entry,
-            hit,
+            *o = LayerPick {
+                weight: if hit.is_some() { weight } else { 0.0 },
+                transmittance,
+                entry,
+                hit,
+            };
         }
     }
 
-    /// [`Opened::pick`] for a batch of cones in parallel, cone i with uniform number `u[i]`
-    /// (`u` as long as `cones`): what the Python module's `Scene.pick` and the C ABI's
+    /// [`Opened::picks`] for a batch of cones in parallel: `u` holds k numbers a cone (k ≥ 1,
+    /// `u.len()` a multiple of `cones.len()`), and picks `i·k .. i·k + k` of the result come
+    /// from cone i's walk. What the Python module's `Scene.pick` and the C ABI's
     /// `agg_pick_cones` call.
     pub fn pick_batch(
         &self,
@@ -211,14 +230,21 @@ impl Opened {
         settings: &TraceSettings,
     ) -> Vec<LayerPick> {
         use rayon::prelude::*;
-        assert_eq!(cones.len(), u.len(), "one uniform number a cone");
-        cones
-            .par_iter()
-            .zip(u)
-            .map_init(Vec::new, |scratch, (c, &u)| {
-                self.pick(c, settings, u, scratch)
-            })
-            .collect()
+        if cones.is_empty() {
+            return Vec::new();
+        }
+        let k = u.len() / cones.len();
+        assert!(
+            k >= 1 && k * cones.len() == u.len(),
+            "k uniform numbers a cone"
+        );
+        let mut out = vec![LayerPick::default(); u.len()];
+        out.par_chunks_mut(k)
+            .zip(cones.par_iter().zip(u.par_chunks(k)))
+            .for_each_init(Vec::new, |scratch, (o, (c, us))| {
+                self.picks(c, settings, us, scratch, o)
+            });
+        out
     }
 
     /// Instances: the assembly's, 1 for an aggregate.

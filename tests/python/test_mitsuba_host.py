@@ -179,6 +179,7 @@ def test_bad_input(tree, variant_guard, tmp_path):
          "agg_other_to_world has no agg_other"),
         (dict(tree=str(agg)), "unknown property 'tree'"),
         (dict(agg_tree=str(agg), lod_bias=20.0), "lod_bias must be between -8 and 8"),
+        (dict(agg_tree=str(agg), samples_per_walk=-1), "samples_per_walk must be 0"),
     ]
     for props, message in cases:
         with pytest.raises(RuntimeError, match=message):
@@ -188,11 +189,13 @@ def test_bad_input(tree, variant_guard, tmp_path):
     with pytest.raises(RuntimeError, match="cut.agg"):
         load(agg_tree=str(cut))
     # Good ones load (two trees, one behind the other, composite front to back; a level of
-    # detail bias) and render a tiny image with every value finite.
+    # detail bias; pairs of samples sharing walks) and render a tiny image with every value
+    # finite.
     scene = mi.load_dict({"type": "scene", "integrator": {
                               "type": "aggtool_lod", "agg_tree": str(agg), "agg_far": str(agg),
                               "agg_far_to_world": mi.ScalarTransform4f().translate([0.3, 0, -2])
-                              @ mi.ScalarTransform4f().scale(2.0), "lod_bias": 1.0},
+                              @ mi.ScalarTransform4f().scale(2.0), "lod_bias": 1.0,
+                              "samples_per_walk": 2},
                           "sensor": {"type": "perspective", "film": {"type": "hdrfilm",
                                      "width": 8, "height": 6}}})
     assert "foliage.agg" in str(scene.integrator())

@@ -343,6 +343,17 @@ def test_traversal_layer(aggtool_module):
             scene.pick(o, dirs, ap, u[:3])
         with pytest.raises(ValueError, match="u 1: not finite"):
             scene.pick(o[:2], dirs[:2], ap, np.float32([0.5, np.nan]))
+        # k picks from one walk a cone: u (N, k) gives (N, k) arrays, column j the picks of
+        # u[:, j] alone (the same walk).
+        u2 = rng.random((n, 2), dtype=np.float32)
+        p2 = scene.pick(o, dirs, ap, u2)
+        p1 = scene.pick(o, dirs, ap, np.ascontiguousarray(u2[:, 1]))
+        assert p2["key"].shape == (n, 2) and p2["weight"].shape == (n, 2)
+        for k in p1:
+            assert np.array_equal(p2[k][:, 1], p1[k]), k
+        assert (p2["key"][:, 0] != p2["key"][:, 1]).any()
+        with pytest.raises(ValueError, match=r"u must have shape"):
+            scene.pick(o, dirs, ap, np.zeros((n, 0), np.float32))
         # A level-of-detail bias walks coarser levels; a bad one is refused.
         coarse = scene.pick(o, dirs, ap, u, lod_bias=5.0)
         seen, seen2 = pk["weight"] > 0, coarse["weight"] > 0

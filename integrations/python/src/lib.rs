@@ -645,7 +645,9 @@ impl Scene {
     /// One primitive per cone for a host that shades one hit a cone and composites the
     /// aggregate (or the assembly: every instance in one layer) over what lies behind it, as
     /// the Mitsuba host does. Cones as for `trace` (`tmax` clips them at the host's surface);
-    /// `u` (N,) float32 in [0, 1) picks each cone's primitive in proportion to its weight.
+    /// `u` (N,) float32 in [0, 1) picks each cone's primitive in proportion to its weight;
+    /// `u` (N, k) picks k from each cone's one walk (a pixel's samples sharing a walk, as the
+    /// runtime's image loop shares them), and every returned array is then (N, k).
     /// Returns a dict of (N,) numpy arrays:
     /// - `weight` float32: the sum of the layer's weights, the share of the pixel its
     ///   surfaces cover: the picked primitive's radiance times it estimates the layer's
@@ -666,37 +668,47 @@ impl Scene {
         origins: PyReadonlyArray2<'py, f32>,
         directions: PyReadonlyArray2<'py, f32>,
         aperture: f32,
-        u: PyReadonlyArray1<'py, f32>,
+        u: Bound<'py, PyAny>,
         tmax: Option<PyReadonlyArray1<'py, f32>>,
         lod_bias: f32,
     ) -> PyResult<Bound<'py, PyDict>> {
         let settings = trace_settings(lod_bias)?;
         let cones = cones(&origins, &directions, aperture, tmax.as_ref())?;
-        let u = u
-            .as_slice()
-            .map_err(|_| PyValueError::new_err("u must be C-contiguous"))?;
-        if u.len() != cones.len() {
+        let n = cones.len();
+        // (N,) one pick a cone, or (N, k) k picks from each cone's walk.
+        let (u, k): (Vec<f32>, Option<usize>) =
+            if let Ok(a) = u.extract::<PyReadonlyArray1<'_, f32>>() {
+                (a.as_array().to_vec(), None)
+            } else if let Ok(a) = u.extract::<PyReadonlyArray2<'_, f32>>() {
+                let k = a.shape()[1];
+                (a.as_array().iter().copied().collect(), Some(k))
+            } else {
+                return Err(PyTypeError::new_err(
+                    "u must be a float32 numpy array of shape (N,) or (N, k)",
+                ));
+            };
+        if u.len() != n * k.unwrap_or(1) || k == Some(0) {
             return Err(PyValueError::new_err(format!(
-                "u must have shape ({},), not ({},)",
-                cones.len(),
+                "u must have shape ({n},) or ({n}, k) with k ≥ 1, not {} numbers",
                 u.len()
             )));
         }
         if let Some(i) = u.iter().position(|x| !x.is_finite()) {
             return Err(PyValueError::new_err(format!("u {i}: not finite")));
         }
+        let u = &u[..];
         let scene = &self.scene;
         let picks = py.detach(|| scene.pick_batch(&cones, u, &settings));
         self.check()?;
-        let n = picks.len();
+        let m = picks.len();
         let mut cols = (
-            Vec::with_capacity(n),
-            Vec::with_capacity(n),
-            Vec::with_capacity(n),
-            Vec::with_capacity(n),
-            Vec::with_capacity(n),
-            Vec::with_capacity(n),
-            Vec::with_capacity(n),
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
         );
         for p in picks {
             let h = p.hit.unwrap_or(LayerHit {
@@ -712,13 +724,25 @@ impl Scene {
             cols.6.push(h.t);
         }
         let d = PyDict::new(py);
-        d.set_item("weight", PyArray1::from_vec(py, cols.0))?;
-        d.set_item("transmittance", PyArray1::from_vec(py, cols.1))?;
-        d.set_item("entry", PyArray1::from_vec(py, cols.2))?;
-        d.set_item("instance", PyArray1::from_vec(py, cols.3))?;
-        d.set_item("level", PyArray1::from_vec(py, cols.4))?;
-        d.set_item("key", PyArray1::from_vec(py, cols.5))?;
-        d.set_item("t", PyArray1::from_vec(py, cols.6))?;
+        let shaped = |a: Bound<'py, PyAny>| -> PyResult<Bound<'py, PyAny>> {
+            match k {
+                Some(k) => Ok(a.call_method1("reshape", ((n, k),))?),
+                None => Ok(a),
+            }
+        };
+        d.set_item("weight", shaped(PyArray1::from_vec(py, cols.0).into_any())?)?;
+        d.set_item(
+            "transmittance",
+            shaped(PyArray1::from_vec(py, cols.1).into_any())?,
+        )?;
+        d.set_item("entry", shaped(PyArray1::from_vec(py, cols.2).into_any())?)?;
+        d.set_item(
+            "instance",
+            shaped(PyArray1::from_vec(py, cols.3).into_any())?,
+        )?;
+        d.set_item("level", shaped(PyArray1::from_vec(py, cols.4).into_any())?)?;
+        d.set_item("key", shaped(PyArray1::from_vec(py, cols.5).into_any())?)?;
+        d.set_item("t", shaped(PyArray1::from_vec(py, cols.6).into_any())?)?;
         Ok(d)
     }
 
