@@ -124,10 +124,7 @@ impl Opened {
 
     /// What the aggregate, or every instance of the assembly, lets through along `cone`.
     pub fn transmittance(&self, cone: &Cone, settings: &TraceSettings) -> f32 {
-        match self {
-            Opened::Aggregate(s) => s.transmittance(cone, settings),
-            Opened::Assembly(a) => a.transmittance(cone, settings, None),
-        }
+        self.transmittance_skipping(cone, settings, None)
     }
 
     /// [`Opened::transmittance`] leaving instance `skip` of an assembly out (a host's shadow
