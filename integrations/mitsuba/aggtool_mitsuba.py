@@ -209,14 +209,26 @@ class Aggregate:
         self.scale = float(np.sqrt(np.trace(self.linear.T @ self.linear) / 3))
         inv = np.linalg.inv(self.to_world)
         self.inv_linear, self.inv_offset = inv[:3, :3], inv[:3, 3]
+        # Whole batches go through these in float32 (a float64 product and its temporaries
+        # were a sixth of a small image's time); the identity skips them.
+        self.identity = bool(np.array_equal(self.to_world, np.eye(4)))
+        self.inv_t32 = np.ascontiguousarray(self.inv_linear.T, np.float32)
+        self.inv_offset32 = self.inv_offset.astype(np.float32)
         b = self.scene.bounds
         self.bounds = None if b is None else (np.array(b[0]), np.array(b[1]))
 
     def point_to_local(self, p):
-        return (p @ self.inv_linear.T + self.inv_offset).astype(np.float32)
+        p = np.asarray(p, np.float32)
+        if self.identity:
+            return np.ascontiguousarray(p)
+        return p @ self.inv_t32 + self.inv_offset32
 
     def dir_to_local(self, d):
-        return _normalize(d @ self.inv_linear.T).astype(np.float32)
+        """Directions in the aggregate's frame, not normalised (the module normalises)."""
+        d = np.asarray(d, np.float32)
+        if self.identity:
+            return np.ascontiguousarray(d)
+        return d @ self.inv_t32
 
     def dir_to_world(self, d):
         return _normalize(d @ self.linear.T)
