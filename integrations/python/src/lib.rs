@@ -170,6 +170,24 @@ impl Lights {
     }
 }
 
+/// A 1-D array as a slice: C-contiguous, and with `n` elements when `n` is given.
+fn column<'a, T: numpy::Element>(
+    a: &'a PyReadonlyArray1<'_, T>,
+    what: &str,
+    n: Option<usize>,
+) -> PyResult<&'a [T]> {
+    let s = a
+        .as_slice()
+        .map_err(|_| PyValueError::new_err(format!("{what} must be C-contiguous")))?;
+    match n {
+        Some(n) if s.len() != n => Err(PyValueError::new_err(format!(
+            "{what} must have shape ({n},), not ({},)",
+            s.len()
+        ))),
+        _ => Ok(s),
+    }
+}
+
 fn rows3<'a>(a: &'a PyReadonlyArray2<'_, f32>, what: &str) -> PyResult<(usize, &'a [f32])> {
     let shape = a.shape();
     if shape[1] != 3 {
@@ -219,15 +237,7 @@ impl Scene {
                 )),
             };
         };
-        let s = a
-            .as_slice()
-            .map_err(|_| PyValueError::new_err("instance must be C-contiguous"))?;
-        if s.len() != m {
-            return Err(PyValueError::new_err(format!(
-                "{m} voxels but {} instances",
-                s.len()
-            )));
-        }
+        let s = column(a, "instance", Some(m))?;
         let count = self.scene.instance_count();
         if let Some(i) = s.iter().position(|&x| x as usize >= count) {
             return Err(PyValueError::new_err(format!(
@@ -297,21 +307,7 @@ fn cones(
             "aperture must be finite and non-negative",
         ));
     }
-    let tmax = match tmax {
-        None => None,
-        Some(t) => {
-            let s = t
-                .as_slice()
-                .map_err(|_| PyValueError::new_err("tmax must be C-contiguous"))?;
-            if s.len() != n {
-                return Err(PyValueError::new_err(format!(
-                    "tmax must have shape ({n},), not ({},)",
-                    s.len()
-                )));
-            }
-            Some(s)
-        }
-    };
+    let tmax = tmax.map(|t| column(t, "tmax", Some(n))).transpose()?;
     let mut cones = Vec::with_capacity(n);
     for i in 0..n {
         let (oi, di) = (Vec3::from_slice(&o[3 * i..]), Vec3::from_slice(&d[3 * i..]));
@@ -361,12 +357,8 @@ fn voxel_ids<'a>(
     level: &'a PyReadonlyArray1<'_, u32>,
     key: &'a PyReadonlyArray1<'_, u64>,
 ) -> PyResult<(&'a [u32], &'a [u64])> {
-    let lv = level
-        .as_slice()
-        .map_err(|_| PyValueError::new_err("level must be C-contiguous"))?;
-    let ky = key
-        .as_slice()
-        .map_err(|_| PyValueError::new_err("key must be C-contiguous"))?;
+    let lv = column(level, "level", None)?;
+    let ky = column(key, "key", None)?;
     if lv.len() != ky.len() {
         return Err(PyValueError::new_err(format!(
             "{} levels but {} keys",
@@ -611,22 +603,10 @@ impl Scene {
     ) -> PyResult<Bound<'py, PyArray1<f32>>> {
         let settings = trace_settings(lod_bias)?;
         let cones = cones(&origins, &directions, aperture, tmax.as_ref())?;
-        let skip = match &skip {
-            None => None,
-            Some(a) => {
-                let s = a
-                    .as_slice()
-                    .map_err(|_| PyValueError::new_err("skip must be C-contiguous"))?;
-                if s.len() != cones.len() {
-                    return Err(PyValueError::new_err(format!(
-                        "skip must have shape ({},), not ({},)",
-                        cones.len(),
-                        s.len()
-                    )));
-                }
-                Some(s)
-            }
-        };
+        let skip = skip
+            .as_ref()
+            .map(|a| column(a, "skip", Some(cones.len())))
+            .transpose()?;
         let scene = &self.scene;
         let out: Vec<f32> = py.detach(|| {
             cones
