@@ -793,9 +793,39 @@ impl Aggregate {
                     .map_err(|e| corrupt(format!("block at {}: {e}", b.offset)))?
                     .into_boxed_slice(),
             ),
-            None => LoadedBytes::InFile(stored),
+            None => return Ok(loaded(LoadedBytes::InFile(stored))),
         };
+        self.release(b);
         Ok(loaded(bytes))
+    }
+
+    /// Drops the mapped pages of a compressed blob that has been inflated, so that the
+    /// process's resident memory is the cache's and not the file's: a cache that evicts the
+    /// block and loads it again reads the pages back from the page cache. Without this, every
+    /// block a render ever touched stays resident as mapped file pages (233 MiB of a 354 MiB
+    /// peak for the 1M-triangle foliage's 256³ near view under a 64 MiB budget).
+    fn release(&self, b: &Blob) {
+        #[cfg(unix)]
+        if let Backing::Map(m) = &self.data {
+            const PAGE: usize = 4096;
+            let (start, end) = (b.offset as usize, (b.offset + b.size) as usize);
+            // Whole pages inside the blob only: a page shared with a neighbour that a cone
+            // is reading stays.
+            let (first, last) = (start.div_ceil(PAGE) * PAGE, end / PAGE * PAGE);
+            if last > first {
+                // SAFETY: the mapping is read-only and never written, so dropping its pages
+                // changes no byte any slice of it sees (another thread reading this blob
+                // faults the same file bytes back in); the blob was inflated into an owned
+                // buffer. On a machine with larger pages the call fails and changes nothing.
+                let _ = unsafe {
+                    m.unchecked_advise_range(
+                        memmap2::UncheckedAdvice::DontNeed,
+                        first,
+                        last - first,
+                    )
+                };
+            }
+        }
     }
 
     fn stored(&self, b: &Blob) -> &[u8] {

@@ -15,7 +15,9 @@
 //! cone: its records, its inflated bytes and the ABSDFs built in it. Whatever the budget, a
 //! block is prepared from the same bytes the same way, so a render under any budget gives the
 //! same image bits; a budget smaller than the working set only costs time (blocks prepared
-//! again after eviction).
+//! again after eviction). Room is made before a block is prepared (as much as the largest
+//! block prepared so far, for each block being prepared on any thread), so that the bytes
+//! alive stay within the budget; blocks that cones hold can still take them over it.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Mutex, OnceLock};
@@ -52,6 +54,11 @@ pub struct BlockCache {
     budget: AtomicU64,
     bytes: AtomicU64,
     peak: AtomicU64,
+    /// The largest single growth seen (a block prepared): the room made before preparing
+    /// the next one.
+    largest: AtomicU64,
+    /// Blocks being prepared now, on any thread.
+    preparing: AtomicU64,
     loaded: AtomicU64,
     evicted: AtomicU64,
     ring: Mutex<Ring>,
@@ -87,6 +94,8 @@ impl BlockCache {
             budget: AtomicU64::new(budget),
             bytes: AtomicU64::new(0),
             peak: AtomicU64::new(0),
+            largest: AtomicU64::new(0),
+            preparing: AtomicU64::new(0),
             loaded: AtomicU64::new(0),
             evicted: AtomicU64::new(0),
             ring: Mutex::new(Ring {
@@ -136,6 +145,23 @@ impl BlockCache {
     pub(crate) fn grow(&self, n: u64) {
         let now = self.bytes.fetch_add(n, Relaxed) + n;
         self.peak.fetch_max(now, Relaxed);
+        self.largest.fetch_max(n, Relaxed);
+    }
+
+    /// Evicts before a block is prepared until it fits beside the others being prepared,
+    /// each counted as large as the largest block so far, so that the bytes alive stay within
+    /// the budget instead of going over it by the blocks being prepared (blocks that cones
+    /// hold can still take them over). [`BlockCache::prepared`] ends the reservation.
+    pub(crate) fn make_room(&self) {
+        let budget = self.budget();
+        let n = self.preparing.fetch_add(1, Relaxed) + 1;
+        let reserve = self.largest.load(Relaxed).saturating_mul(n).min(budget);
+        self.evict_to(budget - reserve);
+    }
+
+    /// A block [`BlockCache::make_room`] made room for is prepared (or failed to be).
+    pub(crate) fn prepared(&self) {
+        self.preparing.fetch_sub(1, Relaxed);
     }
 
     /// `n` bytes freed (a block dropped).
@@ -157,13 +183,19 @@ impl BlockCache {
     /// Evicts by CLOCK until the bytes alive are within the budget or nothing on the ring can
     /// be evicted (every block left is in use or being loaded).
     pub(crate) fn evict_over_budget(&self) {
-        if self.bytes.load(Relaxed) <= self.budget() {
+        self.evict_to(self.budget());
+    }
+
+    /// Evicts by CLOCK until the bytes alive are at most `limit` or nothing on the ring can
+    /// be evicted.
+    fn evict_to(&self, limit: u64) {
+        if self.bytes.load(Relaxed) <= limit {
             return;
         }
         let mut ring = self.ring.lock().unwrap_or_else(|p| p.into_inner());
         // Two passes over the ring at most: the first may only clear reference bits.
         let mut visits = 2 * ring.slots.len() + 1;
-        while self.bytes.load(Relaxed) > self.budget() && !ring.slots.is_empty() && visits > 0 {
+        while self.bytes.load(Relaxed) > limit && !ring.slots.is_empty() && visits > 0 {
             visits -= 1;
             let hand = ring.hand % ring.slots.len();
             let slot = &ring.slots[hand];
@@ -254,11 +286,15 @@ impl<T: Send + Sync + 'static> Slot<T> {
         cache: &BlockCache,
         load: impl FnOnce() -> Result<T, E>,
     ) -> Result<Arc<T>, E> {
+        cache.make_room();
         let guard = self.loading.lock().unwrap_or_else(|p| p.into_inner());
         if let Some(b) = self.block.load_full() {
+            cache.prepared();
             return Ok(b);
         }
-        let b = Arc::new(load()?);
+        let b = load().map(Arc::new);
+        cache.prepared();
+        let b = b?;
         self.block.store(Some(b.clone()));
         drop(guard);
         cache.inserted(self.clone());
