@@ -804,6 +804,7 @@ impl Aggregate {
     /// block and loads it again reads the pages back from the page cache. Without this, every
     /// block a render ever touched stays resident as mapped file pages (233 MiB of a 354 MiB
     /// peak for the 1M-triangle foliage's 256³ near view under a 64 MiB budget).
+    #[cfg_attr(not(unix), allow(unused_variables))]
     fn release(&self, b: &Blob) {
         #[cfg(unix)]
         if let Backing::Map(m) = &self.data {

@@ -151,17 +151,13 @@ impl BlockCache {
     /// Evicts before a block is prepared until it fits beside the others being prepared,
     /// each counted as large as the largest block so far, so that the bytes alive stay within
     /// the budget instead of going over it by the blocks being prepared (blocks that cones
-    /// hold can still take them over). [`BlockCache::prepared`] ends the reservation.
-    pub(crate) fn make_room(&self) {
+    /// hold can still take them over). The reservation lasts as long as the guard.
+    pub(crate) fn make_room(&self) -> Room<'_> {
         let budget = self.budget();
         let n = self.preparing.fetch_add(1, Relaxed) + 1;
         let reserve = self.largest.load(Relaxed).saturating_mul(n).min(budget);
         self.evict_to(budget - reserve);
-    }
-
-    /// A block [`BlockCache::make_room`] made room for is prepared (or failed to be).
-    pub(crate) fn prepared(&self) {
-        self.preparing.fetch_sub(1, Relaxed);
+        Room(self)
     }
 
     /// `n` bytes freed (a block dropped).
@@ -218,6 +214,16 @@ impl BlockCache {
         let mut ring = self.ring.lock().unwrap_or_else(|p| p.into_inner());
         ring.slots.retain(|s| !s.is_empty());
         ring.hand = 0;
+    }
+}
+
+/// Room [`BlockCache::make_room`] made for a block being prepared, given up when dropped
+/// (the block prepared, found prepared by another thread, or failed).
+pub(crate) struct Room<'a>(&'a BlockCache);
+
+impl Drop for Room<'_> {
+    fn drop(&mut self) {
+        self.0.preparing.fetch_sub(1, Relaxed);
     }
 }
 
@@ -286,15 +292,13 @@ impl<T: Send + Sync + 'static> Slot<T> {
         cache: &BlockCache,
         load: impl FnOnce() -> Result<T, E>,
     ) -> Result<Arc<T>, E> {
-        cache.make_room();
+        let room = cache.make_room();
         let guard = self.loading.lock().unwrap_or_else(|p| p.into_inner());
         if let Some(b) = self.block.load_full() {
-            cache.prepared();
             return Ok(b);
         }
-        let b = load().map(Arc::new);
-        cache.prepared();
-        let b = b?;
+        let b = Arc::new(load()?);
+        drop(room);
         self.block.store(Some(b.clone()));
         drop(guard);
         cache.inserted(self.clone());
