@@ -263,36 +263,3 @@ fn index_keys_and_block_keys_give_the_same_walk() {
         c2.stats()
     );
 }
-
-/// A cache nobody set a budget for follows the files of the scenes that use it: half their
-/// bytes within [128 MiB, a quarter of the machine's memory], back when a scene closes; a
-/// budget set stays whatever is opened.
-#[test]
-fn the_default_budget_follows_the_files_open() {
-    use aggtool::runtime::{default_budget, default_budget_for, MIN_DEFAULT_BUDGET};
-    assert_eq!(default_budget_for(0), MIN_DEFAULT_BUDGET);
-    assert_eq!(default_budget_for(300 << 20), 150 << 20);
-    assert_eq!(default_budget_for(u64::MAX), default_budget());
-    let bytes = foliage_bytes();
-    let n = bytes.len() as u64;
-    let auto = BlockCache::automatic();
-    assert_eq!(auto.budget(), default_budget_for(0));
-    let open = || {
-        LodScene::with_cache(
-            Aggregate::from_bytes_lazy(bytes.clone()).unwrap(),
-            auto.clone(),
-        )
-    };
-    let (a, b) = (open(), open());
-    assert_eq!(auto.file_bytes(), 2 * n);
-    assert_eq!(auto.budget(), default_budget_for(2 * n));
-    drop(a);
-    assert_eq!(auto.file_bytes(), n);
-    assert_eq!(auto.budget(), default_budget_for(n));
-    auto.set_budget(12345);
-    let c = open();
-    assert_eq!(auto.budget(), 12345);
-    drop((b, c));
-    assert_eq!(auto.file_bytes(), 0);
-    assert_eq!(auto.budget(), 12345);
-}

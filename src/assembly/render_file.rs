@@ -33,9 +33,7 @@ pub struct RenderRequest {
     pub meshes: bool,
     /// Assemblies: also write a PNG colouring each pixel by what its first hit was drawn with.
     pub level_map: Option<PathBuf>,
-    /// Memory budget of the block cache in MiB (default: half the bytes of the aggregate files
-    /// drawn, within 128 MiB and a quarter of the machine's memory,
-    /// [`crate::runtime::default_budget_for`]).
+    /// Memory budget of the block cache in MiB (default: a quarter of the machine's memory).
     pub cache_mib: Option<u64>,
 }
 

@@ -52,11 +52,6 @@ pub struct CacheStats {
 /// [`BlockCache::global`] is the one every aggregate opened without a cache of its own shares.
 pub struct BlockCache {
     budget: AtomicU64,
-    /// Whether the budget follows the files of the scenes that use the cache
-    /// ([`default_budget_for`]) rather than a number set.
-    automatic: AtomicBool,
-    /// Bytes of the aggregate files whose scenes use the cache now.
-    files: AtomicU64,
     bytes: AtomicU64,
     peak: AtomicU64,
     /// The largest single growth seen (a block prepared): the room made before preparing
@@ -74,8 +69,8 @@ struct Ring {
     hand: usize,
 }
 
-/// The most a budget chosen by default may be: a quarter of the machine's physical memory (1
-/// GiB where it cannot be read), at least [`MIN_DEFAULT_BUDGET`].
+/// The default budget: a quarter of the machine's physical memory (1 GiB where it cannot be
+/// read), at least 64 MiB.
 pub fn default_budget() -> u64 {
     // SAFETY: sysconf has no preconditions.
     let (pages, page) = unsafe {
@@ -89,45 +84,14 @@ pub fn default_budget() -> u64 {
     } else {
         4 << 30
     };
-    (total / 4).max(MIN_DEFAULT_BUDGET)
-}
-
-/// The least a budget chosen by default is: 128 MiB, more than a tree's working set at 256²
-/// from its 128³ bake (the maple: 100 MiB), where memory is not what a user is short of.
-pub const MIN_DEFAULT_BUDGET: u64 = 128 << 20;
-
-/// The budget chosen for aggregates whose files hold `file_bytes` in all, where nobody set
-/// one: half their bytes, within [[`MIN_DEFAULT_BUDGET`], [`default_budget`]].
-///
-/// A prepared block costs about 2.5 times its stored bytes (its records, its inflated bytes,
-/// about twice the compressed ones, and the ABSDFs built in it), so a view that needs most of
-/// a large aggregate would otherwise hold several times the file in memory. Half the files'
-/// bytes keeps the whole process near or below their size, and costs time only where a
-/// view's working set is larger. Measured on the 1M-triangle foliage's 256³ aggregate
-/// (404 MiB) from near, every cone asking for its finest level: 310 MiB peak RSS instead of
-/// 1044 MiB, at 1.23× the time (see the book's runtime pages); views whose working set fits
-/// are not touched.
-pub fn default_budget_for(file_bytes: u64) -> u64 {
-    (file_bytes / 2).clamp(MIN_DEFAULT_BUDGET, default_budget().max(MIN_DEFAULT_BUDGET))
+    (total / 4).max(64 << 20)
 }
 
 impl BlockCache {
     /// A cache of `budget` bytes.
     pub fn new(budget: u64) -> Arc<BlockCache> {
-        Self::build(budget, false)
-    }
-
-    /// A cache whose budget follows the bytes of the aggregate files whose scenes use it
-    /// ([`default_budget_for`]) until [`BlockCache::set_budget`] sets one.
-    pub fn automatic() -> Arc<BlockCache> {
-        Self::build(default_budget_for(0), true)
-    }
-
-    fn build(budget: u64, automatic: bool) -> Arc<BlockCache> {
         Arc::new(BlockCache {
             budget: AtomicU64::new(budget),
-            automatic: AtomicBool::new(automatic),
-            files: AtomicU64::new(0),
             bytes: AtomicU64::new(0),
             peak: AtomicU64::new(0),
             largest: AtomicU64::new(0),
@@ -141,41 +105,17 @@ impl BlockCache {
         })
     }
 
-    /// The process's shared cache, [`BlockCache::automatic`] until [`BlockCache::set_budget`]
-    /// sets its budget.
+    /// The process's shared cache, of [`default_budget`] bytes until
+    /// [`BlockCache::set_budget`] changes it.
     pub fn global() -> &'static Arc<BlockCache> {
         static GLOBAL: OnceLock<Arc<BlockCache>> = OnceLock::new();
-        GLOBAL.get_or_init(BlockCache::automatic)
+        GLOBAL.get_or_init(|| BlockCache::new(default_budget()))
     }
 
-    /// Sets the budget in bytes (it no longer follows the files); blocks over it are evicted
-    /// now.
+    /// Sets the budget in bytes; blocks over it are evicted now.
     pub fn set_budget(&self, budget: u64) {
-        self.automatic.store(false, Relaxed);
         self.budget.store(budget, Relaxed);
         self.evict_over_budget();
-    }
-
-    /// A scene over a file of `bytes` uses the cache from now on (`opened`) or no more: an
-    /// automatic budget follows.
-    pub(crate) fn count_file(&self, bytes: u64, opened: bool) {
-        let files = if opened {
-            self.files.fetch_add(bytes, Relaxed).saturating_add(bytes)
-        } else {
-            self.files
-                .fetch_update(Relaxed, Relaxed, |f| Some(f.saturating_sub(bytes)))
-                .map_or(0, |f| f.saturating_sub(bytes))
-        };
-        if self.automatic.load(Relaxed) {
-            self.budget.store(default_budget_for(files), Relaxed);
-            self.evict_over_budget();
-        }
-    }
-
-    /// Bytes of the aggregate files whose scenes use the cache now (what an automatic budget
-    /// follows).
-    pub fn file_bytes(&self) -> u64 {
-        self.files.load(Relaxed)
     }
 
     /// The budget in bytes.

@@ -48,7 +48,7 @@ use crate::math::rng::Pcg32;
 use crate::math::sampling::Sampler;
 use crate::spatial::Grid;
 
-pub use cache::{default_budget, default_budget_for, BlockCache, CacheStats, MIN_DEFAULT_BUDGET};
+pub use cache::{default_budget, BlockCache, CacheStats};
 pub use hits::{Hit, Hits, Occlusion, OCCLUSION_ONSET};
 pub(crate) use shade::Walk;
 pub use shade::{shade, Placement};
@@ -310,13 +310,6 @@ fn clip_box(g: &Grid, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
     }
 }
 
-impl Drop for LodScene {
-    /// The cache's automatic budget no longer counts this scene's file.
-    fn drop(&mut self) {
-        self.cache.count_file(self.agg.bytes().len() as u64, false);
-    }
-}
-
 impl LodScene {
     /// Opens an aggregate lazily: maps the file and verifies its header and index (milliseconds
     /// for a file of any size); levels are read and verified when cones first need them.
@@ -342,7 +335,6 @@ impl LodScene {
         let (lo, hi) = agg.bounds();
         let clip = grids.iter().map(|g| clip_box(g, lo, hi)).collect();
         let shading = (0..grids.len()).map(|l| agg.shading_of(l)).collect();
-        cache.count_file(agg.bytes().len() as u64, true);
         LodScene {
             levels: (0..grids.len()).map(|_| OnceLock::new()).collect(),
             shading,

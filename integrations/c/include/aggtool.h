@@ -208,8 +208,7 @@ uint32_t agg_level_count(const struct AggScene *scene);
  Sets the memory budget of the block cache every scene of the process shares, in MiB
  (the CLI's `render --cache-mib`): the prepared blocks of every aggregate stay within it,
  the least recently used evicted. A smaller budget gives the same results, only slower.
- The default is half the bytes of the aggregate files open, within 128 MiB and a quarter of
- the machine's memory. [`AGG_ERR_VALUE`] for 0.
+ The default is a quarter of the machine's memory. [`AGG_ERR_VALUE`] for 0.
  */
 int agg_set_cache_mib(uint64_t mib);
 

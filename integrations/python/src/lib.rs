@@ -890,8 +890,7 @@ fn open(path: PathBuf) -> PyResult<Scene> {
 /// Sets the memory budget of the block cache every scene of the process shares, in MiB (the
 /// CLI's `render --cache-mib`): prepared blocks of every aggregate stay within it, the least
 /// recently used evicted; a smaller budget gives the same results, only slower. The default
-/// is half the bytes of the aggregate files open, within 128 MiB and a quarter of the
-/// machine's memory.
+/// is a quarter of the machine's memory.
 #[pyfunction]
 fn set_cache_mib(mib: u64) -> PyResult<()> {
     if mib == 0 {

@@ -94,9 +94,8 @@ pub struct RenderArgs {
     pub level_map: Option<PathBuf>,
     /// Memory budget of the block cache in MiB: the prepared blocks of every aggregate
     /// drawn (records, inflated bytes, ABSDFs) stay within it, the least recently used
-    /// evicted. A smaller budget gives the same image, only slower. Default: half the bytes
-    /// of the aggregate files drawn, at least 128 MiB and at most a quarter of the machine's
-    /// memory.
+    /// evicted. A smaller budget gives the same image, only slower. Default: a quarter of
+    /// the machine's memory.
     #[arg(long, value_name = "MIB")]
     pub cache_mib: Option<u64>,
 }
