@@ -92,6 +92,19 @@ fn same_bits_under_any_budget() {
     assert_eq!(r.evicted, 0, "{r:?}");
     assert!(r.loaded >= 2 && r.peak > 0, "{r:?}");
     assert!(t.evicted > 0 && t.loaded > r.loaded, "{t:?} against {r:?}");
+    // Both prepared the same distinct blocks; only the small budget prepared them again, and
+    // it says so (`render`'s note), with the roomy render's working set as the budget that
+    // would not (the mean preparation under eviction may miss ABSDFs a block would have
+    // built had it stayed: within a factor 2 of the roomy peak).
+    assert_eq!(r.distinct, r.loaded, "{r:?}");
+    assert_eq!(t.distinct, r.distinct, "{t:?} against {r:?}");
+    assert!(!r.reloads() && t.reloads(), "{r:?} {t:?}");
+    assert!(r.working_set().abs_diff(r.prepared_bytes) <= 1, "{r:?}");
+    let (w, p) = (t.working_set() as f64, r.peak as f64);
+    assert!(
+        w > 0.5 * p && w < 2.0 * p,
+        "{w} against a roomy peak of {p}"
+    );
     // Every block dropped with its scene: nothing left counted.
     assert_eq!(roomy.stats().bytes, 0);
     assert_eq!(tiny.stats().bytes, 0);

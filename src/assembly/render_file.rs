@@ -358,13 +358,25 @@ impl fmt::Display for RenderReport {
         let c = &self.cache;
         writeln!(
             f,
-            "stats: cache: {} blocks loaded, {} evicted, peak {} of a {} budget (level skeletons {})",
+            "stats: cache: {} blocks loaded, {} of them distinct, {} evicted, peak {} of a {} \
+             budget (level skeletons {})",
             c.loaded,
+            c.distinct,
             c.evicted,
             mib(c.peak),
             mib(c.budget),
             mib(self.skeleton_bytes)
         )?;
+        if c.reloads() {
+            writeln!(
+                f,
+                "note: the view's blocks did not fit the cache: each was prepared {:.1} times; \
+                 --cache-mib {} (about the view's working set) prepares each once, in less time \
+                 and more memory (the image is the same under any budget)",
+                c.loaded as f64 / c.distinct.max(1) as f64,
+                c.working_set().div_ceil(1 << 20)
+            )?;
+        }
         if let Some(l) = &self.peak_memory {
             writeln!(f, "{l}")?;
         }

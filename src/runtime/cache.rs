@@ -40,12 +40,34 @@ pub struct CacheStats {
     pub budget: u64,
     /// Blocks prepared (a block evicted and needed again counts again).
     pub loaded: u64,
+    /// Distinct blocks prepared (each counted once however often it was prepared again).
+    pub distinct: u64,
+    /// Bytes counted by all the preparations (records, inflated bytes, ABSDFs built), for the
+    /// mean bytes a block prepared costs.
+    pub prepared_bytes: u64,
     /// Blocks evicted.
     pub evicted: u64,
     /// Bytes of the prepared blocks alive now.
     pub bytes: u64,
     /// The most bytes alive at once.
     pub peak: u64,
+}
+
+impl CacheStats {
+    /// The bytes the distinct blocks prepared would hold at once (their count times the mean
+    /// bytes of a preparation): about the budget under which a view prepares each block once.
+    pub fn working_set(&self) -> u64 {
+        if self.loaded == 0 {
+            return 0;
+        }
+        (self.prepared_bytes as f64 / self.loaded as f64 * self.distinct as f64) as u64
+    }
+
+    /// Whether blocks were prepared again after eviction often enough to cost time: more than
+    /// 1.2 preparations a distinct block.
+    pub fn reloads(&self) -> bool {
+        self.evicted > 0 && self.loaded as f64 > 1.2 * self.distinct as f64
+    }
 }
 
 /// A byte budget for the prepared blocks of any number of aggregates, with CLOCK eviction.
@@ -60,6 +82,8 @@ pub struct BlockCache {
     /// Blocks being prepared now, on any thread.
     preparing: AtomicU64,
     loaded: AtomicU64,
+    distinct: AtomicU64,
+    prepared_bytes: AtomicU64,
     evicted: AtomicU64,
     ring: Mutex<Ring>,
 }
@@ -97,6 +121,8 @@ impl BlockCache {
             largest: AtomicU64::new(0),
             preparing: AtomicU64::new(0),
             loaded: AtomicU64::new(0),
+            distinct: AtomicU64::new(0),
+            prepared_bytes: AtomicU64::new(0),
             evicted: AtomicU64::new(0),
             ring: Mutex::new(Ring {
                 slots: Vec::new(),
@@ -128,6 +154,8 @@ impl BlockCache {
         CacheStats {
             budget: self.budget(),
             loaded: self.loaded.load(Relaxed),
+            distinct: self.distinct.load(Relaxed),
+            prepared_bytes: self.prepared_bytes.load(Relaxed),
             evicted: self.evicted.load(Relaxed),
             bytes: self.bytes.load(Relaxed),
             peak: self.peak.load(Relaxed),
@@ -137,12 +165,15 @@ impl BlockCache {
     /// Starts the statistics afresh (loaded, evicted, peak; the bytes alive stay).
     pub fn reset_stats(&self) {
         self.loaded.store(0, Relaxed);
+        self.distinct.store(0, Relaxed);
+        self.prepared_bytes.store(0, Relaxed);
         self.evicted.store(0, Relaxed);
         self.peak.store(self.bytes.load(Relaxed), Relaxed);
     }
 
     /// `n` more bytes alive (a block prepared, an ABSDF built in one).
     pub(crate) fn grow(&self, n: u64) {
+        self.prepared_bytes.fetch_add(n, Relaxed);
         let now = self.bytes.fetch_add(n, Relaxed) + n;
         self.peak.fetch_max(now, Relaxed);
         self.largest.fetch_max(n, Relaxed);
@@ -166,8 +197,11 @@ impl BlockCache {
     }
 
     /// A slot that just received a block: counted, put on the ring, and room made.
-    pub(crate) fn inserted(&self, slot: Arc<dyn Evictable>) {
+    pub(crate) fn inserted(&self, slot: Arc<dyn Evictable>, first: bool) {
         self.loaded.fetch_add(1, Relaxed);
+        if first {
+            self.distinct.fetch_add(1, Relaxed);
+        }
         self.ring
             .lock()
             .unwrap_or_else(|p| p.into_inner())
@@ -234,6 +268,8 @@ pub(crate) struct Slot<T: Send + Sync> {
     block: arc_swap::ArcSwapOption<T>,
     loading: Mutex<()>,
     referenced: AtomicBool,
+    /// Whether the block was ever prepared (for [`CacheStats::distinct`]).
+    prepared: AtomicBool,
 }
 
 impl<T: Send + Sync> Default for Slot<T> {
@@ -242,6 +278,7 @@ impl<T: Send + Sync> Default for Slot<T> {
             block: arc_swap::ArcSwapOption::empty(),
             loading: Mutex::new(()),
             referenced: AtomicBool::new(false),
+            prepared: AtomicBool::new(false),
         }
     }
 }
@@ -301,7 +338,8 @@ impl<T: Send + Sync + 'static> Slot<T> {
         drop(room);
         self.block.store(Some(b.clone()));
         drop(guard);
-        cache.inserted(self.clone());
+        let first = !self.prepared.swap(true, Relaxed);
+        cache.inserted(self.clone(), first);
         Ok(b)
     }
 

@@ -467,5 +467,6 @@ def test_cache_budget(aggtool_module):
         stats = aggtool.cache_stats()
         aggtool.set_cache_mib(4096)
         assert stats["budget"] == 1 << 20 and stats["loaded"] > 0 and stats["peak"] > 0, stats
+        assert 0 < stats["distinct"] <= stats["loaded"] and stats["working_set"] > 0, stats
         assert np.array_equal(roomy, small)
         assert (roomy[:, 3] < 1).any(), "the cones miss the tree"

@@ -902,17 +902,20 @@ fn set_cache_mib(mib: u64) -> PyResult<()> {
     Ok(())
 }
 
-/// The block cache's statistics: a dict of budget, loaded, evicted, bytes and peak (bytes and
-/// block counts).
+/// The block cache's statistics: a dict of budget, loaded, distinct (blocks prepared at least
+/// once), evicted, bytes, peak and working_set (about the budget under which each block would
+/// be prepared once): bytes and block counts.
 #[pyfunction]
 fn cache_stats(py: Python<'_>) -> PyResult<Bound<'_, pyo3::types::PyDict>> {
     let c = aggtool::runtime::BlockCache::global().stats();
     let d = pyo3::types::PyDict::new(py);
     d.set_item("budget", c.budget)?;
     d.set_item("loaded", c.loaded)?;
+    d.set_item("distinct", c.distinct)?;
     d.set_item("evicted", c.evicted)?;
     d.set_item("bytes", c.bytes)?;
     d.set_item("peak", c.peak)?;
+    d.set_item("working_set", c.working_set())?;
     Ok(d)
 }
 
