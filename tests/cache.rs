@@ -276,3 +276,28 @@ fn index_keys_and_block_keys_give_the_same_walk() {
         c2.stats()
     );
 }
+
+/// A mapped file under a budget of zero bytes: every block is inflated again from the map
+/// (whose pages were given back after the first inflation) each time it is prepared again,
+/// and the picture is the same bit for bit as from the bytes in memory with a roomy budget.
+#[test]
+fn blocks_read_again_from_a_mapped_file() {
+    let bytes = foliage_bytes();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("f.agg");
+    std::fs::write(&path, &bytes).unwrap();
+    let roomy = BlockCache::new(1 << 30);
+    let lod = LodScene::with_cache(Aggregate::from_bytes_lazy(bytes).unwrap(), roomy);
+    let v = view(&lod, 24, 4);
+    let a = render_bits(&lod, &v);
+    let tiny = BlockCache::new(0);
+    let mapped = LodScene::open_with_cache(&path, tiny.clone()).unwrap();
+    let b = render_bits(&mapped, &v);
+    assert!(mapped.first_error().is_none(), "{:?}", mapped.first_error());
+    assert!(
+        a == b,
+        "reading blocks again from the file changed the image"
+    );
+    let t = tiny.stats();
+    assert!(t.loaded > t.distinct, "{t:?}");
+}
