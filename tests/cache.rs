@@ -300,4 +300,9 @@ fn blocks_read_again_from_a_mapped_file() {
     );
     let t = tiny.stats();
     assert!(t.loaded > t.distinct, "{t:?}");
+    // Statistics started afresh count the same blocks as distinct again.
+    tiny.reset_stats();
+    assert_eq!(render_bits(&mapped, &v), b);
+    let again = tiny.stats();
+    assert_eq!(again.distinct, t.distinct, "{again:?} against {t:?}");
 }

@@ -84,6 +84,9 @@ pub struct BlockCache {
     loaded: AtomicU64,
     distinct: AtomicU64,
     prepared_bytes: AtomicU64,
+    /// Which statistics these are (1, then one more at each [`BlockCache::reset_stats`]): a
+    /// slot counts in `distinct` once per epoch.
+    epoch: AtomicU64,
     evicted: AtomicU64,
     ring: Mutex<Ring>,
 }
@@ -123,6 +126,7 @@ impl BlockCache {
             loaded: AtomicU64::new(0),
             distinct: AtomicU64::new(0),
             prepared_bytes: AtomicU64::new(0),
+            epoch: AtomicU64::new(1),
             evicted: AtomicU64::new(0),
             ring: Mutex::new(Ring {
                 slots: Vec::new(),
@@ -162,11 +166,12 @@ impl BlockCache {
         }
     }
 
-    /// Starts the statistics afresh (loaded, evicted, peak; the bytes alive stay).
+    /// Starts the statistics afresh (loaded, distinct, evicted, peak; the bytes alive stay).
     pub fn reset_stats(&self) {
         self.loaded.store(0, Relaxed);
         self.distinct.store(0, Relaxed);
         self.prepared_bytes.store(0, Relaxed);
+        self.epoch.fetch_add(1, Relaxed);
         self.evicted.store(0, Relaxed);
         self.peak.store(self.bytes.load(Relaxed), Relaxed);
     }
@@ -197,9 +202,11 @@ impl BlockCache {
     }
 
     /// A slot that just received a block: counted, put on the ring, and room made.
-    pub(crate) fn inserted(&self, slot: Arc<dyn Evictable>, first: bool) {
+    /// `counted` is the epoch the slot last counted in `distinct` (swapped for this one).
+    pub(crate) fn inserted(&self, slot: Arc<dyn Evictable>, counted: &AtomicU64) {
         self.loaded.fetch_add(1, Relaxed);
-        if first {
+        let epoch = self.epoch.load(Relaxed);
+        if counted.swap(epoch, Relaxed) != epoch {
             self.distinct.fetch_add(1, Relaxed);
         }
         self.ring
@@ -268,8 +275,9 @@ pub(crate) struct Slot<T: Send + Sync> {
     block: arc_swap::ArcSwapOption<T>,
     loading: Mutex<()>,
     referenced: AtomicBool,
-    /// Whether the block was ever prepared (for [`CacheStats::distinct`]).
-    prepared: AtomicBool,
+    /// The statistics' epoch in which the block was last prepared (0: never), for
+    /// [`CacheStats::distinct`].
+    prepared: AtomicU64,
 }
 
 impl<T: Send + Sync> Default for Slot<T> {
@@ -278,7 +286,7 @@ impl<T: Send + Sync> Default for Slot<T> {
             block: arc_swap::ArcSwapOption::empty(),
             loading: Mutex::new(()),
             referenced: AtomicBool::new(false),
-            prepared: AtomicBool::new(false),
+            prepared: AtomicU64::new(0),
         }
     }
 }
@@ -338,8 +346,7 @@ impl<T: Send + Sync + 'static> Slot<T> {
         drop(room);
         self.block.store(Some(b.clone()));
         drop(guard);
-        let first = !self.prepared.swap(true, Relaxed);
-        cache.inserted(self.clone(), first);
+        cache.inserted(self.clone(), &self.prepared);
         Ok(b)
     }
 
