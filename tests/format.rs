@@ -445,6 +445,68 @@ fn dropped_effects_change_nothing() {
     assert!(m.kept, "{m:?}");
 }
 
+/// The runtime builds a voxel's ABSDF reading its directional moments in place from the
+/// quantized block (`Absdf::with_moment_halves`): the same function, bit for bit, as the ABSDF
+/// of the decoded appearance, for metal and dielectric sets, every direction pair tried
+/// (ω_i = −ω_o among them, where the ABSDF reads the moments' means), its density and its
+/// samples; and it holds no copy of the moments.
+#[test]
+fn moments_read_in_place_are_the_decoded_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = aggtool::tables::Tables::embedded();
+    let dirs = [
+        Vec3::Z,
+        -Vec3::Z,
+        Vec3::new(0.6, 0.0, 0.8),
+        Vec3::new(-0.3, 0.9, 0.3).normalize(),
+        Vec3::new(0.1, -0.2, -0.97).normalize(),
+        Vec3::new(0.99, 0.1, 0.0).normalize(),
+    ];
+    let (mut metal, mut dielectric) = (0, 0);
+    // Every effect kept: metal sets; the effects the scene needs: dielectric ones.
+    for (name, keep_all_effects) in [("rings", true), ("buildings", false)] {
+        let s = BakeSettings {
+            keep_all_effects,
+            ..small()
+        };
+        let (bytes, _) = bake(&scene(name, 600, false), &s, dir.path(), "m.agg");
+        let agg = Aggregate::from_bytes(bytes).unwrap();
+        for l in 0..agg.level_count() {
+            for v in agg.voxels(l) {
+                let Some(h) = v.moment_halves() else {
+                    continue;
+                };
+                assert!(h.is_valid());
+                if h.metal {
+                    metal += 1;
+                } else {
+                    dielectric += 1;
+                }
+                let app = v.appearance();
+                let (a, b) = (Absdf::new(&app, t), Absdf::with_moment_halves(&app, h, t));
+                assert!(b.memory_bytes() < a.memory_bytes());
+                for wi in dirs {
+                    for wo in dirs {
+                        let (x, y) = (a.eval(wi, wo), b.eval(wi, wo));
+                        assert_eq!(
+                            x.to_array().map(f32::to_bits),
+                            y.to_array().map(f32::to_bits)
+                        );
+                        assert_eq!(a.pdf(wi, wo).to_bits(), b.pdf(wi, wo).to_bits());
+                        let u = glam::Vec2::new(0.3, 0.7);
+                        let (p, q) = (a.sample(wo, 0.2, u), b.sample(wo, 0.2, u));
+                        assert_eq!(format!("{p:?}"), format!("{q:?}"));
+                    }
+                }
+            }
+        }
+    }
+    assert!(
+        metal > 0 && dielectric > 0,
+        "{metal} metal, {dielectric} dielectric"
+    );
+}
+
 /// Committed statistics of a small bake: a change of these numbers is a change of the bake,
 /// to be made on purpose (regenerate with AGGTOOL_BLESS=1 and say why in the commit).
 #[test]

@@ -158,7 +158,7 @@ pub enum Moments {
 /// look-up reads; moments that binary16 does not hold exactly (an unquantized file, or the
 /// bake's own estimates) stay f32, so every look-up returns the value it was given.
 #[derive(Clone, Debug)]
-enum MomentTable {
+enum MomentTable<'t> {
     /// The same moments in every direction.
     Constant(MaterialMoments),
     /// f32 sets: the `res²` diffuse cells, then the `res²` specular cells.
@@ -173,6 +173,40 @@ enum MomentTable {
         metal: bool,
         halves: Box<[u16]>,
     },
+    /// The same, read in place where a quantized block stores them ([`MomentHalves`]).
+    Borrowed(MomentHalves<'t>),
+}
+
+/// A voxel's directional moments as a quantized block (format 1.4) stores them: `2·res²`
+/// binary16 sets, the diffuse cells then the specular cells, each c (3), s, f90 or, where
+/// `metal`, c (3), mc (3), s, ms, m, f90, mf90: the layout of the ABSDF's own binary16 table,
+/// so that [`Absdf::with_moment_halves`] reads them in place instead of holding a copy (a
+/// third of a shaded voxel's ABSDF bytes, 180 B on the maple's 128³ level).
+#[derive(Clone, Copy, Debug)]
+pub struct MomentHalves<'a> {
+    /// Cells per side of each of the two direction maps.
+    pub res: u32,
+    /// Whether the sets hold the metal moments ([`HALVES_METAL`] halves each).
+    pub metal: bool,
+    /// The sets' binary16 bits.
+    pub halves: &'a [u16],
+}
+
+impl MomentHalves<'_> {
+    /// Whether the halves are the `2·res²` sets of their layout, each finite.
+    pub fn is_valid(&self) -> bool {
+        let stride = if self.metal {
+            HALVES_METAL
+        } else {
+            HALVES_DIELECTRIC
+        };
+        self.res > 0
+            && self.halves.len() == 2 * (self.res * self.res) as usize * stride
+            && self
+                .halves
+                .iter()
+                .all(|&h| half::f16::from_bits(h).is_finite())
+    }
 }
 
 /// Halves of a set without metal: c (3), s, f90 (the metal moments are 0).
@@ -180,8 +214,8 @@ const HALVES_DIELECTRIC: usize = 5;
 /// Halves of a set with metal: c (3), mc (3), s, ms, m, f90, mf90.
 const HALVES_METAL: usize = 11;
 
-impl MomentTable {
-    fn new(m: &Moments) -> MomentTable {
+impl MomentTable<'_> {
+    fn new(m: &Moments) -> Self {
         let (res, sets): (u32, Vec<MaterialMoments>) = match m {
             Moments::Constant(c) => return MomentTable::Constant(*c),
             Moments::Directional {
@@ -233,34 +267,39 @@ impl MomentTable {
             }
             MomentTable::Half { res, metal, halves } => {
                 let (i, n) = (cell(*res), (*res * *res) as usize);
-                let stride = if *metal {
-                    HALVES_METAL
-                } else {
-                    HALVES_DIELECTRIC
-                };
-                let set = |k: usize| {
-                    let h = |j: usize| half::f16::from_bits(halves[k * stride + j]).to_f32();
-                    if *metal {
-                        MaterialMoments {
-                            c: Vec3::new(h(0), h(1), h(2)),
-                            mc: Vec3::new(h(3), h(4), h(5)),
-                            s: h(6),
-                            ms: h(7),
-                            m: h(8),
-                            f90: h(9),
-                            mf90: h(10),
-                        }
-                    } else {
-                        MaterialMoments {
-                            c: Vec3::new(h(0), h(1), h(2)),
-                            s: h(3),
-                            f90: h(4),
-                            ..Default::default()
-                        }
-                    }
-                };
-                (set(i), set(n + i))
+                (half_set(halves, *metal, i), half_set(halves, *metal, n + i))
             }
+            MomentTable::Borrowed(h) => {
+                let (i, n) = (cell(h.res), (h.res * h.res) as usize);
+                (
+                    half_set(h.halves, h.metal, i),
+                    half_set(h.halves, h.metal, n + i),
+                )
+            }
+        }
+    }
+
+    /// The means of the diffuse and of the specular sets over every direction, as
+    /// [`MaterialMoments::mean`] of the sets the table was built from (the same bits: the
+    /// binary16 tables hold them exactly).
+    fn mean(&self) -> (MaterialMoments, MaterialMoments) {
+        let halves_mean = |res: u32, metal: bool, halves: &[u16]| {
+            let n = (res * res) as usize;
+            let d: Vec<MaterialMoments> = (0..n).map(|k| half_set(halves, metal, k)).collect();
+            let s: Vec<MaterialMoments> = (n..2 * n).map(|k| half_set(halves, metal, k)).collect();
+            (MaterialMoments::mean(&d), MaterialMoments::mean(&s))
+        };
+        match self {
+            MomentTable::Constant(m) => (*m, *m),
+            MomentTable::Full { res, sets } => {
+                let n = (*res * *res) as usize;
+                (
+                    MaterialMoments::mean(&sets[..n]),
+                    MaterialMoments::mean(&sets[n..]),
+                )
+            }
+            MomentTable::Half { res, metal, halves } => halves_mean(*res, *metal, halves),
+            MomentTable::Borrowed(h) => halves_mean(h.res, h.metal, h.halves),
         }
     }
 
@@ -269,6 +308,33 @@ impl MomentTable {
             MomentTable::Constant(_) => 0,
             MomentTable::Full { sets, .. } => std::mem::size_of_val(&**sets),
             MomentTable::Half { halves, .. } => std::mem::size_of_val(&**halves),
+            MomentTable::Borrowed(_) => 0,
+        }
+    }
+}
+
+/// Set `k` of a binary16 moment table.
+#[inline]
+fn half_set(halves: &[u16], metal: bool, k: usize) -> MaterialMoments {
+    let h = |j: usize| half::f16::from_bits(halves[j]).to_f32();
+    if metal {
+        let b = k * HALVES_METAL;
+        MaterialMoments {
+            c: Vec3::new(h(b), h(b + 1), h(b + 2)),
+            mc: Vec3::new(h(b + 3), h(b + 4), h(b + 5)),
+            s: h(b + 6),
+            ms: h(b + 7),
+            m: h(b + 8),
+            f90: h(b + 9),
+            mf90: h(b + 10),
+        }
+    } else {
+        let b = k * HALVES_DIELECTRIC;
+        MaterialMoments {
+            c: Vec3::new(h(b), h(b + 1), h(b + 2)),
+            s: h(b + 3),
+            f90: h(b + 4),
+            ..Default::default()
         }
     }
 }
@@ -330,20 +396,33 @@ use crate::bsdf::{Bsdf, BsdfSample};
 pub struct Absdf<'t> {
     /// The tables (S of Eq. 21 is read from them at evaluation).
     tables: &'t Tables,
-    lobes: Box<[NdfLobe]>,
-    unit: Box<[Sggx]>,
-    /// Per lobe, for the diffuse term: 1 / mass and (mass/4)·E[n nᵀ] in world space.
-    diffuse_terms: Box<[(f32, Mat3)]>,
+    /// The macro lobes, with what evaluation and diffuse sampling read of each.
+    lobes: Box<[MacroLobe]>,
     spec: Box<[SpecLobe]>,
     /// The specular lobes' total weight (they are also the specular sampling mixture).
     spec_total: f32,
-    /// Diffuse sampling lobes at the fixed κ (§7.3) and their total weight.
-    diffuse_sampling: Box<[(f32, Sggx, SggxDensity)]>,
+    /// The diffuse sampling lobes' total weight.
     diffuse_total: f32,
-    moments: MomentTable,
-    /// Moments averaged over directions: used when ω_h is undefined (ω_i = −ω_o), so that the
-    /// lookup stays symmetric in ω_i and ω_o.
-    mean_moments: (MaterialMoments, MaterialMoments),
+    /// Probability of sampling the specular component (from the moments' means).
+    spec_probability: f32,
+    moments: MomentTable<'t>,
+}
+
+/// A macro lobe (Eq. 8) with what evaluation and diffuse sampling read of it, in one array:
+/// a shaded voxel's ABSDF is what the runtime's cache holds most of, and four arrays a voxel
+/// (lobes, unit SGGX, diffuse terms, sampling lobes) were four allocations.
+#[derive(Clone, Copy, Debug)]
+struct MacroLobe {
+    /// Weight, frame and roughness (the frame and roughness for G of the specular pairs).
+    ndf: NdfLobe,
+    /// The lobe's SGGX: σ(ω) of the projected area.
+    unit: Sggx,
+    /// For the diffuse term: 1 / mass and (mass/4)·E[n nᵀ] in world space.
+    inv_mass: f32,
+    second: Mat3,
+    /// The diffuse sampling lobe at the fixed κ (§7.3) and its density.
+    sampling: Sggx,
+    sampling_density: SggxDensity,
 }
 
 /// A lobe of a sampling mixture: its weight, its SGGX and the SGGX's precomputed density. The
@@ -370,18 +449,18 @@ impl SamplingLobe for SpecLobe {
     }
 }
 
-impl SamplingLobe for (f32, Sggx, SggxDensity) {
+impl SamplingLobe for MacroLobe {
     #[inline]
     fn weight(&self) -> f32 {
-        self.0
+        self.ndf.weight
     }
     #[inline]
     fn sggx(&self) -> &Sggx {
-        &self.1
+        &self.sampling
     }
     #[inline]
     fn density(&self) -> &SggxDensity {
-        &self.2
+        &self.sampling_density
     }
 }
 
@@ -438,20 +517,49 @@ impl<'t> Absdf<'t> {
         fn vec<T>(v: &[T]) -> usize {
             std::mem::size_of_val(v)
         }
-        let moments = self.moments.memory_bytes();
         std::mem::size_of::<Self>()
             + vec(&self.lobes)
-            + vec(&self.unit)
-            + vec(&self.diffuse_terms)
             + vec(&self.spec)
-            + vec(&self.diffuse_sampling)
-            + moments
+            + self.moments.memory_bytes()
+    }
+
+    /// [`Absdf::memory_bytes`] by part (the struct, macro lobes, specular lobes, moment
+    /// table), for the resident-memory probe.
+    pub fn memory_parts(&self) -> [(&'static str, usize); 4] {
+        [
+            ("struct", std::mem::size_of::<Self>()),
+            ("lobes", std::mem::size_of_val(&*self.lobes)),
+            ("spec", std::mem::size_of_val(&*self.spec)),
+            ("moments", self.moments.memory_bytes()),
+        ]
     }
 
     /// The ABSDF of voxel `v`: converts its lobes and moments once, with the tables' M1–M5
     /// lookups that do not depend on the directions.
     pub fn new(v: &VoxelAppearance, tables: &'t Tables) -> Self {
-        let mut lobes: Vec<NdfLobe> = v
+        Self::build(v, MomentTable::new(&v.moments), tables)
+    }
+
+    /// [`Absdf::new`] reading the directional moments in place, where a quantized block stores
+    /// them ([`MomentHalves`]; the runtime's way: the ABSDF then holds no copy of them). The
+    /// moments of `v` are not read; `halves` must be the voxel's own (the same ABSDF, bit for
+    /// bit, as [`Absdf::new`] of its appearance). Halves that are not a valid table fall back
+    /// to the appearance's moments.
+    pub fn with_moment_halves(
+        v: &VoxelAppearance,
+        halves: MomentHalves<'t>,
+        tables: &'t Tables,
+    ) -> Self {
+        let moments = if halves.is_valid() {
+            MomentTable::Borrowed(halves)
+        } else {
+            MomentTable::new(&v.moments)
+        };
+        Self::build(v, moments, tables)
+    }
+
+    fn build(v: &VoxelAppearance, moments: MomentTable<'t>, tables: &'t Tables) -> Self {
+        let mut ndfs: Vec<NdfLobe> = v
             .lobes
             .iter()
             .filter(|l| l.weight > 0.0 && l.weight.is_finite() && l.frame.is_finite())
@@ -460,23 +568,38 @@ impl<'t> Absdf<'t> {
                 ..*l
             })
             .collect();
-        if lobes.is_empty() {
+        if ndfs.is_empty() {
             // No usable normal information: an isotropic distribution.
-            lobes.push(NdfLobe {
+            ndfs.push(NdfLobe {
                 weight: 1.0,
                 frame: Mat3::IDENTITY,
                 alpha: Vec2::ONE,
             });
         }
-        let wsum: f32 = lobes.iter().map(|l| l.weight).sum();
-        lobes.iter_mut().for_each(|l| l.weight /= wsum);
-        let unit = lobes.iter().map(|l| lobe_sggx(l.frame, l.alpha)).collect();
-        let diffuse_terms = lobes
+        let wsum: f32 = ndfs.iter().map(|l| l.weight).sum();
+        ndfs.iter_mut().for_each(|l| l.weight /= wsum);
+        let lobes: Box<[MacroLobe]> = ndfs
             .iter()
             .map(|l| {
                 let shape = crate::math::sggx::lobe_shape(l.alpha);
                 let m = l.frame * Mat3::from_diagonal(shape.second) * l.frame.transpose();
-                (1.0 / shape.mass.max(1e-6), m * (0.25 * shape.mass))
+                // The diffuse sampling lobe at the fixed κ (§7.3, M1).
+                let mut o = [0f32; 3];
+                tables
+                    .m1
+                    .lookup_into(&[l.alpha.x, l.alpha.y, SAMPLING_KAPPA], &mut o);
+                let sampling = lobe_sggx(
+                    l.frame,
+                    Vec2::new(o[0], o[1]).clamp(Vec2::splat(ALPHA_MIN), Vec2::ONE),
+                );
+                MacroLobe {
+                    ndf: *l,
+                    unit: lobe_sggx(l.frame, l.alpha),
+                    inv_mass: 1.0 / shape.mass.max(1e-6),
+                    second: m * (0.25 * shape.mass),
+                    sampling,
+                    sampling_density: sampling.density(),
+                }
             })
             .collect();
         // Microfacet lobes of the roughness distribution (Eq. 19, M2).
@@ -495,7 +618,7 @@ impl<'t> Absdf<'t> {
                 }
             };
         let mut spec = Vec::new();
-        for (k, l) in lobes.iter().enumerate() {
+        for (k, l) in ndfs.iter().enumerate() {
             for &(m, a) in &micro {
                 if m <= 0.0 {
                     continue;
@@ -515,42 +638,28 @@ impl<'t> Absdf<'t> {
                 });
             }
         }
-        let diffuse_sampling: Vec<(f32, Sggx, SggxDensity)> = lobes
-            .iter()
-            .map(|l| {
-                let mut o = [0f32; 3];
-                tables
-                    .m1
-                    .lookup_into(&[l.alpha.x, l.alpha.y, SAMPLING_KAPPA], &mut o);
-                let s = lobe_sggx(
-                    l.frame,
-                    Vec2::new(o[0], o[1]).clamp(Vec2::splat(ALPHA_MIN), Vec2::ONE),
-                );
-                (l.weight, s, s.density())
-            })
-            .collect();
-        let mean_moments = match &v.moments {
-            Moments::Constant(m) => (*m, *m),
-            Moments::Directional {
-                diffuse, specular, ..
-            } => (
-                MaterialMoments::mean(diffuse),
-                MaterialMoments::mean(specular),
-            ),
-        };
         let spec_total = spec.iter().map(|x| x.weight).sum();
-        let diffuse_total = diffuse_sampling.iter().map(|x| x.0).sum();
+        let diffuse_total = lobes.iter().map(|x| x.ndf.weight).sum();
+        // Sampling picks the specular component in proportion to nothing finer than whether
+        // each component reflects at all (the moments' means).
+        let (dm, sm) = moments.mean();
+        let wd = crate::math::color::luminance(dm.diffuse());
+        let ws = crate::math::color::luminance(sm.reflectance()).max(0.0) + 0.1 * sm.grazing();
+        let spec_probability = if spec.is_empty() || ws <= 0.0 {
+            0.0
+        } else if wd <= 0.0 {
+            1.0
+        } else {
+            0.5
+        };
         Absdf {
             tables,
-            lobes: lobes.into_boxed_slice(),
-            unit,
-            diffuse_terms,
+            lobes,
             spec: spec.into_boxed_slice(),
             spec_total,
-            diffuse_sampling: diffuse_sampling.into_boxed_slice(),
             diffuse_total,
-            moments: MomentTable::new(&v.moments),
-            mean_moments,
+            spec_probability,
+            moments,
         }
     }
 
@@ -559,8 +668,7 @@ impl<'t> Absdf<'t> {
     pub fn projected_area(&self, w: Vec3) -> f32 {
         self.lobes
             .iter()
-            .zip(&self.unit)
-            .map(|(l, u)| l.weight * u.sigma(w))
+            .map(|l| l.ndf.weight * l.unit.sigma(w))
             .sum()
     }
 
@@ -586,25 +694,11 @@ impl<'t> Absdf<'t> {
     /// integrating f̂ over ω_i; `flat_lambertian_voxel_reflects_its_albedo` now checks 1%).
     fn diffuse_numerator(&self, wi: Vec3, wo: Vec3) -> f32 {
         let mut acc = 0.0f32;
-        for ((l, u), (inv_mass, m)) in self.lobes.iter().zip(&self.unit).zip(&self.diffuse_terms) {
-            let p = u.sigma(wi) * u.sigma(wo) * inv_mass + wi.dot(*m * wo);
-            acc += l.weight * p.max(0.0);
+        for l in self.lobes.iter() {
+            let p = l.unit.sigma(wi) * l.unit.sigma(wo) * l.inv_mass + wi.dot(l.second * wo);
+            acc += l.ndf.weight * p.max(0.0);
         }
         acc
-    }
-
-    /// Probability of sampling the specular component.
-    fn specular_probability(&self) -> f32 {
-        let (dm, sm) = self.mean_moments;
-        let wd = crate::math::color::luminance(dm.diffuse());
-        let ws = crate::math::color::luminance(sm.reflectance()).max(0.0) + 0.1 * sm.grazing();
-        if self.spec.is_empty() || ws <= 0.0 {
-            0.0
-        } else if wd <= 0.0 {
-            1.0
-        } else {
-            0.5
-        }
     }
 
     /// Density of ω_h under a visible-normal mixture and the reflection Jacobian.
@@ -668,7 +762,9 @@ impl Bsdf for Absdf<'_> {
         let (dm, sm) = if hl > 1e-6 {
             self.moments.at(h / hl)
         } else {
-            self.mean_moments
+            // ω_h is undefined (ω_i = −ω_o): the means over directions, so that the look-up
+            // stays symmetric in ω_i and ω_o (a rare path; the means are computed here).
+            self.moments.mean()
         };
         // Diffuse (Eq. 13; the lobe integral in closed form, see `diffuse_numerator`).
         let mut f = dm.diffuse() * (FRAC_1_PI * self.diffuse_numerator(wi, wo));
@@ -689,7 +785,7 @@ impl Bsdf for Absdf<'_> {
                 if s <= 0.0 {
                     continue;
                 }
-                let n = &self.lobes[l.lobe as usize];
+                let n = &self.lobes[l.lobe as usize].ndf;
                 acc += l.weight * d * s * pair_g2(n.frame, n.alpha, l.micro_alpha, wi, wo, wh);
             }
             f += fres * (0.25 * acc);
@@ -703,13 +799,13 @@ impl Bsdf for Absdf<'_> {
             return 0.0;
         }
         let (wi, wo) = (unit_or_zero(wi), unit_or_zero(wo));
-        let ps = self.specular_probability();
+        let ps = self.spec_probability;
         let mut p = 0.0;
         if ps > 0.0 {
             p += ps * Self::mixture_pdf(&self.spec, self.spec_total, wi, wo);
         }
         if ps < 1.0 {
-            p += (1.0 - ps) * Self::mixture_pdf(&self.diffuse_sampling, self.diffuse_total, wi, wo);
+            p += (1.0 - ps) * Self::mixture_pdf(&self.lobes, self.diffuse_total, wi, wo);
         }
         finite_or_zero(p)
     }
@@ -725,12 +821,12 @@ impl Bsdf for Absdf<'_> {
         if wo == Vec3::ZERO {
             return None;
         }
-        let ps = self.specular_probability();
+        let ps = self.spec_probability;
         let chosen = if u_lobe < ps {
             Self::pick(&self.spec, self.spec_total, u_lobe / ps.max(1e-12))?
         } else {
             Self::pick(
-                &self.diffuse_sampling,
+                &self.lobes,
                 self.diffuse_total,
                 (u_lobe - ps) / (1.0 - ps).max(1e-12),
             )?

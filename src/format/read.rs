@@ -22,7 +22,7 @@ use super::encode::{ComponentBytes, Counts};
 use super::level::{FaceData, LevelData, VoxelData};
 use super::settings::RecordedSettings;
 use super::{fb, FormatError, Header, ALIGN, BLOCK_ID, HEADER_SIZE, INDEX_ID};
-use crate::absdf::{MaterialMoments, Moments, NdfLobe, VoxelAppearance};
+use crate::absdf::{MaterialMoments, MomentHalves, Moments, NdfLobe, VoxelAppearance};
 use crate::math::frame::Frame;
 use crate::math::haar::{
     dequantize_tree, eval_tree, validate_tree, Node, QNode, SparseHaar, Q_DETAIL,
@@ -1178,6 +1178,38 @@ impl<'a> VoxelRef<'a> {
         let r = self.rec;
         let lobes = Lobes::of(&self.block);
         (r.lobe_start()..r.lobe_start() + r.lobe_count()).map(move |i| lobes.get(i as usize))
+    }
+
+    /// The voxel's directional moments in place, where its block stores them quantized (format
+    /// 1.4): the binary16 sets [`crate::absdf::Absdf::with_moment_halves`] reads without a copy.
+    /// `None` for constant moments, f32 moments, or bytes a `u16` slice cannot view (a
+    /// big-endian machine; an unaligned vector).
+    pub fn moment_halves(&self) -> Option<MomentHalves<'a>> {
+        let r = self.rec;
+        if !r.flags().contains(fb::VoxelFlags::DirectionalMoments) || cfg!(target_endian = "big") {
+            return None;
+        }
+        let metal = r.flags().contains(fb::VoxelFlags::Metallic);
+        let (bytes, size) = if metal {
+            (
+                self.block.qmoments()?.bytes(),
+                std::mem::size_of::<fb::QMoments>(),
+            )
+        } else {
+            (
+                self.block.qdielectric_moments()?.bytes(),
+                std::mem::size_of::<fb::QDielectricMoments>(),
+            )
+        };
+        let (start, count) = (r.moment_start() as usize, r.moment_count() as usize);
+        let bytes = bytes.get(start * size..(start + count) * size)?;
+        // SAFETY: any two bytes are a valid u16; `align_to` puts only aligned ones in the middle.
+        let (pre, halves, post) = unsafe { bytes.align_to::<u16>() };
+        (pre.is_empty() && post.is_empty()).then_some(MomentHalves {
+            res: r.moment_res(),
+            metal,
+            halves,
+        })
     }
 
     /// The ABSDF inputs.

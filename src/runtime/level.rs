@@ -193,10 +193,14 @@ impl Voxels {
         }
         let mut built = 0;
         let a = slot.get_or_init(|| {
-            let a = Box::new(Absdf::new(
-                &self.weight[i as usize].vref.appearance(),
-                crate::tables::Tables::embedded(),
-            ));
+            let vref = &self.weight[i as usize].vref;
+            let tables = crate::tables::Tables::embedded();
+            // The moments are read in place from the block's bytes, which outlive the ABSDF
+            // (dropped with the block, before `_loaded`).
+            let a = Box::new(match vref.moment_halves() {
+                Some(h) => Absdf::with_moment_halves(&vref.appearance(), h, tables),
+                None => Absdf::new(&vref.appearance(), tables),
+            });
             built = a.memory_bytes() as u64;
             a
         });
