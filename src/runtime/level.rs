@@ -71,6 +71,8 @@ pub struct HitRecord {
 
 /// What the weight and the visibility read, for primitives hit.
 pub struct WeightRecord<'a> {
+    /// The voxel's Morton key in its level.
+    pub key: u64,
     /// The normal lobes scaled so that E|n·ω| = Σ σ_k(ω) (SGGX matrices times (w_k / m5_k)²).
     pub lobes: [Sggx; 4],
     pub lobe_count: u8,
@@ -79,8 +81,8 @@ pub struct WeightRecord<'a> {
     /// The ellipsoid's axes and |det| (for |B|_ω).
     pub axes: Mat3,
     pub det: f32,
-    pub vref: VoxelRef<'a>,
-    /// The voxel's AIV map, read out of `vref` once (every hit and light sample looks it up).
+    /// The voxel's AIV map, read out of the block once (every hit and light sample looks it
+    /// up).
     pub aiv: AivMap<'a>,
 }
 
@@ -122,6 +124,9 @@ pub struct Voxels {
     pub first: u32,
     pub hit: Box<[HitRecord]>,
     pub weight: Box<[WeightRecord<'static>]>,
+    /// The block's voxels as the format reads them (what an ABSDF is built from): once for
+    /// the block, not in each voxel's record.
+    block: crate::format::VoxelBlock<'static>,
     absdf: Box<[OnceLock<Box<Absdf<'static>>>]>,
     /// Bytes counted for the block in its cache (grows as ABSDFs are built).
     bytes: AtomicU64,
@@ -164,6 +169,7 @@ impl Voxels {
             first,
             hit: hit.into_boxed_slice(),
             weight: weight.into_boxed_slice(),
+            block,
             absdf,
             bytes: AtomicU64::new(bytes),
             cache,
@@ -193,7 +199,7 @@ impl Voxels {
         }
         let mut built = 0;
         let a = slot.get_or_init(|| {
-            let vref = &self.weight[i as usize].vref;
+            let vref = self.block.voxel(i as usize);
             let tables = crate::tables::Tables::embedded();
             // The moments are read in place from the block's bytes, which outlive the ABSDF
             // (dropped with the block, before `_loaded`).
@@ -216,7 +222,7 @@ impl Voxels {
     pub fn primitive(&self, level: &Level, i: u32) -> Option<TruncatedEllipsoid> {
         let (h, w) = (&self.hit[i as usize], &self.weight[i as usize]);
         let area_case = h.area_case?;
-        let (lo, hi) = level.grid.voxel_bounds(w.vref.coords());
+        let (lo, hi) = level.grid.voxel_bounds(crate::spatial::demorton3(w.key));
         let pad = Vec3::splat(level.pad);
         Some(TruncatedEllipsoid {
             center: h.center,
@@ -271,7 +277,7 @@ fn records<'a>(grid: &Grid, v: VoxelRef<'a>) -> (HitRecord, WeightRecord<'a>) {
         axes: e.axes,
         det: prim.map_or(0.0, |p| p.det),
         aiv: v.aiv_map(),
-        vref: v,
+        key: v.key,
     };
     (hit, weight)
 }

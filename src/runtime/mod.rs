@@ -703,7 +703,7 @@ impl<'s> VoxelHandle<'s> {
 
     /// The voxel's Morton key in its level.
     pub fn key(&self) -> u64 {
-        self.block.weight[self.i as usize].vref.key
+        self.block.weight[self.i as usize].key
     }
 
     /// The voxel's ABSDF (Eq. 7–23), built the first time it is asked for.
