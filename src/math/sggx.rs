@@ -406,34 +406,60 @@ pub fn lobe_shape_exact(alpha: Vec2, n: usize) -> LobeShape {
 /// Table resolution of [`lobe_shape`] per roughness axis (α from 0 to 1).
 const SHAPE_RES: usize = 33;
 
-/// [`LobeShape`] of a unit lobe, bilinear in a table over (αx, αy) built on first use (within
-/// 2·10⁻⁴ of [`lobe_shape_exact`]; tested).
+/// The [`lobe_shape`] table by quadrature, (αx, αy) on a `SHAPE_RES²` grid, αx fastest: the
+/// lower triangle by 561 quadratures of 128 × 32 cells, the upper by the symmetry of swapping
+/// the axes (256 × 64 cells and the whole square took 0.4 s, most of a small render).
+pub fn lobe_shape_table() -> Vec<LobeShape> {
+    let mut v = vec![
+        LobeShape {
+            mass: 0.0,
+            second: Vec3::ZERO
+        };
+        SHAPE_RES * SHAPE_RES
+    ];
+    for j in 0..SHAPE_RES {
+        for i in 0..=j {
+            let a = Vec2::new(i as f32, j as f32) / (SHAPE_RES - 1) as f32;
+            let s = lobe_shape_exact(a, 128);
+            v[j * SHAPE_RES + i] = s;
+            v[i * SHAPE_RES + j] = LobeShape {
+                mass: s.mass,
+                second: Vec3::new(s.second.y, s.second.x, s.second.z),
+            };
+        }
+    }
+    v
+}
+
+/// [`lobe_shape_table`] as committed (`tables/lobe-shapes.bin`: per entry mass and E[n nᵀ]'s
+/// diagonal, four little-endian f32): the quadrature took 7 ms of every process that built
+/// an ABSDF (13% of a 64², 1-spp render), and the file is checked against it by a test
+/// (regenerated with `AGGTOOL_BLESS=1`).
+const SHAPE_FILE: &[u8] = include_bytes!("../../tables/lobe-shapes.bin");
+
+/// The committed table decoded; the quadrature where the file is not a whole table.
+fn committed_lobe_shapes() -> Vec<LobeShape> {
+    if SHAPE_FILE.len() != SHAPE_RES * SHAPE_RES * 16 {
+        return lobe_shape_table();
+    }
+    SHAPE_FILE
+        .chunks_exact(16)
+        .map(|c| {
+            let f =
+                |k: usize| f32::from_le_bytes([c[4 * k], c[4 * k + 1], c[4 * k + 2], c[4 * k + 3]]);
+            LobeShape {
+                mass: f(0),
+                second: Vec3::new(f(1), f(2), f(3)),
+            }
+        })
+        .collect()
+}
+
+/// [`LobeShape`] of a unit lobe, bilinear in a table over (αx, αy) (within 2·10⁻⁴ of
+/// [`lobe_shape_exact`]; tested).
 pub fn lobe_shape(alpha: Vec2) -> LobeShape {
     static TABLE: std::sync::OnceLock<Vec<LobeShape>> = std::sync::OnceLock::new();
-    let t = TABLE.get_or_init(|| {
-        // The lower triangle by quadrature, the upper by the symmetry of swapping the axes:
-        // 561 quadratures of 128 × 32 cells (a few milliseconds; 256 × 64 cells and the whole
-        // square took 0.4 s, most of a small render).
-        let mut v = vec![
-            LobeShape {
-                mass: 0.0,
-                second: Vec3::ZERO
-            };
-            SHAPE_RES * SHAPE_RES
-        ];
-        for j in 0..SHAPE_RES {
-            for i in 0..=j {
-                let a = Vec2::new(i as f32, j as f32) / (SHAPE_RES - 1) as f32;
-                let s = lobe_shape_exact(a, 128);
-                v[j * SHAPE_RES + i] = s;
-                v[i * SHAPE_RES + j] = LobeShape {
-                    mass: s.mass,
-                    second: Vec3::new(s.second.y, s.second.x, s.second.z),
-                };
-            }
-        }
-        v
-    });
+    let t = TABLE.get_or_init(committed_lobe_shapes);
     let a = alpha.clamp(Vec2::ZERO, Vec2::ONE);
     if !a.is_finite() {
         return t[SHAPE_RES * SHAPE_RES - 1];
@@ -458,6 +484,35 @@ pub fn lobe_shape(alpha: Vec2) -> LobeShape {
 
 #[cfg(test)]
 mod tests {
+
+    /// The committed table is the quadrature's (within 10⁻⁶ relative: the same code on
+    /// another libm may differ in the last bits); `AGGTOOL_BLESS=1` writes it again.
+    #[test]
+    fn committed_lobe_shapes_are_the_quadrature() {
+        let t = lobe_shape_table();
+        if std::env::var_os("AGGTOOL_BLESS").is_some() {
+            let bytes: Vec<u8> = t
+                .iter()
+                .flat_map(|s| [s.mass, s.second.x, s.second.y, s.second.z])
+                .flat_map(f32::to_le_bytes)
+                .collect();
+            let path = concat!(env!("CARGO_MANIFEST_DIR"), "/tables/lobe-shapes.bin");
+            std::fs::write(path, bytes).unwrap();
+            return;
+        }
+        assert_eq!(
+            SHAPE_FILE.len(),
+            SHAPE_RES * SHAPE_RES * 16,
+            "bless the table file"
+        );
+        for (a, b) in committed_lobe_shapes().iter().zip(&t) {
+            let close = |x: f32, y: f32| (x - y).abs() <= 1e-6 * y.abs().max(1e-3);
+            assert!(close(a.mass, b.mass), "{a:?} vs {b:?}");
+            for k in 0..3 {
+                assert!(close(a.second[k], b.second[k]), "{a:?} vs {b:?}");
+            }
+        }
+    }
 
     /// The lobe statistics: the sphere (mass 4, E[nnᵀ] = I/3), the flat limit (2, zz), the
     /// isotropic mass against the closed form 2·M5(α), symmetry in the two axes, and the table
