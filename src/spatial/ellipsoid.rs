@@ -230,7 +230,27 @@ impl TruncatedEllipsoid {
     }
 
     /// The 64-point estimate of |B|_ω for an ellipsoid that crosses its voxel's boundary.
+    ///
+    /// Its loops vectorise; where the processor has AVX2 they run eight lanes wide instead of
+    /// the baseline's four (the same operations, so the same bits: no fused multiply-adds).
+    #[inline]
     fn crossing_projected_area(&self, w: Vec3) -> f32 {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 is present (checked just above).
+            return unsafe { self.crossing_projected_area_avx2(w) };
+        }
+        self.crossing_projected_area_in(w)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn crossing_projected_area_avx2(&self, w: Vec3) -> f32 {
+        self.crossing_projected_area_in(w)
+    }
+
+    #[inline(always)]
+    fn crossing_projected_area_in(&self, w: Vec3) -> f32 {
         let full = self.ellipsoid_projected_area(w);
         // Lines along w through area-uniform points of the ellipsoid's shadow.
         let q = (self.inv * w).normalize_or_zero();
