@@ -355,6 +355,45 @@ mod tests {
         TruncatedEllipsoid::new(&Ellipsoid { center: c, axes: m }, Vec3::ZERO, Vec3::ONE).unwrap()
     }
 
+    /// The AVX2 build of the crossing |B|_ω and the baseline's give the same bits (the
+    /// processor that runs the tests runs one of them in renders), on random crossing
+    /// ellipsoids and directions, axis-parallel ones among them.
+    #[test]
+    fn crossing_area_same_bits_on_every_path() {
+        let mut rng = Pcg32::new(11, 3);
+        let mut crossing = 0;
+        for k in 0..400 {
+            let c = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32());
+            let m = Mat3::from_cols(
+                Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) - 0.5,
+                Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) - 0.5,
+                Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 0.1,
+            );
+            let Some(p) =
+                TruncatedEllipsoid::new(&Ellipsoid { center: c, axes: m }, Vec3::ZERO, Vec3::ONE)
+            else {
+                continue;
+            };
+            if p.area_case != AreaCase::Crossing {
+                continue;
+            }
+            crossing += 1;
+            let w = if k % 7 == 0 {
+                Vec3::X
+            } else {
+                crate::math::sampling::square_to_uniform_sphere(rng.next_2d())
+            };
+            let a = p.crossing_projected_area(w);
+            assert!(a.is_finite() && a >= 0.0);
+            assert_eq!(
+                a.to_bits(),
+                p.crossing_projected_area_in(w).to_bits(),
+                "{k}"
+            );
+        }
+        assert!(crossing > 100, "{crossing}");
+    }
+
     /// A flat ellipsoid (1e-4 thick) three units from the ray origin: the interval is found,
     /// and it is where the ray crosses the disk (the textbook quadratic loses it in f32).
     #[test]
