@@ -244,7 +244,13 @@ impl Assembly {
             .unzip();
         let lateral = world_to_local
             .iter()
-            .map(|m| Affine3A::from_cols_array(m).matrix3.determinant().abs().cbrt())
+            .map(|m| {
+                Affine3A::from_cols_array(m)
+                    .matrix3
+                    .determinant()
+                    .abs()
+                    .cbrt()
+            })
             .collect();
         // Instances of an asset without levels have empty bounds and stay out of the BVH.
         let bvh_instances: Vec<u32> = (0..n as u32)
