@@ -100,7 +100,12 @@ impl MaterialMoments {
 
     /// The unweighted mean of several.
     pub fn mean(list: &[MaterialMoments]) -> Self {
-        let n = list.len().max(1) as f32;
+        Self::mean_of(list.iter().copied(), list.len())
+    }
+
+    /// [`MaterialMoments::mean`] of the `len` sets `list` yields (no slice needed).
+    fn mean_of(list: impl Iterator<Item = MaterialMoments>, len: usize) -> Self {
+        let n = len.max(1) as f32;
         let mut a = MaterialMoments::default();
         for m in list {
             a.c += m.c / n;
@@ -285,9 +290,12 @@ impl MomentTable<'_> {
     fn mean(&self) -> (MaterialMoments, MaterialMoments) {
         let halves_mean = |res: u32, metal: bool, halves: &[u16]| {
             let n = (res * res) as usize;
-            let d: Vec<MaterialMoments> = (0..n).map(|k| half_set(halves, metal, k)).collect();
-            let s: Vec<MaterialMoments> = (n..2 * n).map(|k| half_set(halves, metal, k)).collect();
-            (MaterialMoments::mean(&d), MaterialMoments::mean(&s))
+            // No allocation: an evaluation with ω_i = −ω_o is on a hot path, however rare.
+            let set = |k| half_set(halves, metal, k);
+            (
+                MaterialMoments::mean_of((0..n).map(set), n),
+                MaterialMoments::mean_of((n..2 * n).map(set), n),
+            )
         };
         match self {
             MomentTable::Constant(m) => (*m, *m),
