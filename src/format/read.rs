@@ -1032,6 +1032,42 @@ impl<'a> FaceBlock<'a> {
             abv_res: self.abv_res,
         }
     }
+
+    /// The ABV of a face of this block ([`FaceRef::abv_ref`]) towards `d`, as
+    /// [`FaceRef::abv`].
+    #[inline]
+    pub fn abv(&self, face: &FaceAbv, d: Vec3) -> f32 {
+        face.eval(self.nodes, self.abv_res, d)
+    }
+}
+
+/// What the ABV look-up reads of a face (16 bytes): its direction and where its tree's
+/// nodes are in the block, for a runtime that keeps its faces sorted by key without the
+/// pointer into the block that a [`FaceRef`] is (one dependent load fewer a look-up, 16 bytes
+/// a face instead of 40).
+#[derive(Clone, Copy, Debug)]
+pub struct FaceAbv {
+    start: u32,
+    count: u32,
+    scaling: f32,
+    dir: u8,
+}
+
+impl FaceAbv {
+    /// The ABV towards unit `d` (Eq. 26), read from the tree's nodes in `nodes`.
+    #[inline]
+    fn eval(&self, nodes: Nodes<'_>, n: u32, d: Vec3) -> f32 {
+        if self.count == 0 {
+            return (self.scaling / n.max(1) as f32).clamp(0.0, 1.0);
+        }
+        let local = Frame::from_z(-face_normal(self.dir)).to_local(d);
+        if !(local.z > 0.0) {
+            return (self.scaling / n as f32).clamp(0.0, 1.0);
+        }
+        let cell = grid_cell(concentric_hemisphere_to_square(local), n);
+        let tree = nodes.tree(self.start as usize, self.count as usize);
+        eval_bytes(n, self.scaling, tree, cell)
+    }
 }
 
 /// A boundary face and its ABV tree, read zero-copy.
@@ -1066,20 +1102,17 @@ impl<'a> FaceRef<'a> {
     /// not enter through the face.
     #[inline]
     pub fn abv(&self, d: Vec3) -> f32 {
-        let n = self.abv_res;
-        let scaling = self.rec.abv_scaling();
-        if self.rec.abv_count() == 0 {
-            return (scaling / n.max(1) as f32).clamp(0.0, 1.0);
+        self.abv_ref().eval(self.nodes, self.abv_res, d)
+    }
+
+    /// What the ABV look-up reads of this face, without the pointer into the block.
+    pub fn abv_ref(&self) -> FaceAbv {
+        FaceAbv {
+            start: self.rec.abv_start(),
+            count: self.rec.abv_count(),
+            scaling: self.rec.abv_scaling(),
+            dir: self.rec.dir() as u8,
         }
-        let local = Frame::from_z(-face_normal(self.rec.dir() as u8)).to_local(d);
-        if !(local.z > 0.0) {
-            return (scaling / n as f32).clamp(0.0, 1.0);
-        }
-        let cell = grid_cell(concentric_hemisphere_to_square(local), n);
-        let tree = self
-            .nodes
-            .tree(self.rec.abv_start() as usize, self.rec.abv_count() as usize);
-        eval_bytes(n, scaling, tree, cell)
     }
 
     /// The decoded ABV tree.

@@ -25,7 +25,7 @@ use glam::{IVec3, Mat3, UVec3, Vec3};
 
 use super::cache::{BlockCache, Slot};
 use crate::absdf::Absdf;
-use crate::format::FaceRef;
+use crate::format::FaceAbv;
 use crate::format::{Aggregate, AivMap, LoadedBlock, VoxelRef};
 use crate::math::microfacet::m5_exact;
 use crate::math::sggx::Sggx;
@@ -285,10 +285,13 @@ fn records<'a>(grid: &Grid, v: VoxelRef<'a>) -> (HitRecord, WeightRecord<'a>) {
 /// A prepared face block: its faces by key · 8 + direction, sorted.
 pub struct Faces {
     keys: Box<[u64]>,
-    faces: Box<[FaceRef<'static>]>,
+    /// What the ABV look-up reads of each face, in the order of `keys`.
+    faces: Box<[FaceAbv]>,
+    /// The block's reader (its ABV nodes).
+    block: crate::format::FaceBlock<'static>,
     bytes: u64,
     cache: Arc<BlockCache>,
-    /// The block's bytes, which `faces` borrows: declared last, dropped last.
+    /// The block's bytes, which `block` borrows: declared last, dropped last.
     _loaded: LoadedBlock<'static>,
 }
 
@@ -297,30 +300,34 @@ impl Faces {
         let block = loaded.faces().ok_or("not a face block")?;
         // SAFETY: as for `Voxels::prepare`.
         let block: crate::format::FaceBlock<'static> = unsafe { std::mem::transmute(block) };
-        let mut pairs: Vec<(u64, FaceRef<'static>)> = (0..block.len())
+        let mut pairs: Vec<(u64, FaceAbv)> = (0..block.len())
             .map(|i| {
                 let f = block.face(i);
-                (f.key() * 8 + f.face().dir as u64, f)
+                (f.key() * 8 + f.face().dir as u64, f.abv_ref())
             })
             .collect();
         pairs.sort_by_key(|p| p.0);
         let keys: Box<[u64]> = pairs.iter().map(|p| p.0).collect();
-        let faces: Box<[FaceRef<'static>]> = pairs.into_iter().map(|p| p.1).collect();
+        let faces: Box<[FaceAbv]> = pairs.into_iter().map(|p| p.1).collect();
         let bytes = (std::mem::size_of::<Faces>()
-            + keys.len() * (8 + std::mem::size_of::<FaceRef>())
+            + keys.len() * (8 + std::mem::size_of::<FaceAbv>())
             + loaded.owned_bytes()) as u64;
         cache.grow(bytes);
         Ok(Faces {
             keys,
             faces,
+            block,
             bytes,
             cache,
             _loaded: loaded,
         })
     }
 
-    fn get(&self, key8: u64) -> Option<&FaceRef<'static>> {
-        self.keys.binary_search(&key8).ok().map(|i| &self.faces[i])
+    /// The ABV towards `d` of the face `key8` (voxel key · 8 + direction), if the block has it.
+    #[inline]
+    fn abv(&self, key8: u64, d: Vec3) -> Option<f32> {
+        let i = self.keys.binary_search(&key8).ok()?;
+        Some(self.block.abv(&self.faces[i], d))
     }
 }
 
@@ -642,9 +649,7 @@ impl<'a> Level<'a> {
                 let loaded: LoadedBlock<'static> = unsafe { std::mem::transmute(loaded) };
                 Faces::prepare(loaded, self.cache.clone())
             };
-            match self.face_slots[b]
-                .with(&self.cache, load, |faces| faces.get(key8).map(|f| f.abv(d)))
-            {
+            match self.face_slots[b].with(&self.cache, load, |faces| faces.abv(key8, d)) {
                 Ok(Some(v)) => return v,
                 Ok(None) => {}
                 Err(e) => {
