@@ -446,7 +446,7 @@ fn dropped_effects_change_nothing() {
 }
 
 /// The runtime builds a voxel's ABSDF reading its directional moments in place from the
-/// quantized block (`Absdf::with_moment_halves`): the same function, bit for bit, as the ABSDF
+/// quantized block (`VoxelRef::absdf`): the same function, bit for bit, as the ABSDF
 /// of the decoded appearance, for metal and dielectric sets, every direction pair tried
 /// (ω_i = −ω_o among them, where the ABSDF reads the moments' means), its density and its
 /// samples; and it holds no copy of the moments.
@@ -482,8 +482,7 @@ fn moments_read_in_place_are_the_decoded_ones() {
                 } else {
                     dielectric += 1;
                 }
-                let app = v.appearance();
-                let (a, b) = (Absdf::new(&app, t), Absdf::with_moment_halves(&app, h, t));
+                let (a, b) = (Absdf::new(&v.appearance(), t), v.absdf(t));
                 assert!(b.memory_bytes() < a.memory_bytes());
                 for wi in dirs {
                     for wo in dirs {

@@ -62,12 +62,7 @@ def forest_scene(mi, folder: Path, glb: Path, agg: Path, size: int, spp: int):
         return d
 
     lod = mi.load_dict(scene({"type": "aggtool_lod", "agg_forest": str(manifest)}))
-    cut = example.cut_out
-    example.cut_out = lambda pos, nrm, uv, faces, alpha, cutoff, k=16: (pos, nrm, uv, faces)
-    try:
-        shapes = example.glb_shapes(mi, glb, folder, None)
-    finally:
-        example.cut_out = cut
+    shapes = example.glb_shapes(mi, glb, folder, None, cut=False)
     extra = {"trees": {"type": "shapegroup", **shapes}}
     for k, t in enumerate(xf):
         extra[f"tree{k}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": "trees"},

@@ -123,11 +123,12 @@ def cut_out(pos, nrm, uv, faces, alpha, cutoff, k=16):
     return P, N, T, np.arange(len(P), dtype=np.uint32).reshape(-1, 3)
 
 
-def glb_shapes(mi, glb: Path, folder: Path, to_world=None) -> dict:
+def glb_shapes(mi, glb: Path, folder: Path, to_world=None, cut=True) -> dict:
     """The GLB's triangle meshes as Mitsuba shapes (PLY files in `folder`), each with a
     two-sided `diffuse` of its base colour (texture × factor, sRGB decoded), alphaMode MASK
-    cut out of the geometry ([`cut_out`]): what aggtool's Lambertian model reduces to. Node
-    transforms are not read (aggtool gen writes none)."""
+    cut out of the geometry ([`cut_out`]): what aggtool's Lambertian model reduces to; with
+    `cut=False` the leaves stay whole, opaque quads (a cut-out 1M-triangle tree needs more
+    than 23 GB). Node transforms are not read (aggtool gen writes none)."""
     gltf, binary = _read_glb(glb)
     textures = {}
     shapes = {}
@@ -160,7 +161,7 @@ def glb_shapes(mi, glb: Path, folder: Path, to_world=None) -> dict:
                 rgba = textures[src] * factor
                 refl = {"type": "bitmap", "raw": True,
                         "bitmap": mi.Bitmap(np.ascontiguousarray(rgba[..., :3]))}
-                if mat.get("alphaMode") == "MASK":
+                if cut and mat.get("alphaMode") == "MASK":
                     pos, nrm, uv, faces = cut_out(pos, nrm, uv, faces, rgba[..., 3:4],
                                                   mat.get("alphaCutoff", 0.5))
             write_ply(folder / f"{name}.ply", pos, nrm, uv, faces)

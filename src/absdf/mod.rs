@@ -545,30 +545,46 @@ impl<'t> Absdf<'t> {
     /// The ABSDF of voxel `v`: converts its lobes and moments once, with the tables' M1–M5
     /// lookups that do not depend on the directions.
     pub fn new(v: &VoxelAppearance, tables: &'t Tables) -> Self {
-        Self::build(v, MomentTable::new(&v.moments), tables)
+        Self::build(
+            &v.lobes,
+            v.roughness_mean,
+            v.roughness_variance,
+            MomentTable::new(&v.moments),
+            tables,
+        )
     }
 
-    /// [`Absdf::new`] reading the directional moments in place, where a quantized block stores
-    /// them ([`MomentHalves`]; the runtime's way: the ABSDF then holds no copy of them). The
-    /// moments of `v` are not read; `halves` must be the voxel's own (the same ABSDF, bit for
-    /// bit, as [`Absdf::new`] of its appearance). Halves that are not a valid table fall back
-    /// to the appearance's moments.
+    /// [`Absdf::new`] of a voxel whose directional moments are read in place, where a
+    /// quantized block stores them ([`MomentHalves`]; the runtime's way, through
+    /// `format::VoxelRef::absdf`: the ABSDF holds no copy of them, and they are not decoded
+    /// to be dropped). The same ABSDF, bit for bit, as [`Absdf::new`] of the voxel's
+    /// appearance; `None` where `halves` are not a valid table.
     pub fn with_moment_halves(
-        v: &VoxelAppearance,
+        lobes: &[NdfLobe],
+        roughness_mean: f32,
+        roughness_variance: f32,
         halves: MomentHalves<'t>,
         tables: &'t Tables,
-    ) -> Self {
-        let moments = if halves.is_valid() {
-            MomentTable::Borrowed(halves)
-        } else {
-            MomentTable::new(&v.moments)
-        };
-        Self::build(v, moments, tables)
+    ) -> Option<Self> {
+        halves.is_valid().then(|| {
+            Self::build(
+                lobes,
+                roughness_mean,
+                roughness_variance,
+                MomentTable::Borrowed(halves),
+                tables,
+            )
+        })
     }
 
-    fn build(v: &VoxelAppearance, moments: MomentTable<'t>, tables: &'t Tables) -> Self {
-        let mut ndfs: Vec<NdfLobe> = v
-            .lobes
+    fn build(
+        lobes: &[NdfLobe],
+        roughness_mean: f32,
+        roughness_variance: f32,
+        moments: MomentTable<'t>,
+        tables: &'t Tables,
+    ) -> Self {
+        let mut ndfs: Vec<NdfLobe> = lobes
             .iter()
             .filter(|l| l.weight > 0.0 && l.weight.is_finite() && l.frame.is_finite())
             .map(|l| NdfLobe {
@@ -612,7 +628,7 @@ impl<'t> Absdf<'t> {
             .collect();
         // Microfacet lobes of the roughness distribution (Eq. 19, M2).
         let micro: Vec<(f32, f32)> =
-            match RoughnessDistribution::from_moments(v.roughness_mean, v.roughness_variance) {
+            match RoughnessDistribution::from_moments(roughness_mean, roughness_variance) {
                 RoughnessDistribution::Constant(a) => vec![(1.0, a.clamp(ALPHA_MIN, 1.0))],
                 d => {
                     let mu = d.mean();

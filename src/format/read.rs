@@ -1214,7 +1214,7 @@ impl<'a> VoxelRef<'a> {
     }
 
     /// The voxel's directional moments in place, where its block stores them quantized (format
-    /// 1.4): the binary16 sets [`crate::absdf::Absdf::with_moment_halves`] reads without a copy.
+    /// 1.4): the binary16 sets [`VoxelRef::absdf`] reads without a copy.
     /// `None` for constant moments, f32 moments, or bytes a `u16` slice cannot view (a
     /// big-endian machine; an unaligned vector).
     pub fn moment_halves(&self) -> Option<MomentHalves<'a>> {
@@ -1243,6 +1243,28 @@ impl<'a> VoxelRef<'a> {
             metal,
             halves,
         })
+    }
+
+    /// The voxel's ABSDF as the runtime builds it: the directional moments read in place
+    /// where the block stores them quantized ([`VoxelRef::moment_halves`]), else decoded (the
+    /// same function as `Absdf::new(&self.appearance(), tables)`, bit for bit).
+    pub fn absdf<'t>(&self, tables: &'t crate::tables::Tables) -> crate::absdf::Absdf<'t>
+    where
+        'a: 't,
+    {
+        let r = self.rec;
+        self.moment_halves()
+            .and_then(|h| {
+                let lobes: Vec<NdfLobe> = self.lobes().collect();
+                crate::absdf::Absdf::with_moment_halves(
+                    &lobes,
+                    r.roughness_mean(),
+                    r.roughness_variance(),
+                    h,
+                    tables,
+                )
+            })
+            .unwrap_or_else(|| crate::absdf::Absdf::new(&self.appearance(), tables))
     }
 
     /// The ABSDF inputs.

@@ -199,14 +199,13 @@ impl Voxels {
         }
         let mut built = 0;
         let a = slot.get_or_init(|| {
-            let vref = self.block.voxel(i as usize);
-            let tables = crate::tables::Tables::embedded();
-            // The moments are read in place from the block's bytes, which outlive the ABSDF
-            // (dropped with the block, before `_loaded`).
-            let a = Box::new(match vref.moment_halves() {
-                Some(h) => Absdf::with_moment_halves(&vref.appearance(), h, tables),
-                None => Absdf::new(&vref.appearance(), tables),
-            });
+            // The moments may be read in place from the block's bytes, which outlive the
+            // ABSDF (dropped with the block, before `_loaded`).
+            let a = Box::new(
+                self.block
+                    .voxel(i as usize)
+                    .absdf(crate::tables::Tables::embedded()),
+            );
             built = a.memory_bytes() as u64;
             a
         });

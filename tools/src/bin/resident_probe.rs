@@ -12,7 +12,6 @@
 
 use std::path::Path;
 
-use aggtool::absdf::Absdf;
 use aggtool::format::Aggregate;
 use aggtool::tables::Tables;
 
@@ -39,14 +38,11 @@ fn main() -> anyhow::Result<()> {
             n += 1;
             lobes_hist[v.lobes().count().min(4)] += 1;
             // As the runtime builds it: the moments read in place where the block allows.
-            let a = match v.moment_halves() {
-                Some(h) => {
-                    in_place += 1;
-                    metal += h.metal as usize;
-                    Absdf::with_moment_halves(&v.appearance(), h, tables)
-                }
-                None => Absdf::new(&v.appearance(), tables),
-            };
+            if let Some(h) = v.moment_halves() {
+                in_place += 1;
+                metal += h.metal as usize;
+            }
+            let a = v.absdf(tables);
             for (k, (name, b)) in a.memory_parts().into_iter().enumerate() {
                 parts[k] += b;
                 names[k] = name;
