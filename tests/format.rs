@@ -344,8 +344,18 @@ fn round_trip_and_rejection() {
         .err()
         .expect("1.4 with compressed blocks refused");
     assert!(e.to_string().contains("older than 1.5"), "{e}");
-    // From 1.6 the compressed blocks are in byte planes, which a 1.5 file cannot hold.
-    let e = Aggregate::from_bytes(with_version(&zbytes, MAJOR, 5))
+    // From 1.8 the compressed blocks are in byte planes with derived fields left out, which
+    // no older file can hold.
+    for minor in [5, 7] {
+        let e = Aggregate::from_bytes(with_version(&zbytes, MAJOR, minor))
+            .err()
+            .expect("1.5 and 1.7 with derived planar blocks refused");
+        assert!(e.to_string().contains("older than 1.8"), "{e}");
+    }
+    // The 1.6 file's blocks are in byte planes, which a 1.5 file cannot hold.
+    let p = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/foliage-1.6.agg"))
+        .unwrap();
+    let e = Aggregate::from_bytes(with_version(&p, MAJOR, 5))
         .err()
         .expect("1.5 with planar blocks refused");
     assert!(e.to_string().contains("older than 1.6"), "{e}");
@@ -612,7 +622,8 @@ fn damaged_files_never_panic() {
     let dir = tempfile::tempdir().unwrap();
     let (bytes, _) = bake(&scene("foliage", 300, false), &small(), dir.path(), "f.agg");
     // The default bake (quantized, blocks compressed), then the committed files of each layout
-    // (1.3 floats, 1.4 quantized, 1.5 compressed, 1.6 in byte planes, 1.7 a visibility level).
+    // (1.3 floats, 1.4 quantized, 1.5 compressed, 1.6 in byte planes, 1.7 a visibility level,
+    // 1.8 derived fields left out).
     let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data");
     let files = [
         (bytes, 3000),
@@ -621,6 +632,7 @@ fn damaged_files_never_panic() {
         (std::fs::read(data.join("foliage-1.5.agg")).unwrap(), 1000),
         (std::fs::read(data.join("foliage-1.6.agg")).unwrap(), 1000),
         (std::fs::read(data.join("foliage-1.7.agg")).unwrap(), 1000),
+        (std::fs::read(data.join("foliage-1.8.agg")).unwrap(), 1000),
     ];
     for (bytes, runs) in files {
         damage(&bytes, runs);

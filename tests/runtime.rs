@@ -1127,7 +1127,7 @@ fn visibility_levels_read_the_coarser_voxels_aiv() {
     let vis = baked(&scene, &vis_s);
     let coarse = baked(&scene, &small(8));
     let agg = vis.aggregate();
-    assert_eq!(agg.header().minor, 7);
+    assert!(agg.header().minor >= 7, "visibility levels are format 1.7");
     assert_eq!(agg.settings().shading_res, 8);
     assert_eq!(agg.grid(0).res, 16);
     assert_eq!((agg.shading_level(0), agg.shading_level(1)), (1, 1));

@@ -100,7 +100,7 @@ def main(argv):
     print(f"{d['file']}: aggtool format {d['format']}, {d['bytes']} bytes, written by {d['generator']}")
     layout = "float" if d["lossless"] else "quantized (1.4)"
     if d["compression"]:
-        layout += f", blocks zstd level {d['compression']} (1.5; in byte planes from 1.6)"
+        layout += f", blocks zstd level {d['compression']} (1.5; in byte planes from 1.6, derived fields left out from 1.8)"
     print(f"source: {d['source']}; max-res {d['max_res']}, AIV {d['aiv_res']}², ABV {d['abv_res']}²; effects 0x{d['effects_kept']:x}; tables v{d['tables_version']}; layout {layout}")
     if d["shading_res"] and d["shading_res"] < d["max_res"]:
         print(f"visibility levels (1.7): finer than {d['shading_res']}³, reading its voxels' AIV")

@@ -50,7 +50,7 @@ pub const MAGIC: [u8; 8] = [0x89, b'A', b'G', b'G', b'\r', b'\n', 0x1a, b'\n'];
 /// The format version this build writes. Readers accept any minor of their major.
 pub const MAJOR: u16 = 1;
 /// The minor version this build writes.
-pub const MINOR: u16 = 7;
+pub const MINOR: u16 = 8;
 /// Bytes of the fixed header.
 pub const HEADER_SIZE: usize = 64;
 /// Alignment of every blob.
@@ -73,21 +73,38 @@ pub const DEFAULT_COMPRESSION: i32 = 19;
 /// A block's FlatBuffer compressed as one Zstandard frame (with its content size, which
 /// readers require), or `None` when compression would not make it smaller.
 ///
-/// From format 1.6 the frame holds the block in byte planes ([`planar`]), after
-/// [`planar::PLANAR_MAGIC`].
+/// From format 1.6 the frame holds the block in byte planes ([`planar`]); from 1.8 with the
+/// fields a reader recomputes left out ([`planar::derived`]), after
+/// [`planar::DERIVED_MAGIC`] and the flags byte. The blob is checked to inflate to `block`
+/// before it is returned; were it not (a block the bake did not build), the 1.6 planes are
+/// written instead.
 pub fn compress_block(block: &[u8], level: i32) -> Option<Vec<u8>> {
     let mut c = zstd::bulk::Compressor::new(level).ok()?;
     c.include_contentsize(true).ok()?;
     c.include_checksum(false).ok()?;
-    let mut out = planar::PLANAR_MAGIC.to_vec();
-    out.extend(c.compress(&planar::to_planes(block)).ok()?);
+    let (flags, planes) = planar::to_derived_planes(block);
+    let mut back = planes.clone();
+    let out = if planar::from_derived_planes(&mut back, flags, &read::verifier_options()).is_ok()
+        && back == block
+    {
+        let mut out = planar::DERIVED_MAGIC.to_vec();
+        out.push(flags);
+        out.extend(c.compress(&planes).ok()?);
+        out
+    } else {
+        let mut out = planar::PLANAR_MAGIC.to_vec();
+        out.extend(c.compress(&planar::to_planes(block)).ok()?);
+        out
+    };
     (out.len() < block.len()).then_some(out)
 }
 
-/// Whether a stored blob is coded (a Zstandard frame, or a planar one) rather than the
-/// block's FlatBuffer itself.
+/// Whether a stored blob is coded (a Zstandard frame, a planar or a derived planar one)
+/// rather than the block's FlatBuffer itself.
 pub fn is_coded(stored: &[u8]) -> bool {
-    stored.starts_with(&ZSTD_MAGIC) || stored.starts_with(&planar::PLANAR_MAGIC)
+    stored.starts_with(&ZSTD_MAGIC)
+        || stored.starts_with(&planar::PLANAR_MAGIC)
+        || stored.starts_with(&planar::DERIVED_MAGIC)
 }
 
 /// A level's voxel keys as the index stores them (`Level.voxel_keys`): the LEB128 varints of
@@ -170,6 +187,14 @@ pub fn inflate_block(blob: &[u8]) -> Result<Vec<u8>, String> {
     if let Some(frame) = blob.strip_prefix(&planar::PLANAR_MAGIC) {
         let mut out = inflate_frame(frame)?;
         planar::from_planes(&mut out, &read::verifier_options())?;
+        return Ok(out);
+    }
+    if let Some(rest) = blob.strip_prefix(&planar::DERIVED_MAGIC) {
+        let (&flags, frame) = rest
+            .split_first()
+            .ok_or("derived planar block without its flags")?;
+        let mut out = inflate_frame(frame)?;
+        planar::from_derived_planes(&mut out, flags, &read::verifier_options())?;
         return Ok(out);
     }
     inflate_frame(blob)

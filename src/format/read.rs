@@ -1535,6 +1535,12 @@ fn check_blob(
                 r.offset
             )));
         }
+        if stored.starts_with(&super::planar::DERIVED_MAGIC) && minor < 8 {
+            return Err(corrupt(format!(
+                "block at {}: in byte planes with derived fields left out, in a file older than 1.8",
+                r.offset
+            )));
+        }
         let inflated = if compressed {
             Some(
                 super::inflate_block(stored)

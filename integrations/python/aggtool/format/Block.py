@@ -8,7 +8,9 @@ np = import_numpy()
 
 # A block blob holds a `Block` FlatBuffer, or (from 1.5) one Zstandard frame (RFC 8878,
 # first bytes 28 B5 2F FD, content size stated, at most 1 GiB) whose content is that
-# FlatBuffer. The index's CRC-32 and size are of the stored bytes. Readers inflate a block the
+# FlatBuffer. From 1.6 the frame may hold it in byte planes (after a6 67 67 f1), and from 1.8
+# with the fields a reader recomputes left out (after a6 67 67 f2 and a flags byte): see
+# CHANGES.md. The index's CRC-32 and size are of the stored bytes. Readers inflate a block the
 # first time they read it and keep it; a FlatBuffer never starts with those bytes.
 class Block(object):
     __slots__ = ['_tab']
