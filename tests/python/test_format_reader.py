@@ -38,7 +38,7 @@ def test_python_reader_matches_inspect():
         assert theirs["source"] == ours["source"] == "foliage.glb"
         assert theirs["abv_full_res"] == ours["settings"]["abv_full_res"] == 4
         assert theirs["shading_res"] == 4 and ours["settings"]["visibility_levels"] == 1
-        assert theirs["format"] == "1.7" and theirs["lossless"] is ours["settings"]["lossless"] is False
+        assert theirs["format"] == "1.8" and theirs["lossless"] is ours["settings"]["lossless"] is False
         assert theirs["compression"] == ours["settings"]["compression"] == 19
         assert [(l["res"], l["voxels"], l["faces"], l["bytes"]) for l in theirs["levels"]] == \
                [(l["res"], l["voxels"], l["faces"], l["bytes"]) for l in ours["levels"]]
