@@ -20,6 +20,7 @@
 //! ```sh
 //! cargo run --release -p aggtool-tools --bin stream_probe -- tree.agg [LEVEL]
 //! cargo run --release -p aggtool-tools --bin stream_probe -- tree.agg --decode   # speed only
+//! cargo run --release -p aggtool-tools --bin stream_probe -- tree.agg --coding   # 1.6 vs 1.8
 //! ```
 
 use std::collections::BTreeMap;
@@ -268,6 +269,33 @@ fn main() -> anyhow::Result<()> {
             "{path}: {inflated} inflated bytes in {:.1} ms: {:.0} MB/s, one thread (best of 5)",
             best * 1e3,
             inflated as f64 / best / 1e6
+        );
+        return Ok(());
+    }
+    if args.get(2).map(String::as_str) == Some("--coding") {
+        // The blocks' bytes as format 1.6/1.7 codes them (planes) and as 1.8 does (derived
+        // fields left out), both at the bake's Zstandard level, on the same blocks.
+        let (mut planar, mut derived, mut inflated) = (0usize, 0usize, 0usize);
+        for lv in index.levels().iter().flatten() {
+            let refs: Vec<fb::BlobRef> = lv
+                .voxel_blocks()
+                .iter()
+                .flatten()
+                .chain(lv.face_blocks().iter().flatten())
+                .copied()
+                .collect();
+            for r in refs {
+                let blob = &bytes[r.offset() as usize..(r.offset() + r.size()) as usize];
+                let raw = inflate_block(blob).map_err(anyhow::Error::msg)?;
+                inflated += raw.len();
+                let l = aggtool::format::DEFAULT_COMPRESSION;
+                planar += 4 + zstd_len(&aggtool::format::planar::to_planes(&raw), l);
+                derived += 5 + zstd_len(&aggtool::format::planar::to_derived_planes(&raw).1, l);
+            }
+        }
+        println!(
+            "{path}: blocks {inflated} inflated, {planar} in planes (1.6), {derived} derived (1.8): {:.3}",
+            derived as f64 / planar as f64
         );
         return Ok(());
     }
