@@ -58,6 +58,24 @@ fn delta_u64(data: &[u8]) -> Vec<u8> {
     out
 }
 
+/// Elements of `stride` bytes as little-endian u16 lanes, each replaced by its wrapping
+/// difference to the same lane of the previous element.
+fn delta_u16_lanes(data: &[u8], stride: usize) -> Vec<u8> {
+    let mut out = data.to_vec();
+    if stride % 2 != 0 {
+        return out;
+    }
+    for i in (1..data.len() / stride).rev() {
+        for k in (0..stride).step_by(2) {
+            let at = i * stride + k;
+            let v = u16::from_le_bytes([data[at], data[at + 1]]);
+            let p = u16::from_le_bytes([data[at - stride], data[at - stride + 1]]);
+            out[at..at + 2].copy_from_slice(&v.wrapping_sub(p).to_le_bytes());
+        }
+    }
+    out
+}
+
 /// Faces (x, y, z, dir, ... as u32 words first) with x, y, z replaced by their differences
 /// to the previous face.
 fn delta_faces(data: &[u8], stride: usize) -> Vec<u8> {
@@ -301,7 +319,7 @@ fn main() -> anyhow::Result<()> {
     }
     let level: i32 = args.get(2).map_or(Ok(19), |s| s.parse())?;
     let mut totals: BTreeMap<&str, usize> = BTreeMap::new();
-    let mut per_vector: BTreeMap<&'static str, [usize; 3]> = BTreeMap::new();
+    let mut per_vector: BTreeMap<&'static str, [usize; 4]> = BTreeMap::new();
     let t0 = std::time::Instant::now();
     let mut inflated_total = 0usize;
     let mut decode_seconds = 0f64;
@@ -413,6 +431,7 @@ fn main() -> anyhow::Result<()> {
                 e[0] += data.len();
                 e[1] += zstd_len(data, level);
                 e[2] += zstd_len(&planes(data, *stride), level);
+                e[3] += zstd_len(&planes(&delta_u16_lanes(data, *stride), *stride), level);
             }
         }
     }
@@ -430,10 +449,10 @@ fn main() -> anyhow::Result<()> {
     for (k, v) in &totals {
         println!("| {} | {} | {:.3} |", &k[2..], v, *v as f64 / base);
     }
-    println!("\n| vector | raw | zstd | planes + zstd |");
-    println!("|---|---|---|---|");
+    println!("\n| vector | raw | zstd | planes + zstd | u16 lanes as deltas, planes + zstd |");
+    println!("|---|---|---|---|---|");
     for (k, v) in &per_vector {
-        println!("| {k} | {} | {} | {} |", v[0], v[1], v[2]);
+        println!("| {k} | {} | {} | {} | {} |", v[0], v[1], v[2], v[3]);
     }
     println!("\n| trees | order-0 entropy of h, v, d | per depth | per depth and parent |");
     println!("|---|---|---|---|");
