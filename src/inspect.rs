@@ -175,7 +175,7 @@ impl std::fmt::Display for Summary {
         )?;
         writeln!(
             f,
-            "settings: max-res {} min-res {} samples {} (max {}) aiv {}² × {} rays/sample ({}-weighted{}), abv {}² × {} rays/cell{}, ndf-lobes {}, moment-res {}, keep {} energy {}{}",
+            "settings: max-res {} min-res {} samples {} (max {}) aiv {}² × {} rays/sample ({}-weighted{}), abv {}² × {} rays/cell{}, ndf-lobes {}, moment-res {}, keep {} energy {}{}{}",
             s.max_res, s.min_res, s.samples, s.max_samples, s.aiv_res, s.aiv_rays,
             if sm.settings.aiv_weighting == AivWeighting::ProjectedArea { "projected-area" } else { "area" },
             match s.aiv_min_rays {
@@ -189,6 +189,7 @@ impl std::fmt::Display for Summary {
                 n => format!(" up to {n}³ (per block of (res/{n})² cells above)"),
             } + if s.abv_windows { ", centred windows" } else { "" },
             s.ndf_lobes, s.moment_res, s.keep, s.energy,
+            if s.block_allocation && s.rate_target().is_none() { " (at that error, allocated per block)" } else { "" },
             if s.keep_all_effects { ", keep-all-effects" } else { "" }
         )?;
         if s.shading_res() != 0 {

@@ -166,49 +166,8 @@ fn error_bound_holds_on_the_decoded_maps() {
         let rate = r.rate.unwrap();
         let cut = Aggregate::open(&path).unwrap();
         for l in 0..all.level_count() {
-            let (a, c) = (all.read_level(l), cut.read_level(l));
-            let (w, wf) = map_weights(a.voxels.iter(), a.faces.iter(), a.grid.voxel_size());
-            let sq = |x: &SparseHaar, y: &SparseHaar| {
-                let (x, y) = (cells(x), cells(y));
-                x.iter()
-                    .zip(&y)
-                    .map(|(a, b)| (*a as f64 - *b as f64).powi(2))
-                    .sum::<f64>()
-            };
-            // Directional moments replaced by constant ones: the squared change of the albedo
-            // (diffuse plus specular, per channel) over both kernels' cells, weighted by the
-            // voxel's share of the level's surface (faces included) and its mean visibility².
-            let surface = |v: &VoxelData| v.area * v.coverage as f64;
-            let s2 = (a.grid.voxel_size() as f64).powi(2);
-            let total = a.voxels.iter().map(surface).sum::<f64>() + a.faces.len() as f64 * s2;
-            let rho = |m: &aggtool::absdf::MaterialMoments| m.diffuse() + m.reflectance();
-            let mut d = 0f64;
-            let mut flattened = 0;
-            for ((va, vc), w) in a.voxels.iter().zip(&c.voxels).zip(&w) {
-                d += w * sq(&va.aiv, &vc.aiv);
-                use aggtool::absdf::Moments;
-                if let (
-                    Moments::Directional {
-                        diffuse, specular, ..
-                    },
-                    Moments::Constant(flat),
-                ) = (&va.appearance.moments, &vc.appearance.moments)
-                {
-                    let mean_v = va.aiv.scaling as f64 / va.aiv.n as f64;
-                    let cells = diffuse.iter().chain(specular);
-                    let n = (diffuse.len() + specular.len()) as f64;
-                    let e = cells
-                        .map(|m| (rho(m) - rho(flat)).length_squared() as f64 / 3.0)
-                        .sum::<f64>()
-                        / n;
-                    d += surface(va) / total * mean_v * mean_v * e;
-                    flattened += 1;
-                }
-            }
+            let (d, flattened) = level_error(&all.read_level(l), &cut.read_level(l));
             flattened_total += flattened;
-            for (fa, fc) in a.faces.iter().zip(&c.faces) {
-                d += wf * sq(&fa.abv, &fc.abv);
-            }
             let measured = d.sqrt();
             let estimate = rate.level_errors[l];
             assert!(
@@ -226,6 +185,114 @@ fn error_bound_holds_on_the_decoded_maps() {
     // Some voxel lost its directional moments to a bound (else the test checks nothing of
     // them).
     assert!(flattened_total > 0);
+}
+
+/// The block allocation (the default) keeps, in every level, at most the weighted squared
+/// error of the per-map truncation (`--block-allocation false`) against the candidates, as
+/// decoded, in fewer bytes; its bytes do not depend on the threads.
+#[test]
+fn block_allocation_keeps_the_per_map_error_in_fewer_bytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scene();
+    let base = BakeSettings {
+        lossless: true,
+        ..settings()
+    };
+    assert!(base.block_allocation, "the default");
+    let all_path = dir.path().join("all.agg");
+    bake_candidates(&sc, &base, &all_path);
+    let all = Aggregate::open(&all_path).unwrap();
+    let maps_path = dir.path().join("maps.agg");
+    bake(
+        &sc,
+        &BakeSettings {
+            block_allocation: false,
+            ..base.clone()
+        },
+        &maps_path,
+    );
+    let blocks_path = dir.path().join("blocks.agg");
+    bake(&sc, &base, &blocks_path);
+    let (maps, blocks) = (
+        Aggregate::open(&maps_path).unwrap(),
+        Aggregate::open(&blocks_path).unwrap(),
+    );
+    assert!(blocks.settings().block_allocation && !maps.settings().block_allocation);
+    let mut flattened_total = 0;
+    for l in 0..all.level_count() {
+        let a = all.read_level(l);
+        let (dm, _) = level_error(&a, &maps.read_level(l));
+        let (db, flattened) = level_error(&a, &blocks.read_level(l));
+        flattened_total += flattened;
+        assert!(db <= dm * (1.0 + 1e-4) + 1e-12, "level {l}: {db} > {dm}");
+    }
+    let bytes = |p: &Path| std::fs::metadata(p).unwrap().len();
+    assert!(
+        bytes(&blocks_path) < bytes(&maps_path),
+        "{} >= {}",
+        bytes(&blocks_path),
+        bytes(&maps_path)
+    );
+    assert!(
+        flattened_total > 0,
+        "no moments flattened: the test sees none"
+    );
+    // The same bytes on one thread.
+    let one = dir.path().join("one.agg");
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| bake(&sc, &base, &one));
+    assert_eq!(
+        std::fs::read(&one).unwrap(),
+        std::fs::read(&blocks_path).unwrap()
+    );
+}
+
+/// A level's weighted squared error against its candidates, as decoded (the rate control's
+/// estimate, [`error_bound_holds_on_the_decoded_maps`]), and how many voxels lost their
+/// directional moments.
+fn level_error(a: &aggtool::format::LevelData, c: &aggtool::format::LevelData) -> (f64, usize) {
+    let (w, wf) = map_weights(a.voxels.iter(), a.faces.iter(), a.grid.voxel_size());
+    let sq = |x: &SparseHaar, y: &SparseHaar| {
+        let (x, y) = (cells(x), cells(y));
+        x.iter()
+            .zip(&y)
+            .map(|(a, b)| (*a as f64 - *b as f64).powi(2))
+            .sum::<f64>()
+    };
+    let surface = |v: &VoxelData| v.area * v.coverage as f64;
+    let s2 = (a.grid.voxel_size() as f64).powi(2);
+    let total = a.voxels.iter().map(surface).sum::<f64>() + a.faces.len() as f64 * s2;
+    let rho = |m: &aggtool::absdf::MaterialMoments| m.diffuse() + m.reflectance();
+    let (mut d, mut flattened) = (0f64, 0);
+    assert_eq!(a.voxels.len(), c.voxels.len());
+    for ((va, vc), w) in a.voxels.iter().zip(&c.voxels).zip(&w) {
+        d += w * sq(&va.aiv, &vc.aiv);
+        use aggtool::absdf::Moments;
+        if let (
+            Moments::Directional {
+                diffuse, specular, ..
+            },
+            Moments::Constant(flat),
+        ) = (&va.appearance.moments, &vc.appearance.moments)
+        {
+            let mean_v = va.aiv.scaling as f64 / va.aiv.n as f64;
+            let cells = diffuse.iter().chain(specular);
+            let n = (diffuse.len() + specular.len()) as f64;
+            let e = cells
+                .map(|m| (rho(m) - rho(flat)).length_squared() as f64 / 3.0)
+                .sum::<f64>()
+                / n;
+            d += surface(va) / total * mean_v * mean_v * e;
+            flattened += 1;
+        }
+    }
+    for (fa, fc) in a.faces.iter().zip(&c.faces) {
+        d += wf * sq(&fa.abv, &fc.abv);
+    }
+    (d, flattened)
 }
 
 /// The same settings with a budget give the same bytes on one thread and on two.

@@ -241,6 +241,8 @@ fn bake_levels(
     for (li, res) in settings.resolutions().into_iter().enumerate() {
         let grid = Grid::around(lo, hi, res);
         let ls = settings.level(res);
+        // Blocks allocated one by one (without a target, which allocates over the file).
+        let by_block = settings.block_allocation && settings.rate_target().is_none();
         if let Some(d) = defer.as_mut() {
             d.push(PendingLevel {
                 voxel_size: grid.voxel_size(),
@@ -314,6 +316,11 @@ fn bake_levels(
                 sec.write += t.elapsed().as_secs_f64();
                 continue;
             }
+            let voxels = if by_block {
+                rate::equal_error_voxels(voxels, grid.voxel_size(), settings.keep, settings.energy)
+            } else {
+                voxels
+            };
             let blob = encode::voxel_block(
                 li as u32,
                 &voxels,
@@ -393,6 +400,11 @@ fn bake_levels(
                 continue;
             }
             let t = Instant::now();
+            let data = if by_block {
+                rate::equal_error_faces(data, grid.voxel_size(), settings.keep, settings.energy)
+            } else {
+                data
+            };
             let blob = encode::face_block(
                 li as u32,
                 &data,

@@ -393,6 +393,144 @@ fn stored(block: Vec<u8>, keys: (u64, u64), count: usize, level: i32) -> StoredB
     StoredBlock { blob, keys, count }
 }
 
+/// A voxel block with the candidates `cut` keeps (map weights `w`, moment weights `wm`, the
+/// block's first ordinal `base`).
+fn cut_voxels(block: &[VoxelData], w: &[f64], wm: &[f64], base: u64, cut: Cut) -> Vec<VoxelData> {
+    let mut ord = base;
+    block
+        .iter()
+        .zip(w)
+        .zip(wm)
+        .map(|((v, &w), &wm)| {
+            let aiv = truncated(&v.aiv, w, cut, ord);
+            ord += v.aiv.details().count() as u64;
+            let mut out = VoxelData { aiv, ..v.clone() };
+            if let Some((flat, d, units)) = moment_candidate(v, wm) {
+                if !cut.keeps(moment_importance(d, units), ord) {
+                    out.appearance.moments = Moments::Constant(flat);
+                }
+                ord += 1;
+            }
+            out
+        })
+        .collect()
+}
+
+/// A face block with the details `cut` keeps (the faces' weight `w`).
+fn cut_faces(block: &[FaceData], w: f64, base: u64, cut: Cut) -> Vec<FaceData> {
+    let mut ord = base;
+    block
+        .iter()
+        .map(|f| {
+            let abv = truncated(&f.abv, w, cut, ord);
+            ord += f.abv.details().count() as u64;
+            FaceData { face: f.face, abv }
+        })
+        .collect()
+}
+
+/// The squared-detail energy that the per-map truncation (`keep`, `energy`:
+/// [`crate::math::haar::truncate`]) would drop from a candidate tree.
+fn truncation_loss(tree: &SparseHaar, keep: f32, energy: f32) -> f64 {
+    let n2 = (tree.n as usize).pow(2);
+    let mut d = vec![[0f32; 3]; n2.saturating_sub(1) / 3];
+    for (i, c) in tree.details().enumerate() {
+        if let Some(slot) = d.get_mut(i / 3) {
+            slot[i % 3] = c;
+        }
+    }
+    let energy_of = |d: &[[f32; 3]]| d.iter().flatten().map(|&c| (c as f64).powi(2)).sum::<f64>();
+    let before = energy_of(&d);
+    crate::math::haar::truncate(tree.scaling, &mut d, keep, energy);
+    (before - energy_of(&d)).max(0.0)
+}
+
+/// One block's rate allocation at the per-map truncation's error (`convert --allocate
+/// blocks`): the block's candidates (every detail that survived the noise shrinkage, and the
+/// voxels' directional moments) are kept by decreasing importance, as the rate control keeps
+/// them ([`allocate`]), until what is dropped reaches the weighted squared error that
+/// truncating each map to `keep` / `energy` would have dropped. The same estimated error, in
+/// the fewest candidates: details move from maps whose small details the per-map rule keeps
+/// (flat maps, dark or small voxels) to maps where they weigh more, and directional moments
+/// that change the albedo less than a detail's worth go. Within one block, so that the bake
+/// still streams block by block, shards included, and the bytes do not depend on threads.
+pub(crate) fn equal_error_voxels(
+    block: Vec<VoxelData>,
+    voxel_size: f32,
+    keep: f32,
+    energy: f32,
+) -> Vec<VoxelData> {
+    let level = PendingLevel {
+        voxels: vec![block],
+        faces: Vec::new(),
+        voxel_size,
+    };
+    let weights = LevelWeights::of(&level);
+    let budget: f64 = level.voxels[0]
+        .iter()
+        .zip(&weights.voxels[0])
+        .map(|(v, &w)| w * truncation_loss(&v.aiv, keep, energy))
+        .sum();
+    let cut = equal_error_cut(&level, &weights, budget);
+    cut_voxels(
+        &level.voxels[0],
+        &weights.voxels[0],
+        &weights.moments[0],
+        0,
+        cut,
+    )
+}
+
+/// [`equal_error_voxels`] for a block of boundary faces (their ABV trees).
+pub(crate) fn equal_error_faces(
+    block: Vec<FaceData>,
+    voxel_size: f32,
+    keep: f32,
+    energy: f32,
+) -> Vec<FaceData> {
+    let level = PendingLevel {
+        voxels: Vec::new(),
+        faces: vec![block],
+        voxel_size,
+    };
+    let weights = LevelWeights::of(&level);
+    let budget: f64 = level.faces[0]
+        .iter()
+        .map(|f| weights.face * truncation_loss(&f.abv, keep, energy))
+        .sum();
+    let cut = equal_error_cut(&level, &weights, budget);
+    cut_faces(&level.faces[0], weights.face, 0, cut)
+}
+
+/// The cut that drops the least important candidates of `level` while their distortion
+/// stays within `budget` (the rule of [`allocate`]'s error target).
+fn equal_error_cut(level: &PendingLevel, weights: &LevelWeights, budget: f64) -> Cut {
+    let (mut imp, _) = candidates(std::slice::from_ref(level), std::slice::from_ref(weights));
+    imp.sort_unstable_by(|a, b| {
+        b.importance
+            .total_cmp(&a.importance)
+            .then(a.ord.cmp(&b.ord))
+    });
+    let mut dropped = 0f64;
+    let mut k = imp.len();
+    // Nothing to spend (`--keep 1 --energy 1`): every candidate stays, as in the per-map rule.
+    while k > 0 && budget > 0.0 {
+        let x = imp[k - 1].distortion();
+        if dropped + x > budget {
+            break;
+        }
+        dropped += x;
+        k -= 1;
+    }
+    match k {
+        0 => Cut::NONE,
+        _ => Cut {
+            lambda: imp[k - 1].importance,
+            ord: imp[k - 1].ord,
+        },
+    }
+}
+
 /// Level `li` encoded with the details `cut` keeps, compressed at `zstd` (blocks in
 /// parallel; the result does not depend on the thread count). `bases` are the ordinals of
 /// the blocks' first candidates.
@@ -413,24 +551,7 @@ fn encode_level(
         .zip(&weights.moments)
         .zip(&bases.voxels)
         .map(|(((block, w), wm), &base)| {
-            let mut ord = base;
-            let cut: Vec<VoxelData> = block
-                .iter()
-                .zip(w)
-                .zip(wm)
-                .map(|((v, &w), &wm)| {
-                    let aiv = truncated(&v.aiv, w, cut_at, ord);
-                    ord += v.aiv.details().count() as u64;
-                    let mut out = VoxelData { aiv, ..v.clone() };
-                    if let Some((flat, d, units)) = moment_candidate(v, wm) {
-                        if !cut_at.keeps(moment_importance(d, units), ord) {
-                            out.appearance.moments = Moments::Constant(flat);
-                        }
-                        ord += 1;
-                    }
-                    out
-                })
-                .collect();
+            let cut = cut_voxels(block, w, wm, base, cut_at);
             let (mut c, mut b) = (Counts::default(), ComponentBytes::default());
             let blob = encode::voxel_block(
                 li as u32,
@@ -449,15 +570,7 @@ fn encode_level(
         .par_iter()
         .zip(&bases.faces)
         .map(|(block, &base)| {
-            let mut ord = base;
-            let cut: Vec<FaceData> = block
-                .iter()
-                .map(|f| {
-                    let abv = truncated(&f.abv, weights.face, cut_at, ord);
-                    ord += f.abv.details().count() as u64;
-                    FaceData { face: f.face, abv }
-                })
-                .collect();
+            let cut = cut_faces(block, weights.face, base, cut_at);
             let (mut c, mut b) = (Counts::default(), ComponentBytes::default());
             let blob = encode::face_block(li as u32, &cut, settings.lossless, &mut c, &mut b);
             let keys = (

@@ -3395,6 +3395,7 @@ impl<'a> BakeSettings<'a> {
   pub const VT_LEVEL_MIB: ::flatbuffers::VOffsetT = 46;
   pub const VT_ERROR: ::flatbuffers::VOffsetT = 48;
   pub const VT_SHADING_RES: ::flatbuffers::VOffsetT = 50;
+  pub const VT_BLOCK_ALLOCATION: ::flatbuffers::VOffsetT = 52;
 
   #[inline]
   pub unsafe fn init_from_table(table: ::flatbuffers::Table<'a>) -> Self {
@@ -3425,6 +3426,7 @@ impl<'a> BakeSettings<'a> {
     builder.add_max_samples(args.max_samples);
     builder.add_samples(args.samples);
     builder.add_max_res(args.max_res);
+    builder.add_block_allocation(args.block_allocation);
     builder.add_abv_windows(args.abv_windows);
     builder.add_lossless(args.lossless);
     builder.add_aiv_weighting(args.aiv_weighting);
@@ -3636,6 +3638,18 @@ impl<'a> BakeSettings<'a> {
     // which contains a valid value in this slot
     unsafe { self._tab.get::<u32>(BakeSettings::VT_SHADING_RES, Some(0)).unwrap()}
   }
+  /// Recorded since aggtool's block allocation (files of format 1.8; no layout change,
+  /// readers need not know it): true when, without a rate target, each block's visibility
+  /// details and directional moments were chosen by their weighted energy at the estimated
+  /// error that truncating each map to `keep` and `energy` gives; false (also absent, in
+  /// older files): each map was truncated on its own.
+  #[inline]
+  pub fn block_allocation(&self) -> bool {
+    // Safety:
+    // Created from valid Table for this object
+    // which contains a valid value in this slot
+    unsafe { self._tab.get::<bool>(BakeSettings::VT_BLOCK_ALLOCATION, Some(false)).unwrap()}
+  }
 }
 
 impl ::flatbuffers::Verifiable for BakeSettings<'_> {
@@ -3668,6 +3682,7 @@ impl ::flatbuffers::Verifiable for BakeSettings<'_> {
      .visit_field::<f64>("level_mib", Self::VT_LEVEL_MIB, false)?
      .visit_field::<f64>("error", Self::VT_ERROR, false)?
      .visit_field::<u32>("shading_res", Self::VT_SHADING_RES, false)?
+     .visit_field::<bool>("block_allocation", Self::VT_BLOCK_ALLOCATION, false)?
      .finish();
     Ok(())
   }
@@ -3697,6 +3712,7 @@ pub struct BakeSettingsArgs {
     pub level_mib: f64,
     pub error: f64,
     pub shading_res: u32,
+    pub block_allocation: bool,
 }
 impl<'a> Default for BakeSettingsArgs {
   #[inline]
@@ -3726,6 +3742,7 @@ impl<'a> Default for BakeSettingsArgs {
       level_mib: 0.0,
       error: 0.0,
       shading_res: 0,
+      block_allocation: false,
     }
   }
 }
@@ -3832,6 +3849,10 @@ impl<'a: 'b, 'b, A: ::flatbuffers::Allocator + 'a> BakeSettingsBuilder<'a, 'b, A
     self.fbb_.push_slot::<u32>(BakeSettings::VT_SHADING_RES, shading_res, 0);
   }
   #[inline]
+  pub fn add_block_allocation(&mut self, block_allocation: bool) {
+    self.fbb_.push_slot::<bool>(BakeSettings::VT_BLOCK_ALLOCATION, block_allocation, false);
+  }
+  #[inline]
   pub fn new(_fbb: &'b mut ::flatbuffers::FlatBufferBuilder<'a, A>) -> BakeSettingsBuilder<'a, 'b, A> {
     let start = _fbb.start_table();
     BakeSettingsBuilder {
@@ -3873,6 +3894,7 @@ impl ::core::fmt::Debug for BakeSettings<'_> {
       ds.field("level_mib", &self.level_mib());
       ds.field("error", &self.error());
       ds.field("shading_res", &self.shading_res());
+      ds.field("block_allocation", &self.block_allocation());
       ds.finish()
   }
 }

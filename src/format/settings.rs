@@ -82,6 +82,11 @@ pub struct RecordedSettings {
     /// (format 1.7); 0, also in older files: every level shades itself.
     #[serde(default)]
     pub shading_res: u32,
+    /// Without a rate target, each block's details and moments were allocated at the
+    /// per-map truncation's error (format 1.8); false, also in older files: each map was
+    /// truncated on its own.
+    #[serde(default)]
+    pub block_allocation: bool,
 }
 
 impl RecordedSettings {
@@ -116,6 +121,7 @@ impl RecordedSettings {
             level_mib: s.level_mib(),
             error: s.error(),
             shading_res: s.shading_res(),
+            block_allocation: s.block_allocation(),
         }
     }
 
@@ -149,6 +155,7 @@ impl RecordedSettings {
             level_mib: self.level_mib,
             error: self.error,
             shading_res: self.shading_res,
+            block_allocation: self.block_allocation,
         }
     }
 }
@@ -157,4 +164,10 @@ impl RecordedSettings {
 /// `bake::BakeSettings`'s).
 pub(crate) fn one() -> u32 {
     1
+}
+
+/// The serde default of `bake::BakeSettings::block_allocation` in settings that do not name
+/// it (the bake's default).
+pub(crate) fn yes() -> bool {
+    true
 }

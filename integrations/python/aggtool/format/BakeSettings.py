@@ -230,8 +230,20 @@ class BakeSettings(object):
             return self._tab.Get(flatbuffers.number_types.Uint32Flags, o + self._tab.Pos)
         return 0
 
+    # Recorded since aggtool's block allocation (files of format 1.8; no layout change,
+    # readers need not know it): true when, without a rate target, each block's visibility
+    # details and directional moments were chosen by their weighted energy at the estimated
+    # error that truncating each map to `keep` and `energy` gives; false (also absent, in
+    # older files): each map was truncated on its own.
+    # BakeSettings
+    def BlockAllocation(self):
+        o = flatbuffers.number_types.UOffsetTFlags.py_type(self._tab.Offset(52))
+        if o != 0:
+            return bool(self._tab.Get(flatbuffers.number_types.BoolFlags, o + self._tab.Pos))
+        return False
+
 def BakeSettingsStart(builder):
-    builder.StartObject(24)
+    builder.StartObject(25)
 
 def Start(builder):
     BakeSettingsStart(builder)
@@ -379,6 +391,12 @@ def BakeSettingsAddShadingRes(builder, shadingRes):
 
 def AddShadingRes(builder, shadingRes):
     BakeSettingsAddShadingRes(builder, shadingRes)
+
+def BakeSettingsAddBlockAllocation(builder, blockAllocation):
+    builder.PrependBoolSlot(24, blockAllocation, 0)
+
+def AddBlockAllocation(builder, blockAllocation):
+    BakeSettingsAddBlockAllocation(builder, blockAllocation)
 
 def BakeSettingsEnd(builder):
     return builder.EndObject()
