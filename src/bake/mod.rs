@@ -810,7 +810,8 @@ mod tests {
             .unwrap_err()
             .contains("--ndf-lobes"));
         assert!(d.with_field("keep", "many").is_err());
-        assert_eq!(BakeSettings::field_names().len(), 23);
+        assert_eq!(BakeSettings::field_names().len(), 24);
+        assert!(!d.with_field("block_allocation", "false").unwrap().block_allocation);
     }
 
     /// `with_value` takes typed values as the bindings pass them: integers for counts (a

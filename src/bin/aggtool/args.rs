@@ -315,7 +315,9 @@ pub struct BakeArgs {
     /// Directional-moment grid resolution (Eq. 23) [default: 3].
     #[arg(long)]
     pub moment_res: Option<u32>,
-    /// Fraction of wavelet coefficients kept [default: 0.15; draft 0.1, max 1].
+    /// Fraction of wavelet coefficients kept per map; with --block-allocation (the default)
+    /// the error that truncation gives is each block's, spent where it weighs most
+    /// [default: 0.15; draft 0.1, max 1].
     #[arg(long)]
     pub keep: Option<f32>,
     /// Detail energy kept by the wavelet truncation (more coefficients kept until reached)
