@@ -811,7 +811,11 @@ mod tests {
             .contains("--ndf-lobes"));
         assert!(d.with_field("keep", "many").is_err());
         assert_eq!(BakeSettings::field_names().len(), 24);
-        assert!(!d.with_field("block_allocation", "false").unwrap().block_allocation);
+        assert!(
+            !d.with_field("block_allocation", "false")
+                .unwrap()
+                .block_allocation
+        );
     }
 
     /// `with_value` takes typed values as the bindings pass them: integers for counts (a
