@@ -445,15 +445,16 @@ fn truncation_loss(tree: &SparseHaar, keep: f32, energy: f32) -> f64 {
     (before - energy_of(&d)).max(0.0)
 }
 
-/// One block's rate allocation at the per-map truncation's error (`convert --allocate
-/// blocks`): the block's candidates (every detail that survived the noise shrinkage, and the
-/// voxels' directional moments) are kept by decreasing importance, as the rate control keeps
-/// them ([`allocate`]), until what is dropped reaches the weighted squared error that
-/// truncating each map to `keep` / `energy` would have dropped. The same estimated error, in
-/// the fewest candidates: details move from maps whose small details the per-map rule keeps
-/// (flat maps, dark or small voxels) to maps where they weigh more, and directional moments
-/// that change the albedo less than a detail's worth go. Within one block, so that the bake
-/// still streams block by block, shards included, and the bytes do not depend on threads.
+/// One block's rate allocation at the per-map truncation's error (`convert
+/// --block-allocation`): the block's candidates (every detail that survived the noise
+/// shrinkage, and the voxels' directional moments) are kept by decreasing importance, as the
+/// rate control keeps them ([`allocate`]), until what is dropped reaches the weighted squared
+/// error that truncating each map to `keep` / `energy` would have dropped. The same estimated
+/// error, in the fewest candidates: details move from maps whose small details the per-map
+/// rule keeps (flat maps, dark or small voxels) to maps where they weigh more, and directional
+/// moments that change the albedo less than a detail's worth go. Within one block, so that
+/// the bake still streams block by block, shards included, and the bytes do not depend on
+/// threads.
 pub(crate) fn equal_error_voxels(
     block: Vec<VoxelData>,
     voxel_size: f32,
@@ -465,20 +466,10 @@ pub(crate) fn equal_error_voxels(
         faces: Vec::new(),
         voxel_size,
     };
-    let weights = LevelWeights::of(&level);
-    let budget: f64 = level.voxels[0]
-        .iter()
-        .zip(&weights.voxels[0])
-        .map(|(v, &w)| w * truncation_loss(&v.aiv, keep, energy))
-        .sum();
-    let cut = equal_error_cut(&level, &weights, budget);
-    cut_voxels(
-        &level.voxels[0],
-        &weights.voxels[0],
-        &weights.moments[0],
-        0,
-        cut,
-    )
+    equal_error(level, keep, energy)
+        .voxels
+        .pop()
+        .unwrap_or_default()
 }
 
 /// [`equal_error_voxels`] for a block of boundary faces (their ABV trees).
@@ -493,27 +484,33 @@ pub(crate) fn equal_error_faces(
         faces: vec![block],
         voxel_size,
     };
-    let weights = LevelWeights::of(&level);
-    let budget: f64 = level.faces[0]
-        .iter()
-        .map(|f| weights.face * truncation_loss(&f.abv, keep, energy))
-        .sum();
-    let cut = equal_error_cut(&level, &weights, budget);
-    cut_faces(&level.faces[0], weights.face, 0, cut)
+    equal_error(level, keep, energy)
+        .faces
+        .pop()
+        .unwrap_or_default()
 }
 
-/// The cut that drops the least important candidates of `level` while their distortion
-/// stays within `budget` (the rule of [`allocate`]'s error target).
-fn equal_error_cut(level: &PendingLevel, weights: &LevelWeights, budget: f64) -> Cut {
-    let (mut imp, _) = candidates(std::slice::from_ref(level), std::slice::from_ref(weights));
+/// `level`'s blocks with the candidates kept that drop at most the weighted squared error of
+/// the per-map truncation ([`equal_error_voxels`]); one multiplier for all of them.
+fn equal_error(level: PendingLevel, keep: f32, energy: f32) -> PendingLevel {
+    let weights = LevelWeights::of(&level);
+    let voxels: f64 = (level.voxels.iter().flatten())
+        .zip(weights.voxels.iter().flatten())
+        .map(|(v, &w)| w * truncation_loss(&v.aiv, keep, energy))
+        .sum();
+    let faces: f64 = (level.faces.iter().flatten())
+        .map(|f| weights.face * truncation_loss(&f.abv, keep, energy))
+        .sum();
+    let (mut imp, bases) = candidates(std::slice::from_ref(&level), std::slice::from_ref(&weights));
     imp.sort_unstable_by(|a, b| {
         b.importance
             .total_cmp(&a.importance)
             .then(a.ord.cmp(&b.ord))
     });
-    let mut dropped = 0f64;
-    let mut k = imp.len();
-    // Nothing to spend (`--keep 1 --energy 1`): every candidate stays, as in the per-map rule.
+    // The least important go first, while what they drop stays within the budget; nothing
+    // to spend (`--keep 1 --energy 1`) keeps every candidate, as the per-map rule does.
+    let budget = voxels + faces;
+    let (mut dropped, mut k) = (0f64, imp.len());
     while k > 0 && budget > 0.0 {
         let x = imp[k - 1].distortion();
         if dropped + x > budget {
@@ -522,12 +519,27 @@ fn equal_error_cut(level: &PendingLevel, weights: &LevelWeights, budget: f64) ->
         dropped += x;
         k -= 1;
     }
-    match k {
+    let cut = match k {
         0 => Cut::NONE,
         _ => Cut {
             lambda: imp[k - 1].importance,
             ord: imp[k - 1].ord,
         },
+    };
+    let b = &bases[0];
+    PendingLevel {
+        voxels: (level
+            .voxels
+            .iter()
+            .zip(&weights.voxels)
+            .zip(&weights.moments))
+        .zip(&b.voxels)
+        .map(|(((block, w), wm), &base)| cut_voxels(block, w, wm, base, cut))
+        .collect(),
+        faces: (level.faces.iter().zip(&b.faces))
+            .map(|(block, &base)| cut_faces(block, weights.face, base, cut))
+            .collect(),
+        voxel_size: level.voxel_size,
     }
 }
 
