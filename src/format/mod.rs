@@ -180,6 +180,30 @@ pub fn decode_voxel_keys(bytes: &[u8], count: u64, limit: u64) -> Result<Vec<u64
 /// make a reader allocate.
 pub const MAX_INFLATION: u64 = 1024;
 
+/// Every block blob of a whole file as stored, level by level, voxel blocks before face
+/// blocks (for tools that study the coding; readers go through [`Aggregate`]). The header and
+/// the index are checked; the blobs are not.
+pub fn stored_blocks(bytes: &[u8]) -> Result<Vec<&[u8]>, String> {
+    let h = Header::parse(bytes).map_err(|e| e.to_string())?;
+    let index = bytes
+        .get(h.index_offset as usize..(h.index_offset + h.index_size) as usize)
+        .ok_or("the index lies beyond the file")?;
+    let index = flatbuffers::root::<fb::Index>(index).map_err(|e| e.to_string())?;
+    let mut out = Vec::new();
+    for lv in index.levels().iter().flatten() {
+        for r in lv
+            .voxel_blocks()
+            .iter()
+            .flatten()
+            .chain(lv.face_blocks().iter().flatten())
+        {
+            let at = r.offset() as usize..(r.offset() + r.size()) as usize;
+            out.push(bytes.get(at).ok_or("a block lies beyond the file")?);
+        }
+    }
+    Ok(out)
+}
+
 /// The FlatBuffer inside a compressed blob: its frame must state a content size of at most
 /// [`MAX_BLOCK_BYTES`] and [`MAX_INFLATION`] times its own, and inflate to exactly that many
 /// bytes.

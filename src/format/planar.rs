@@ -544,26 +544,17 @@ mod tests {
             .join("tests/data")
             .join(name);
         let bytes = std::fs::read(path).unwrap();
-        let h = super::super::Header::parse(&bytes).unwrap();
-        let index = &bytes[h.index_offset as usize..(h.index_offset + h.index_size) as usize];
-        let index = flatbuffers::root::<super::fb::Index>(index).unwrap();
-        let mut out = Vec::new();
-        for lv in index.levels().iter().flatten() {
-            for r in lv
-                .voxel_blocks()
-                .iter()
-                .flatten()
-                .chain(lv.face_blocks().iter().flatten())
-            {
-                let blob = &bytes[r.offset() as usize..(r.offset() + r.size()) as usize];
-                out.push(if super::super::is_coded(blob) {
+        let blobs = super::super::stored_blocks(&bytes).unwrap();
+        blobs
+            .into_iter()
+            .map(|blob| {
+                if super::super::is_coded(blob) {
                     super::super::inflate_block(blob).unwrap()
                 } else {
                     blob.to_vec()
-                });
-            }
-        }
-        out
+                }
+            })
+            .collect()
     }
 
     /// The (start, count) offsets the derived fields use are those of the generated structs.

@@ -246,22 +246,6 @@ fn zero_starts(data: &[u8], stride: usize, starts: &[(usize, usize)]) -> Vec<u8>
     out
 }
 
-/// Every block blob of the file, level by level, voxel blocks before face blocks.
-fn block_blobs<'a>(index: &fb::Index, bytes: &'a [u8]) -> Vec<&'a [u8]> {
-    let mut out = Vec::new();
-    for lv in index.levels().iter().flatten() {
-        for r in lv
-            .voxel_blocks()
-            .iter()
-            .flatten()
-            .chain(lv.face_blocks().iter().flatten())
-        {
-            out.push(&bytes[r.offset() as usize..(r.offset() + r.size()) as usize]);
-        }
-    }
-    out
-}
-
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let path = args
@@ -273,7 +257,7 @@ fn main() -> anyhow::Result<()> {
     let index = flatbuffers::root::<fb::Index>(index)?;
     if args.get(2).map(String::as_str) == Some("--decode") {
         // Decoding speed only: every block as stored, five times, the fastest pass.
-        let blobs = block_blobs(&index, &bytes);
+        let blobs = aggtool::format::stored_blocks(&bytes).map_err(anyhow::Error::msg)?;
         let mut best = f64::MAX;
         let mut inflated = 0;
         for _ in 0..5 {
@@ -296,7 +280,7 @@ fn main() -> anyhow::Result<()> {
         // fields left out), both at the bake's Zstandard level, on the same blocks.
         let (mut planar, mut derived, mut inflated) = (0usize, 0usize, 0usize);
         {
-            for blob in block_blobs(&index, &bytes) {
+            for blob in aggtool::format::stored_blocks(&bytes).map_err(anyhow::Error::msg)? {
                 let raw = inflate_block(blob).map_err(anyhow::Error::msg)?;
                 inflated += raw.len();
                 let l = aggtool::format::DEFAULT_COMPRESSION;
