@@ -189,7 +189,7 @@ impl std::fmt::Display for Summary {
                 n => format!(" up to {n}³ (per block of (res/{n})² cells above)"),
             } + if s.abv_windows { ", centred windows" } else { "" },
             s.ndf_lobes, s.moment_res, s.keep, s.energy,
-            if s.block_allocation && s.rate_target().is_none() { " (at that error, allocated per block)" } else { "" },
+            if s.allocates_per_block() { " (at that error, allocated per block)" } else { "" },
             if s.keep_all_effects { ", keep-all-effects" } else { "" }
         )?;
         if s.shading_res() != 0 {

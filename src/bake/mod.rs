@@ -720,7 +720,14 @@ impl BakeSettings {
     /// Whether the rate control chooses the details (a target, or the block allocation)
     /// rather than each map's own truncation.
     pub fn allocates(&self) -> bool {
-        self.rate_target().is_some() || self.block_allocation
+        self.rate_target().is_some() || self.allocates_per_block()
+    }
+
+    /// Whether each block is allocated on its own at the per-map truncation's error
+    /// ([`rate::equal_error_voxels`]): the block allocation without a target (a target
+    /// allocates over the whole file instead).
+    pub fn allocates_per_block(&self) -> bool {
+        self.block_allocation && self.rate_target().is_none()
     }
 
     /// The settings of one level.

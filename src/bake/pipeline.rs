@@ -241,8 +241,7 @@ fn bake_levels(
     for (li, res) in settings.resolutions().into_iter().enumerate() {
         let grid = Grid::around(lo, hi, res);
         let ls = settings.level(res);
-        // Blocks allocated one by one (without a target, which allocates over the file).
-        let by_block = settings.block_allocation && settings.rate_target().is_none();
+        let by_block = settings.allocates_per_block();
         if let Some(d) = defer.as_mut() {
             d.push(PendingLevel {
                 voxel_size: grid.voxel_size(),
