@@ -10,11 +10,15 @@ mod common;
 /// The lattice's budget at 16³ (small bakes and few samples: a test's budget), its rows as
 /// baked or normalised.
 fn lattice_budget(normalize: bool) -> aggtool::eval::budget::BudgetResult {
-    lattice_budget_at(normalize, None)
+    lattice_budget_at(normalize, None, Vec::new())
 }
 
 /// [`lattice_budget`] rendered at `image`² pixels (`eval --budget --image`).
-fn lattice_budget_at(normalize: bool, image: Option<u32>) -> aggtool::eval::budget::BudgetResult {
+fn lattice_budget_at(
+    normalize: bool,
+    image: Option<u32>,
+    abv_parts: Vec<u8>,
+) -> aggtool::eval::budget::BudgetResult {
     let dir = tempfile::tempdir().unwrap();
     let scene = common::gen_scene("lattice", 3000);
     let settings = BudgetSettings {
@@ -34,6 +38,12 @@ fn lattice_budget_at(normalize: bool, image: Option<u32>) -> aggtool::eval::budg
             ..Default::default()
         },
         normalize,
+        abv_cells: if abv_parts.is_empty() {
+            Vec::new()
+        } else {
+            vec![8]
+        },
+        abv_parts,
     };
     let agg = dir.path().join("lattice-16.agg");
     let r = budget_scene(
@@ -138,7 +148,7 @@ fn normalised_budget_rows_agree_with_the_normalised_runtime() {
 /// is finite, and with every term exact the bias falls below the baked one's.
 #[test]
 fn budget_at_a_larger_image() {
-    let r = lattice_budget_at(true, Some(32));
+    let r = lattice_budget_at(true, Some(32), Vec::new());
     assert_eq!((r.res, r.image), (16, 32));
     assert!(
         r.picture.ends_with("lattice-budget-16-32px.png"),
@@ -156,5 +166,44 @@ fn budget_at_a_larger_image() {
         "all exact {} against baked {}",
         all.bias,
         baked.bias
+    );
+}
+
+/// The ABV's rows (`eval --budget --abv-parts 1,2 --abv-cells 8`): the baked model, the exact
+/// ABV, all and all but the ABV, the ABV over the 8² map's cells, over the face's reachable
+/// points, and over the whole face and its quarters, alone and with the rest exact; every row
+/// finite, and the ABV's sub-face oracles with the rest exact closer to "all" than "all but
+/// the ABV" is (the ray's own direction and a smaller part of the face than the baked map).
+#[test]
+fn abv_rows_split_the_baked_map() {
+    let r = lattice_budget_at(true, None, vec![1, 2]);
+    let names: Vec<&str> = r.rows.iter().map(|x| x.term.as_str()).collect();
+    assert_eq!(
+        names,
+        [
+            "baked",
+            "ABV (Eq. 26)",
+            "all",
+            "all but ABV",
+            "ABV over the face, directions over the 8² cell",
+            "ABV over the face's reachable points",
+            "ABV over the face",
+            "all, ABV over the face",
+            "ABV over 1/2 × 1/2 of the face",
+            "all, ABV over 1/2 × 1/2 of the face",
+        ]
+    );
+    check_rows(&r);
+    let bias = |name: &str| r.rows.iter().find(|x| x.term == name).unwrap().bias;
+    println!(
+        "all {} / all but ABV {} / all, ABV over 1/2 {}",
+        bias("all"),
+        bias("all but ABV"),
+        bias("all, ABV over 1/2 × 1/2 of the face")
+    );
+    assert!(
+        bias("all, ABV over 1/2 × 1/2 of the face") < bias("all but ABV"),
+        "{:?}",
+        r.rows
     );
 }

@@ -52,7 +52,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use glam::{UVec3, Vec3};
+use glam::{UVec3, Vec2, Vec3};
+
+use crate::math::sphere_maps::{concentric_hemisphere_to_square, concentric_square_to_hemisphere};
 use serde::Serialize;
 
 use crate::bake::sampling::{pieces_by_voxel, sample_voxel, PointSample};
@@ -72,6 +74,9 @@ use crate::spatial::{morton3, Grid};
 use crate::trace::{offset_origin, Accel, Ray};
 use crate::util::Progress;
 
+/// Rays of the sub-face ABV oracle ([`Oracles::abv_part`]) per camera ray.
+pub const ABV_PART_RAYS: u32 = 16;
+
 /// Most oracle samples per voxel (their visibilities live in fixed arrays on the stack).
 pub const MAX_SAMPLES: usize = 64;
 
@@ -90,6 +95,20 @@ pub struct Oracles {
     pub absdf: bool,
     /// The visibility split (Eq. 6, 25) and the exposure correction → the joint visibility.
     pub split: bool,
+    /// The ABV of the entry face → for n > 0, the share of the P⁺ rays from the 1/n × 1/n part
+    /// of the entry face that holds the ray's entry point, in the ray's own direction, that
+    /// escape the mesh ([`ABV_PART_RAYS`] rays; n = 1: the face's average of Eq. 26 without its
+    /// direction cells). Against the exact ABV it measures what a face's spatial average costs
+    /// and what sub-face maps would buy. Ignored under `abv`.
+    pub abv_part: u8,
+    /// With `abv_part`: the oracle's rays take directions uniform over the ray's cell of a
+    /// `abv_cell × abv_cell` concentric map of the face's inward hemisphere (the baked map's
+    /// cells) instead of the ray's own: what the map's direction cells cost. 0: off.
+    pub abv_cell: u16,
+    /// With `abv_part`: only points of the face from which the ray, followed backwards, meets
+    /// no occupied voxel of the level (the points where a cone can enter the aggregate in that
+    /// direction, as the runtime's queries do).
+    pub abv_reachable: bool,
     /// Not an oracle but a candidate fix: each cone's surfaces and background divided by the
     /// sum of their weights Σ V̂(ω_o)|A|_ω/|B|_ω + V̂_b, which is 1 for a consistent aggregate.
     pub normalize: bool,
@@ -104,6 +123,9 @@ impl Oracles {
         abv: true,
         absdf: true,
         split: true,
+        abv_part: 0,
+        abv_cell: 0,
+        abv_reachable: false,
         normalize: false,
     };
 
@@ -177,11 +199,71 @@ impl Oracles {
                         abv: a.abv && !o.abv,
                         absdf: a.absdf && !o.absdf,
                         split: a.split && !o.split,
+                        abv_part: 0,
+                        abv_cell: 0,
+                        abv_reachable: false,
                         normalize: false,
                     },
                 )
             })
             .collect()
+    }
+
+    /// The ABV rows of `--abv-parts`: the baked model, the exact ABV, every oracle and every
+    /// oracle but the ABV, then for each n of `parts` the ABV over 1/n of the face
+    /// ([`Oracles::abv_part`]) alone and with every other oracle.
+    pub fn abv_part_rows(parts: &[u8], cells: &[u16]) -> Vec<(String, Oracles)> {
+        let none = Oracles::default();
+        let all_but_abv = Oracles {
+            abv: false,
+            ..Oracles::ALL
+        };
+        let mut rows = vec![
+            ("baked".to_string(), none),
+            ("ABV (Eq. 26)".to_string(), Oracles { abv: true, ..none }),
+            ("all".to_string(), Oracles::ALL),
+            ("all but ABV".to_string(), all_but_abv),
+        ];
+        for &c in cells.iter().filter(|&&c| c > 0) {
+            rows.push((
+                format!("ABV over the face, directions over the {c}² cell"),
+                Oracles {
+                    abv_part: 1,
+                    abv_cell: c,
+                    ..none
+                },
+            ));
+        }
+        rows.push((
+            "ABV over the face's reachable points".to_string(),
+            Oracles {
+                abv_part: 1,
+                abv_reachable: true,
+                ..none
+            },
+        ));
+        for &n in parts.iter().filter(|&&n| n > 0) {
+            let part = if n == 1 {
+                "the face".to_string()
+            } else {
+                format!("1/{n} × 1/{n} of the face")
+            };
+            rows.push((
+                format!("ABV over {part}"),
+                Oracles {
+                    abv_part: n,
+                    ..none
+                },
+            ));
+            rows.push((
+                format!("all, ABV over {part}"),
+                Oracles {
+                    abv_part: n,
+                    ..all_but_abv
+                },
+            ));
+        }
+        rows
     }
 
     fn traces_view(&self) -> bool {
@@ -517,8 +599,14 @@ pub fn radiance(
     } else {
         for _ in &mut hits {}
     }
+    let part = match hits.entry() {
+        Some(entry) if oracles.abv_part > 0 && !oracles.abv && hits.primitives() > 0 => {
+            abv_over_part(lod, truth, entry, cone, oracles, rng)
+        }
+        _ => None,
+    };
     let tb = match (oracles.abv, oracles.coverage) {
-        (false, _) => hits.transmittance(),
+        (false, _) => part.unwrap_or_else(|| hits.transmittance()),
         (true, true) => (crossings == 0) as u32 as f32,
         (true, false) => {
             if hits.primitives() > 0 {
@@ -533,6 +621,78 @@ pub fn radiance(
         return (sum + background * tb) / (wsum + tb);
     }
     sum + background * tb
+}
+
+/// The sub-face ABV oracle ([`Oracles::abv_part`]): of [`ABV_PART_RAYS`] rays along the
+/// cone's direction from uniform points of the 1/n × 1/n part of `entry`'s face holding the
+/// cone's entry point, the share of those meeting a primitive of the level (P⁺) that miss the
+/// mesh; `None` when none meets a primitive.
+fn abv_over_part(
+    lod: &LodScene,
+    truth: &Truth,
+    (level, voxel, face): (usize, UVec3, u8),
+    cone: &Cone,
+    oracles: Oracles,
+    rng: &mut Pcg32,
+) -> Option<f32> {
+    let n = oracles.abv_part.max(1);
+    let grid = lod.grid(level);
+    let (lo, hi) = grid.voxel_bounds(voxel);
+    let (axis, d) = ((face / 2) as usize % 3, cone.dir);
+    if d[axis].abs() < 1e-12 {
+        return None;
+    }
+    let plane = if face % 2 == 0 { lo[axis] } else { hi[axis] };
+    let p = cone.origin + d * ((plane - cone.origin[axis]) / d[axis]);
+    let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+    let cell = (hi[u] - lo[u]) / n as f32;
+    let index = |a: usize| ((p[a] - lo[a]) / cell).floor().clamp(0.0, (n - 1) as f32);
+    let (iu, iv) = (index(u), index(v));
+    let back = 1e-3 * cell;
+    let settings = TraceSettings {
+        level: Some(level),
+        normalize: false,
+        ..Default::default()
+    };
+    let inward = Frame::from_z(-crate::spatial::face_normal(face));
+    let res = oracles.abv_cell as f32;
+    let dir_cell = (oracles.abv_cell > 0).then(|| {
+        let sq = concentric_hemisphere_to_square(inward.to_local(d));
+        (sq * res).floor().clamp(Vec2::ZERO, Vec2::splat(res - 1.0))
+    });
+    let (mut met, mut escaped) = (0u32, 0u32);
+    let mut tries = 0;
+    let mut rays = 0;
+    while rays < ABV_PART_RAYS && tries < 8 * ABV_PART_RAYS {
+        tries += 1;
+        let d = match dir_cell {
+            Some(c) => inward
+                .to_world(concentric_square_to_hemisphere((c + rng.next_2d()) / res))
+                .normalize(),
+            None => d,
+        };
+        let mut q = Vec3::ZERO;
+        q[axis] = plane;
+        q[u] = lo[u] + (iu + rng.next_f32()) * cell;
+        q[v] = lo[v] + (iv + rng.next_f32()) * cell;
+        let o = q - cone.dir * back;
+        if oracles.abv_reachable {
+            let mut out = lod.hits(&Cone::new(q - cone.dir * back, -d, 0.0), &settings);
+            for _ in &mut out {}
+            if out.entry().is_some() {
+                continue;
+            }
+        }
+        rays += 1;
+        let mut walk = lod.hits(&Cone::new(o, d, 0.0), &settings);
+        for _ in &mut walk {}
+        if walk.primitives() == 0 {
+            continue;
+        }
+        met += 1;
+        escaped += !truth.accel.occluded(&Ray::new(o, d)) as u32;
+    }
+    (met > 0).then(|| escaped as f32 / met as f32)
 }
 
 /// Settings of the budget study.
@@ -559,6 +719,11 @@ pub struct BudgetSettings {
     /// as baked, with the normalisation as a candidate-fix row of its own. With the coverage
     /// oracle the weights summed are the crossings' V̂(ω_o).
     pub normalize: bool,
+    /// Instead of the budget's rows, the ABV rows of [`Oracles::abv_part_rows`] for these
+    /// parts of a face (`aggtool eval --budget --abv-parts 1,2,4`); empty: the budget.
+    pub abv_parts: Vec<u8>,
+    /// With `abv_parts`, rows of [`Oracles::abv_cell`] for these map resolutions.
+    pub abv_cells: Vec<u16>,
 }
 
 impl Default for BudgetSettings {
@@ -571,6 +736,8 @@ impl Default for BudgetSettings {
             samples: 32,
             bake: BakeSettings::default(),
             normalize: true,
+            abv_parts: Vec::new(),
+            abv_cells: Vec::new(),
         }
     }
 }
@@ -701,10 +868,17 @@ pub fn budget_scene(
     let ref_mean = mean(&truth_img);
     let mut rows = Vec::new();
     let mut images = Vec::new();
-    let all_rows: Vec<(String, Oracles)> = Oracles::rows()
+    let rows_asked: Vec<(String, Oracles)> = if settings.abv_parts.is_empty() {
+        Oracles::rows()
+            .into_iter()
+            .map(|(n, o)| (n.to_string(), o))
+            .chain(Oracles::leave_one_out())
+            .collect()
+    } else {
+        Oracles::abv_part_rows(&settings.abv_parts, &settings.abv_cells)
+    };
+    let all_rows: Vec<(String, Oracles)> = rows_asked
         .into_iter()
-        .map(|(n, o)| (n.to_string(), o))
-        .chain(Oracles::leave_one_out())
         // Normalised rows: the candidate-fix row is the "baked" one.
         .filter(|(_, o)| !(settings.normalize && o.normalize))
         .collect();

@@ -110,6 +110,10 @@ pub enum Study {
     Budget {
         /// Oracle surface samples per voxel.
         samples: u32,
+        /// [`BudgetSettings::abv_parts`].
+        abv_parts: Vec<u8>,
+        /// [`BudgetSettings::abv_cells`].
+        abv_cells: Vec<u16>,
     },
 }
 
@@ -207,7 +211,11 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
     let agg_dir = s.agg_dir.clone().unwrap_or_else(|| out.clone());
     let mut outputs = Written::default();
     match &s.study {
-        Study::Budget { samples } => {
+        Study::Budget {
+            samples,
+            abv_parts,
+            abv_cells,
+        } => {
             std::fs::create_dir_all(&agg_dir)?;
             let mut all = Vec::new();
             for scene in &scenes {
@@ -220,6 +228,8 @@ pub fn run(settings: &EvalSettings, progress: Progress, notes: Notes) -> Result<
                         reference_spp: s.reference_spp,
                         samples: *samples,
                         normalize: s.normalize,
+                        abv_parts: abv_parts.clone(),
+                        abv_cells: abv_cells.clone(),
                         ..Default::default()
                     };
                     let agg = agg_dir.join(format!("{name}-{r}.agg"));

@@ -142,6 +142,8 @@ pub struct Hits<'s> {
     entry_axis: usize,
     /// The ABV at the first occupied voxel, once met.
     vb: Option<f32>,
+    /// That voxel and the face the cone entered it through (for [`Hits::entry`]).
+    entry: (usize, IVec3, u8),
     primitives: u32,
     steps_left: u32,
     steps_max: u32,
@@ -234,6 +236,7 @@ impl LodScene {
             t: 0.0,
             entry_axis: 0,
             vb: None,
+            entry: (0, IVec3::ZERO, 0),
             primitives: 0,
             steps_left: 0,
             steps_max: 0,
@@ -383,6 +386,13 @@ impl<'s> Hits<'s> {
         self.primitives
     }
 
+    /// The level, the first occupied voxel and the face (as [`entry_face`] numbers them) whose
+    /// ABV [`Hits::abv`] is, once the cone met one (for the error budget's ABV oracles).
+    pub fn entry(&self) -> Option<(usize, glam::UVec3, u8)> {
+        self.vb
+            .map(|_| (self.entry.0, self.entry.1.as_uvec3(), self.entry.2))
+    }
+
     /// Traversal steps taken so far (bricks and voxels visited), for profiling.
     pub fn steps(&self) -> u32 {
         self.steps_max - self.steps_left
@@ -472,6 +482,7 @@ impl<'s> Hits<'s> {
                     if self.vb.is_none() {
                         let dir = entry_face(axis_in, d.step[axis_in]);
                         self.vb = Some(level.abv(c.as_uvec3(), dir, self.cone.dir));
+                        self.entry = (self.li, c, dir);
                     }
                     let hit = match self.settings.primitive {
                         PrimitiveKind::TruncatedEllipsoid if rec.area_case.is_some() => {

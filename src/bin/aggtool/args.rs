@@ -208,6 +208,16 @@ pub struct EvalArgs {
     /// With --budget: oracle surface samples per voxel (at most 64).
     #[arg(long, default_value_t = aggtool::eval::budget::BudgetSettings::default().samples)]
     pub budget_samples: u32,
+    /// With --budget: instead of its rows, the ABV's (baked, exact, all, all but the ABV),
+    /// and for each N the ABV replaced by the share of rays in the ray's own direction from
+    /// the 1/N × 1/N part of the entry face that escape the mesh (alone, and with every
+    /// other term exact): what a face's spatial average costs.
+    #[arg(long, requires = "budget", value_delimiter = ',', value_parser = clap::value_parser!(u8).range(1..=16))]
+    pub abv_parts: Vec<u8>,
+    /// With --abv-parts: rows of the ABV over the face with its rays' directions uniform over
+    /// the ray's cell of an N × N concentric map (the baked map's cells) instead of its own.
+    #[arg(long, requires = "abv_parts", value_delimiter = ',')]
+    pub abv_cells: Vec<u16>,
     /// Quality study and budget: render the LoD methods (the budget's rows) without the
     /// per-cone normalisation (as `render --no-normalize`), to measure what it does.
     #[arg(long, conflicts_with = "speed")]
@@ -512,6 +522,8 @@ impl EvalArgs {
             },
             (None, true) => Study::Budget {
                 samples: self.budget_samples,
+                abv_parts: self.abv_parts.clone(),
+                abv_cells: self.abv_cells.clone(),
             },
             (None, false) => Study::Quality,
         };
