@@ -109,7 +109,7 @@ pub struct BakeSettings {
     /// Without a rate target, choose each block's visibility details and directional moments
     /// as the rate control does ([`rate`]: by weighted energy per byte) at the estimated error
     /// that truncating each map to `keep` and `energy` would give
-    /// ([`rate::equal_error_voxels`]): the same error estimate in fewer bytes, streaming
+    /// ([`rate::equal_error_block`]): the same error estimate in fewer bytes, streaming
     /// block by block (shards too). On the maple at 64³: 0.79× the bytes, RMSE within 0.2% at
     /// 64² and 256² (`docs/src/studies/2026-12-06-derived-fields.md`). False truncates each
     /// map on its own (the paper's rule, and files before format 1.8).
@@ -724,7 +724,7 @@ impl BakeSettings {
     }
 
     /// Whether each block is allocated on its own at the per-map truncation's error
-    /// ([`rate::equal_error_voxels`]): the block allocation without a target (a target
+    /// ([`rate::equal_error_block`]): the block allocation without a target (a target
     /// allocates over the whole file instead).
     pub fn allocates_per_block(&self) -> bool {
         self.block_allocation && self.rate_target().is_none()

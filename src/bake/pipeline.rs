@@ -316,7 +316,8 @@ fn bake_levels(
                 continue;
             }
             let voxels = if by_block {
-                rate::equal_error_voxels(voxels, grid.voxel_size(), settings.keep, settings.energy)
+                let (s, size) = (settings, grid.voxel_size());
+                rate::equal_error_block(voxels, Vec::new(), size, s.keep, s.energy).0
             } else {
                 voxels
             };
@@ -400,7 +401,8 @@ fn bake_levels(
             }
             let t = Instant::now();
             let data = if by_block {
-                rate::equal_error_faces(data, grid.voxel_size(), settings.keep, settings.energy)
+                let (s, size) = (settings, grid.voxel_size());
+                rate::equal_error_block(Vec::new(), data, size, s.keep, s.energy).1
             } else {
                 data
             };

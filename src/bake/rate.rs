@@ -454,44 +454,28 @@ fn truncation_loss(tree: &SparseHaar, keep: f32, energy: f32) -> f64 {
 /// rule keeps (flat maps, dark or small voxels) to maps where they weigh more, and directional
 /// moments that change the albedo less than a detail's worth go. Within one block, so that
 /// the bake still streams block by block, shards included, and the bytes do not depend on
-/// threads.
-pub(crate) fn equal_error_voxels(
-    block: Vec<VoxelData>,
+/// threads. A block holds voxels or faces (the other list empty).
+pub(crate) fn equal_error_block(
+    voxels: Vec<VoxelData>,
+    faces: Vec<FaceData>,
     voxel_size: f32,
     keep: f32,
     energy: f32,
-) -> Vec<VoxelData> {
+) -> (Vec<VoxelData>, Vec<FaceData>) {
     let level = PendingLevel {
-        voxels: vec![block],
-        faces: Vec::new(),
+        voxels: vec![voxels],
+        faces: vec![faces],
         voxel_size,
     };
-    equal_error(level, keep, energy)
-        .voxels
-        .pop()
-        .unwrap_or_default()
-}
-
-/// [`equal_error_voxels`] for a block of boundary faces (their ABV trees).
-pub(crate) fn equal_error_faces(
-    block: Vec<FaceData>,
-    voxel_size: f32,
-    keep: f32,
-    energy: f32,
-) -> Vec<FaceData> {
-    let level = PendingLevel {
-        voxels: Vec::new(),
-        faces: vec![block],
-        voxel_size,
-    };
-    equal_error(level, keep, energy)
-        .faces
-        .pop()
-        .unwrap_or_default()
+    let mut out = equal_error(level, keep, energy);
+    (
+        out.voxels.pop().unwrap_or_default(),
+        out.faces.pop().unwrap_or_default(),
+    )
 }
 
 /// `level`'s blocks with the candidates kept that drop at most the weighted squared error of
-/// the per-map truncation ([`equal_error_voxels`]); one multiplier for all of them.
+/// the per-map truncation ([`equal_error_block`]); one multiplier for all of them.
 fn equal_error(level: PendingLevel, keep: f32, energy: f32) -> PendingLevel {
     let weights = LevelWeights::of(&level);
     let voxels: f64 = (level.voxels.iter().flatten())
