@@ -221,8 +221,8 @@ pub struct AbvMap {
 /// second in a uniform direction: a cell blocked from the whole face is never read) and is
 /// dropped if every draw fails. Eq. 26's average over P⁺ is then the one the runtime's queries see,
 /// and no ray goes to directions it never reads; their cells take the fill of their enclosing
-/// blocks, which costs few bytes (the maple's default 64³ bake: 0.74× the bytes, the bias of
-/// its 64² image −4%; `docs/src/studies/2026-12-07-reachable-abv.md`). Origins are a
+/// blocks, which costs few bytes (the maple's default 64³ bake: 0.72× the bytes, the bias of
+/// its 64² image −3%, 1.02× the bake time; `docs/src/studies/2026-12-07-reachable-abv.md`). Origins are a
 /// scrambled Sobol sequence indexed in Z order of the rays' direction blocks, so that every
 /// aligned block of cells that the bandwidths average has its origins stratified over the
 /// face.
@@ -376,9 +376,9 @@ pub fn abv_map(
 }
 
 /// Draws of a ray's origin (and, after the first, its direction) until it is one where a cone
-/// can enter the aggregate ([`abv_map`]). Two: the maple's 64³ bake, seen at 64², has a bias
-/// of 0.0110 with one draw (0.68× the bytes of no test) and 0.0106 with two (0.74×); eight give
-/// 0.0104 (0.85×) for twice the bake's time.
+/// can enter the aggregate ([`abv_map`]). Two: on the maple's 64³ bake seen at 64² (every ray
+/// tested, an earlier variant of this rule), one draw gave a bias of 0.0110 (0.68× the bytes of
+/// no test), two 0.0106 (0.74×), eight 0.0104 (0.85×) for twice the bake's time.
 pub const ABV_REACH_TRIES: u32 = 2;
 
 /// Interleaves the bits of `x` and `y` (x in the even bits): the Z order of a cell, in which

@@ -677,7 +677,7 @@ fn abv_over_part(
         q[v] = lo[v] + (iv + rng.next_f32()) * cell;
         let o = q - cone.dir * back;
         if oracles.abv_reachable {
-            let mut out = lod.hits(&Cone::new(q - cone.dir * back, -d, 0.0), &settings);
+            let mut out = lod.hits(&Cone::new(o, -d, 0.0), &settings);
             for _ in &mut out {}
             if out.entry().is_some() {
                 continue;
