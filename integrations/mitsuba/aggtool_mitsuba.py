@@ -24,6 +24,8 @@ Parameters (properties of the integrator):
     lod_bias              float      level-of-detail bias in levels (default 0, the
                                      footprint's level; 1 walks the next coarser level:
                                      faster where cones cross many voxels, blurrier)
+    batch_rays            integer    rays traced together in one batch (default 524288,
+                                     about 450 MB; larger is a little faster)
     samples_per_walk      integer    samples of a pixel that share one camera ray and one
                                      walk of the aggregates, each with its own pick, light
                                      and BSDF samples (default 0: pairs from 64 spp up,
@@ -83,8 +85,13 @@ import aggtool
 __all__ = ["AggtoolLod", "Aggregate", "integrator_class", "register"]
 
 _KEY = re.compile(r"^agg_(\w+?)$")
-# Rays per batch: every phase's arrays are a few hundred bytes per ray.
-BATCH = 1 << 18
+# Rays per batch (the `batch_rays` property's default): every phase's arrays are a few
+# hundred bytes per ray. Each batch calls Dr.Jit's kernels, after which its worker threads
+# spin for a while (nanothread's TaskQueue::pop, 14% of the CPU samples of a render at 2^18),
+# taking the CPU from the runtime's threads: fewer, larger batches spin less. bench.py's
+# 200k-triangle tree at 256², 64 spp: 2^18 / 2^19 / 2^20 rays a batch, render 3.78–3.87 /
+# 3.32–3.55 / 3.22–3.42 s, the whole process's peak RSS 323 / 448 / 727 MB.
+BATCH = 1 << 19
 
 
 def _jit() -> bool:
@@ -135,7 +142,9 @@ def _batch(fn, n, *args):
         dr.eval(*outs)
         res = []
         for x in outs:
-            a = np.array(x)
+            # A view of the evaluated array (a third of np.array's time, which copies): the
+            # phases' outputs are fresh arrays, read here and never written.
+            a = x.numpy() if hasattr(x, "numpy") else np.array(x)
             a = a.T if a.ndim == 2 else a
             if a.shape[0] != n:  # a literal broadcast over the batch
                 a = np.broadcast_to(a, (n,) + a.shape[1:]).copy()
@@ -307,6 +316,10 @@ class _AggtoolLod:
         if self.samples_per_walk < 0:
             raise ValueError(f"aggtool_lod: samples_per_walk must be 0 (the runtime's choice) "
                              f"or more, not {self.samples_per_walk}")
+        self.batch_rays = int(props["batch_rays"]) if (
+            props is not None and "batch_rays" in props.keys()) else BATCH
+        if self.batch_rays < 1:
+            raise ValueError(f"aggtool_lod: batch_rays must be at least 1, not {self.batch_rays}")
         self.lod_bias = float(props["lod_bias"]) if (
             props is not None and "lod_bias" in props.keys()) else 0.0
         if not (math.isfinite(self.lod_bias) and -8 <= self.lod_bias <= 8):
@@ -418,38 +431,41 @@ class _AggtoolLod:
         out = np.zeros((m, 3))
         if m == 0:
             return out
-        u_e = rng.random((m, 2))
+        u_e = rng.random((m, 2), dtype=np.float32)
         d_e, em_w, pdf_e, delta, dist_e = _batch(self._agg_light(scene), m, (p, "p3"),
                                                  (u_e, "p2"))
-        u_b = rng.random((m, 3)).astype(np.float32)
+        u_b = rng.random((m, 3), dtype=np.float32)
+        lit = (em_w.max(axis=1) > 0) & (pdf_e > 0)
         for j, a in enumerate(self.aggregates):
             sel = np.nonzero(agg_of == j)[0]
             if len(sel) == 0:
                 continue
-            ins, lv, ky = inst[sel], level[sel], key[sel]
-            wo_l = a.dir_to_local(wo[sel])
+            ins = inst[sel]
+            # One call: the ABSDF towards the light sample, an ABSDF sample, and the interior
+            # visibility of both directions (zero rows: no light sample).
+            wi_e = np.where(lit[sel, None], a.dir_to_local(d_e[sel]), 0.0).astype(np.float32)
+            r = a.scene.voxel_shade(level[sel], key[sel], a.dir_to_local(wo[sel]), wi_e,
+                                    u_b[sel], ins)
             # Emitter sample.
-            lit = sel[(em_w[sel].max(axis=1) > 0) & (pdf_e[sel] > 0)]
-            if len(lit):
-                k = np.searchsorted(sel, lit)
-                wi_l = a.dir_to_local(d_e[lit])
-                f, pdf_b = a.scene.voxel_eval(lv[k], ky[k], wi_l, wo_l[k], ins[k])
-                _, inc = a.scene.voxel_visibility(lv[k], ky[k], wi_l, ins[k])
-                tr = self._through_others(j, p[lit], d_e[lit], dist_e[lit], aperture, ins[k])
-                mis = np.where(delta[lit].astype(bool), 1.0, _power_np(pdf_e[lit], pdf_b))
-                out[lit] += f * em_w[lit] * (inc * tr * mis)[:, None]
+            k = np.nonzero(lit[sel])[0]
+            if len(k):
+                s = sel[k]
+                tr = self._through_others(j, p[s], d_e[s], dist_e[s], aperture, ins[k])
+                mis = np.where(delta[s].astype(bool), 1.0,
+                               _power_np(pdf_e[s], r["light_pdf"][k]))
+                out[s] += r["light_value"][k] * em_w[s] * (
+                    r["light_visibility"][k] * tr * mis)[:, None]
             # ABSDF sample.
-            wi_l, val, pdf = a.scene.voxel_sample(lv, ky, wo_l, u_b[sel], ins)
-            ok = pdf > 0
-            if ok.any():
-                s = sel[ok]
-                d_w = a.dir_to_world(wi_l[ok]).astype(np.float32)
+            k = np.nonzero(r["pdf"] > 0)[0]
+            if len(k):
+                s = sel[k]
+                pdf = r["pdf"][k]
+                d_w = a.dir_to_world(r["wi"][k]).astype(np.float32)
                 le, pdf_l, dist = _batch(self._agg_bsdf(scene), len(s), (p[s], "p3"),
                                          (d_w, "v3"))
-                _, inc = a.scene.voxel_visibility(lv[ok], ky[ok], wi_l[ok], ins[ok])
-                tr = self._through_others(j, p[s], d_w, dist, aperture, ins[ok])
-                mis = _power_np(pdf[ok], pdf_l)
-                out[s] += val[ok] * le * (inc * tr * mis / pdf[ok])[:, None]
+                tr = self._through_others(j, p[s], d_w, dist, aperture, ins[k])
+                mis = _power_np(pdf, pdf_l)
+                out[s] += r["value"][k] * le * (r["visibility"][k] * tr * mis / pdf)[:, None]
         return out
 
     def _aggregate_layers(self, scene, rng, o, d, t_mesh, aperture, groups=None):
@@ -477,12 +493,12 @@ class _AggtoolLod:
                 for key, v in g.items():
                     r[key] = np.empty(n, v.dtype)
                     r[key][groups.ravel()] = v.ravel()
-            weight = r["weight"].astype(np.float64)
+            weight = r["weight"]
             entry = r["entry"].astype(np.float64) * a.scale
             rays = np.nonzero(weight > 0)[0]
             p = o[rays] + (r["t"][rays].astype(np.float64) * a.scale)[:, None] * d[rays]
             picks.append((j, rays, r["instance"][rays], r["level"][rays], r["key"][rays], p))
-            layers.append([entry, np.zeros((n, 3)), r["transmittance"].astype(np.float64),
+            layers.append([entry, np.zeros((n, 3), np.float32), r["transmittance"],
                            weight])
         if not picks:
             return []
@@ -507,7 +523,7 @@ class _AggtoolLod:
         `share` consecutive blocks share each pixel's camera ray and the aggregates' walk
         (each sample still draws its own pick, light and BSDF samples)."""
         n = len(xy)
-        jitter = rng.random((n, 2))
+        jitter = rng.random((n, 2), dtype=np.float32)
         groups = None
         if share > 1 and blocks % share == 0:
             npix = n // blocks
@@ -515,23 +531,32 @@ class _AggtoolLod:
                 jitter.reshape(blocks // share, share, npix, 2)[:, :1]
             groups = np.arange(n).reshape(blocks // share, share, npix).transpose(0, 2, 1) \
                 .reshape(-1, share)
-        pos = ((xy + jitter) / full).astype(np.float32)
+        pos = (xy + jitter) / full
         o, d, w = _batch(self._camera(sensor), n, (pos, "p2"))
         d = _normalize(d)
-        u = rng.random((n, 5)).astype(np.float32)
+        u = rng.random((n, 5), dtype=np.float32)
         (t_mesh, le, c_e, d_e, dist_e, c_b, d_b, dist_b, p_m) = _batch(
             self._mesh(scene), n, (o, "p3"), (d, "v3"), (u[:, :2], "p2"), (u[:, 2], "f"),
             (u[:, 3:], "p2"))
-        # Aggregates shadow meshes: shadow cones from the mesh points towards the light.
-        for c, dl, dist in ((c_e, d_e, dist_e), (c_b, d_b, dist_b)):
-            s = np.nonzero((c.max(axis=1) > 0) & np.isfinite(t_mesh))[0]
-            if len(s) and self.aggregates:
-                c[s] *= self._through_others(-1, p_m[s], _normalize(dl[s]), dist[s],
-                                             aperture)[:, None]
-        radiance = le + c_e + c_b
+        # Aggregates shadow meshes: shadow cones from the mesh points towards the light (the
+        # emitter sample's and the BSDF sample's, unit directions from Mitsuba, in one call).
+        tr_e, tr_b = np.ones(n, np.float32), np.ones(n, np.float32)
+        if self.aggregates:
+            hit = np.isfinite(t_mesh)
+            s_e = np.nonzero(hit & (c_e.max(axis=1) > 0))[0]
+            s_b = np.nonzero(hit & (c_b.max(axis=1) > 0))[0]
+            if len(s_e) + len(s_b):
+                s = np.concatenate([s_e, s_b])
+                tr = self._through_others(
+                    -1, p_m[s], np.concatenate([d_e[s_e], d_b[s_b]]),
+                    np.concatenate([dist_e[s_e], dist_b[s_b]]), aperture)
+                tr_e[s_e], tr_b[s_b] = tr[:len(s_e)], tr[len(s_e):]
+        radiance = le + c_e * tr_e[:, None] + c_b * tr_b[:, None]
         # Aggregates in front of the mesh (or the background), front to back.
         layers = self._aggregate_layers(scene, rng, o, d, t_mesh, aperture, groups)
-        if layers:
+        if len(layers) == 1:
+            radiance = layers[0][1] + layers[0][2][:, None] * radiance
+        elif layers:
             entry = np.stack([e for e, _, _ in layers])
             order = np.argsort(-entry, axis=0)  # farthest first
             rows = np.arange(n)
@@ -559,12 +584,12 @@ class _AggtoolLod:
         _, dd, _ = _batch(self._camera(sensor), 2, (mid.astype(np.float32), "p2"))
         dd = _normalize(dd)
         aperture = float(np.arccos(np.clip(np.dot(dd[0], dd[1]), -1.0, 1.0)))
-        # Several samples per pixel in one batch, up to BATCH rays.
+        # Several samples per pixel in one batch, up to `batch_rays` rays.
         npix = len(xy)
         # Samples of a pixel sharing one walk: as the runtime's image loop
         # (TraceSettings::walk_reuse), pairs where a pixel still gets 32 walks.
         share = self.samples_per_walk or (2 if spp >= 64 else 1)
-        per = max(share, (BATCH // max(npix, 1)) // share * share)
+        per = max(share, (self.batch_rays // max(npix, 1)) // share * share)
         acc = np.zeros((npix, 3))
         done, b = 0, 0
         while done < spp:

@@ -289,6 +289,31 @@ def test_traversal_layer(aggtool_module):
         assert np.allclose(p, pdf[ok], rtol=1e-3, atol=1e-6)
         aiv, inc = scene.voxel_visibility(lv, ky, wi)
         assert ((aiv >= 0) & (aiv <= 1) & (inc >= aiv - 1e-6) & (inc <= 1)).all()
+        # voxel_shade: the same numbers as the four calls it stands for, in one pass (the
+        # Mitsuba host's per-hit work); a zero light row gives zeros.
+        u3 = rng.random((m, 3), dtype=np.float32)
+        wl = rng.normal(size=(m, 3)).astype(np.float32)
+        wl[::7] = 0
+        sh = scene.voxel_shade(lv, ky, wo, wl, u3)
+        wi2, val2, pdf2 = scene.voxel_sample(lv, ky, wo, u3)
+        assert np.array_equal(sh["wi"], wi2) and np.array_equal(sh["value"], val2)
+        assert np.array_equal(sh["pdf"], pdf2)
+        ok2 = pdf2 > 0
+        assert np.array_equal(sh["visibility"][ok2],
+                              scene.voxel_visibility(lv[ok2], ky[ok2], wi2[ok2])[1])
+        assert (sh["visibility"][~ok2] == 0).all()
+        lit = np.abs(wl).sum(axis=1) > 0
+        fl, pl = scene.voxel_eval(lv[lit], ky[lit], wl[lit], wo[lit])
+        assert np.array_equal(sh["light_value"][lit], fl) and np.array_equal(sh["light_pdf"][lit], pl)
+        assert np.array_equal(sh["light_visibility"][lit],
+                              scene.voxel_visibility(lv[lit], ky[lit], wl[lit])[1])
+        assert (sh["light_value"][~lit] == 0).all() and (sh["light_pdf"][~lit] == 0).all()
+        with pytest.raises(ValueError, match="wi_light 2: not finite"):
+            bad_l = wl[:3].copy()
+            bad_l[2, 0] = np.nan
+            scene.voxel_shade(lv[:3], ky[:3], wo[:3], bad_l, u3[:3])
+        with pytest.raises(ValueError, match="3 voxels but 2 rows of u"):
+            scene.voxel_shade(lv[:3], ky[:3], wo[:3], wl[:3], u3[:2])
         # A host shading every hit with ABSDF samples under the constant sky estimates what
         # trace does (Eq. 30 with MIS and reservoir picks, each cone divided by the sum of
         # its weights and its transmittance, TraceSettings::normalize): the means of 16000

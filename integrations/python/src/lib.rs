@@ -870,6 +870,121 @@ impl Scene {
         Ok((PyArray1::from_vec(py, aiv), PyArray1::from_vec(py, inc)))
     }
 
+    /// What a host needs to shade M picked voxels with one light sample and one ABSDF sample
+    /// each (multiple importance sampling), in one pass over the voxels: `voxel_eval` towards
+    /// the light, `voxel_sample` for `u`, and `voxel_visibility` of both directions, each
+    /// voxel looked up once. `wo` (M, 3) towards the viewer; `wi_light` (M, 3) towards each
+    /// voxel's light sample, a zero row where there is none (its outputs are then 0); `u`
+    /// (M, 3) uniform numbers in [0, 1) for the ABSDF sample. Directions in the aggregate's
+    /// frame, as for the other `voxel_*` calls. Returns a dict of float32 arrays:
+    /// - `light_value` (M, 3), `light_pdf` (M,): f̂(ω_light, ω_o) and the pdf of
+    ///   `voxel_sample` drawing ω_light (`voxel_eval`);
+    /// - `light_visibility` (M,): the incident visibility towards the light (`voxel_visibility`'s
+    ///   second output);
+    /// - `wi` (M, 3), `value` (M, 3), `pdf` (M,): the ABSDF sample (`voxel_sample`; pdf 0 and
+    ///   zeros where no direction was drawn);
+    /// - `visibility` (M,): the incident visibility towards `wi`.
+    ///
+    /// Releases the GIL. The Mitsuba host's per-hit work is this one call between its own
+    /// light sampling and its rays towards the sampled directions.
+    #[pyo3(signature = (level, key, wo, wi_light, u, instance = None))]
+    #[allow(clippy::too_many_arguments)]
+    fn voxel_shade<'py>(
+        &self,
+        py: Python<'py>,
+        level: PyReadonlyArray1<'py, u32>,
+        key: PyReadonlyArray1<'py, u64>,
+        wo: PyReadonlyArray2<'py, f32>,
+        wi_light: PyReadonlyArray2<'py, f32>,
+        u: PyReadonlyArray2<'py, f32>,
+        instance: Option<PyReadonlyArray1<'py, u32>>,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let (lv, ky) = voxel_ids(&level, &key)?;
+        let m = lv.len();
+        let wo = unit_rows(&wo, "wo", m)?;
+        let (ml, ls) = rows3(&wi_light, "wi_light")?;
+        let (mu, us) = rows3(&u, "u")?;
+        for (what, rows) in [("wi_light", ml), ("u", mu)] {
+            if rows != m {
+                return Err(PyValueError::new_err(format!(
+                    "{m} voxels but {rows} rows of {what}"
+                )));
+            }
+        }
+        for (what, s) in [("wi_light", ls), ("u", us)] {
+            if let Some(i) = s.iter().position(|x| !x.is_finite()) {
+                return Err(PyValueError::new_err(format!(
+                    "{what} {}: not finite",
+                    i / 3
+                )));
+            }
+        }
+        let inst = self.instance_ids(instance.as_ref(), m)?;
+        let scene = &self.scene;
+        type Shaded = (Vec3, f32, f32, Vec3, Vec3, f32, f32);
+        let r: Vec<Option<Shaded>> = py.detach(|| {
+            (0..m)
+                .into_par_iter()
+                .map(|i| {
+                    let v = voxel_of(scene, inst[i], lv[i], ky[i])?;
+                    let j = inst[i] as usize;
+                    let wo = scene.direction_to_local(j, wo[i]);
+                    let wl = aggtool::math::unit_or_zero(Vec3::from_slice(&ls[3 * i..]));
+                    let (f, pdf_l, vis_l) = if wl == Vec3::ZERO {
+                        (Vec3::ZERO, 0.0, 0.0)
+                    } else {
+                        let wl = scene.direction_to_local(j, wl);
+                        let (f, p) = v.eval_pdf(wl, wo);
+                        (f, p, v.incident_visibility(wl))
+                    };
+                    let x = Vec3::from_slice(&us[3 * i..])
+                        .clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
+                    let (wi, value, pdf, vis) = match v.sample(wo, x.x, Vec2::new(x.y, x.z)) {
+                        Some(s) if s.pdf > 0.0 && s.pdf.is_finite() => (
+                            scene.direction_to_world(j, s.wi),
+                            s.value,
+                            s.pdf,
+                            v.incident_visibility(s.wi),
+                        ),
+                        _ => (Vec3::ZERO, Vec3::ZERO, 0.0, 0.0),
+                    };
+                    Some((f, pdf_l, vis_l, wi, value, pdf, vis))
+                })
+                .collect()
+        });
+        let r = self.found(r, lv, ky)?;
+        let mut cols = (
+            Vec::with_capacity(3 * m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(3 * m),
+            Vec::with_capacity(3 * m),
+            Vec::with_capacity(m),
+            Vec::with_capacity(m),
+        );
+        for (f, pl, vl, wi, value, pdf, vis) in r {
+            cols.0.extend_from_slice(&f.to_array());
+            cols.1.push(pl);
+            cols.2.push(vl);
+            cols.3.extend_from_slice(&wi.to_array());
+            cols.4.extend_from_slice(&value.to_array());
+            cols.5.push(pdf);
+            cols.6.push(vis);
+        }
+        let d = PyDict::new(py);
+        d.set_item(
+            "light_value",
+            PyArray1::from_vec(py, cols.0).reshape([m, 3])?,
+        )?;
+        d.set_item("light_pdf", PyArray1::from_vec(py, cols.1))?;
+        d.set_item("light_visibility", PyArray1::from_vec(py, cols.2))?;
+        d.set_item("wi", PyArray1::from_vec(py, cols.3).reshape([m, 3])?)?;
+        d.set_item("value", PyArray1::from_vec(py, cols.4).reshape([m, 3])?)?;
+        d.set_item("pdf", PyArray1::from_vec(py, cols.5))?;
+        d.set_item("visibility", PyArray1::from_vec(py, cols.6))?;
+        Ok(d)
+    }
+
     fn __repr__(&self) -> String {
         format!(
             "aggtool.Scene({:?}, levels={:?})",
