@@ -1196,7 +1196,8 @@ fn command_line_hybrid_and_no_mesh() {
         read("nomesh.exr").pixels == lib.pixels,
         "--no-mesh differs from the aggregate-only render"
     );
-    // Close up: hybrid loads the mesh and differs.
+    // Close up: hybrid loads the mesh and differs (this tree's 2,000 triangles are drawn
+    // from its mesh everywhere by default: `--mesh-below 0` keeps the hybrid).
     let out = run(&[
         "render",
         m,
@@ -1206,6 +1207,8 @@ fn command_line_hybrid_and_no_mesh() {
         "hybrid.exr",
         "--level-map",
         "map.png",
+        "--mesh-below",
+        "0",
     ]);
     assert!(out.contains("mesh loaded"), "{out}");
     assert!(
@@ -1217,8 +1220,53 @@ fn command_line_hybrid_and_no_mesh() {
     assert!(key.contains("³ ") && !key.contains(" l0 "), "{key}");
     assert!(read("hybrid.exr").pixels != lib.pixels);
     // Far: identical, no mesh loaded.
-    let out = run(&["render", m, "--view", "far.json", "-o", "far.exr"]);
+    let out = run(&[
+        "render",
+        m,
+        "--view",
+        "far.json",
+        "-o",
+        "far.exr",
+        "--mesh-below",
+        "0",
+    ]);
     assert!(!out.contains("mesh loaded"), "{out}");
+    // By default an asset of at most 16,384 triangles is drawn from its mesh at every
+    // distance: the far view is then the library's all-mesh render, bit for bit.
+    let n = aggtool::import::triangle_count(&d.join("tree.glb"), u64::MAX).unwrap();
+    let loaded = aggtool::import::load(&d.join("tree.glb"), Default::default()).unwrap();
+    assert_eq!(n, loaded.instanced_triangle_count() as u64);
+    let out = run(&["render", m, "--view", "far.json", "-o", "far-small.exr"]);
+    assert!(
+        out.contains(&format!("drawn from its mesh ({n} triangles)")),
+        "{out}"
+    );
+    let vf = aggtool::render::View::load(&d.join("far.json")).unwrap();
+    let mut all_mesh = Assembly::open(&p).unwrap();
+    all_mesh.set_representation(assembly::Representation::Mesh);
+    let lib_mesh = assembly::render(
+        &all_mesh,
+        &vf.camera(),
+        &vf.lights().unwrap(),
+        vf.spp,
+        vf.seed,
+        &TraceSettings::default(),
+        &no_progress,
+    )
+    .0;
+    assert!(read("far-small.exr").pixels == lib_mesh.pixels);
+    let out = run(&[
+        "render",
+        m,
+        "--view",
+        "far.json",
+        "-o",
+        "far-fewer.exr",
+        "--mesh-below",
+        &(n - 1).to_string(),
+    ]);
+    assert!(!out.contains("drawn from its mesh"), "{out}");
+    assert!(read("far-fewer.exr").pixels == read("far.exr").pixels);
     // (The far view does show the trees: not all sky, the default white environment.)
     assert!(read("far.exr")
         .pixels
@@ -1380,4 +1428,35 @@ fn layers_compose_instances_front_to_back() {
     // Both trees are seen on many cones (measured: 227 of 576 cones, 2,594 hits).
     eprintln!("{met_both} cones met both trees, {composed} hits");
     assert!(met_both > 100 && composed > 1000);
+}
+
+/// `import::triangle_count`, which decides which assets are drawn from their meshes: the
+/// count `load` finds, faces of k corners as k − 2 triangles, stopped once past the limit, and
+/// an error (the asset keeps its aggregate) for a file that is not one.
+#[test]
+fn triangle_count_counts_without_importing() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let obj = d.join("quads.obj");
+    let mut text = String::from("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\n");
+    for _ in 0..100 {
+        text.push_str("f 1 2 3 4\nf 1/1 2/2 5/3\n");
+    }
+    std::fs::write(&obj, text).unwrap();
+    assert_eq!(
+        aggtool::import::triangle_count(&obj, u64::MAX).unwrap(),
+        300
+    );
+    // Past the limit it stops reading: the first two faces already pass 2.
+    assert_eq!(aggtool::import::triangle_count(&obj, 2).unwrap(), 3);
+    let glb = tree(d);
+    let n = aggtool::import::triangle_count(&glb, u64::MAX).unwrap();
+    let scene = aggtool::import::load(&glb, Default::default()).unwrap();
+    assert_eq!(n, scene.instanced_triangle_count() as u64);
+    // A damaged GLB (its JSON chunk cut short) and a file of another kind are errors.
+    let bytes = std::fs::read(&glb).unwrap();
+    std::fs::write(d.join("cut.glb"), &bytes[..40]).unwrap();
+    assert!(aggtool::import::triangle_count(&d.join("cut.glb"), 10).is_err());
+    std::fs::write(d.join("x.ply"), b"ply").unwrap();
+    assert!(aggtool::import::triangle_count(&d.join("x.ply"), 10).is_err());
 }

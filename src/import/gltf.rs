@@ -58,6 +58,103 @@ impl Ctx<'_> {
     }
 }
 
+/// [`super::triangle_count`] for glTF: the JSON alone (a `.glb`'s first chunk, its buffers
+/// unread), each triangle primitive counted by its accessors (indices, else positions) once
+/// for every node that places its mesh in the scene [`load`] reads, stopped once past
+/// `at_most`.
+pub fn triangle_count(path: &Path, at_most: u64) -> Result<u64, ImportError> {
+    use std::io::Read;
+    let io = |source| ImportError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let parse_err = |message: String| ImportError::Parse {
+        path: path.to_path_buf(),
+        message,
+    };
+    let mut file = std::fs::File::open(path).map_err(io)?;
+    let mut head = [0u8; 20];
+    let n = file.read(&mut head).map_err(io)?;
+    let json = if n >= 4 && &head[..4] == b"glTF" {
+        // Header (magic, version, length), then the JSON chunk's length and type.
+        if n < 20 || &head[16..20] != b"JSON" {
+            return Err(parse_err(
+                "not a valid glTF file: no JSON chunk first".into(),
+            ));
+        }
+        let len = u32::from_le_bytes([head[12], head[13], head[14], head[15]]) as u64;
+        let size = std::fs::metadata(path).map_err(io)?.len();
+        if len > size.saturating_sub(20) {
+            return Err(parse_err(format!(
+                "not a valid glTF file: a JSON chunk of {len} bytes in a file of {size}"
+            )));
+        }
+        let mut json = vec![0u8; len as usize];
+        file.read_exact(&mut json).map_err(io)?;
+        json
+    } else {
+        let mut json = head[..n].to_vec();
+        file.read_to_end(&mut json).map_err(io)?;
+        json
+    };
+    let doc = gltf::Gltf::from_slice_without_validation(&json)
+        .map_err(|e| parse_err(format!("not a valid glTF file: {e}")))?
+        .document;
+    let per_mesh: Vec<u64> = doc
+        .meshes()
+        .map(|m| {
+            m.primitives()
+                .map(|p| {
+                    let n = p
+                        .indices()
+                        .or_else(|| p.get(&Semantic::Positions))
+                        .map_or(0, |a| a.count() as u64);
+                    match p.mode() {
+                        Mode::Triangles => n / 3,
+                        Mode::TriangleStrip | Mode::TriangleFan => n.saturating_sub(2),
+                        _ => 0,
+                    }
+                })
+                .sum()
+        })
+        .collect();
+    // The scene's nodes as `load` walks them. A valid file's nodes form trees, each visited
+    // once: more visits than nodes is a cycle or a node with two parents.
+    let mut stack: Vec<(gltf::Node, u32)> =
+        match doc.default_scene().or_else(|| doc.scenes().next()) {
+            Some(s) => s.nodes().map(|n| (n, 0)).collect(),
+            None => {
+                let mut is_child = vec![false; doc.nodes().count()];
+                for n in doc.nodes() {
+                    for c in n.children() {
+                        is_child[c.index()] = true;
+                    }
+                }
+                doc.nodes()
+                    .filter(|n| !is_child[n.index()])
+                    .map(|n| (n, 0))
+                    .collect()
+            }
+        };
+    let (mut count, mut visits, nodes) = (0u64, 0usize, doc.nodes().count());
+    while let Some((node, depth)) = stack.pop() {
+        if count > at_most {
+            break;
+        }
+        visits += 1;
+        if visits > nodes || depth as usize > MAX_DEPTH {
+            return Err(parse_err(
+                "not a valid glTF file: its node hierarchy is not a tree".into(),
+            ));
+        }
+        if let Some(m) = node.mesh() {
+            count += per_mesh.get(m.index()).copied().unwrap_or(0);
+        }
+        stack.extend(node.children().map(|c| (c, depth + 1)));
+    }
+    Ok(count)
+}
+
 pub fn load(path: &Path) -> Result<Scene, ImportError> {
     let bytes = std::fs::read(path).map_err(|source| ImportError::Io {
         path: path.to_path_buf(),

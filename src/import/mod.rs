@@ -116,6 +116,35 @@ pub fn load(path: &Path, options: ImportOptions) -> Result<Scene, ImportError> {
     Ok(scene)
 }
 
+/// The triangles an asset places (every instance of every mesh of its scene), counted without
+/// importing it, up to `at_most + 1`: enough to tell whether it has at most `at_most`. A glTF
+/// file's JSON is read (a `.glb`'s first chunk only, not its buffers) and each triangle
+/// primitive counted by its accessors; an OBJ file's faces are read until the count passes
+/// `at_most` (a face of k corners is k − 2 triangles). What [`load`] then finds can be fewer
+/// (degenerate or non-finite triangles are dropped there), never more. For choosing how to
+/// draw an asset before importing it (an assembly draws an asset of few triangles from its
+/// mesh, `crate::assembly::Assembly::draw_small_meshes`).
+pub fn triangle_count(path: &Path, at_most: u64) -> Result<u64, ImportError> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase())
+        .unwrap_or_default();
+    let result = std::panic::catch_unwind(|| match ext.as_str() {
+        "gltf" | "glb" => gltf::triangle_count(path, at_most),
+        "obj" => obj::triangle_count(path, at_most),
+        _ => Err(ImportError::UnsupportedFormat {
+            path: path.to_path_buf(),
+        }),
+    });
+    result.unwrap_or_else(|_| {
+        Err(ImportError::Parse {
+            path: path.to_path_buf(),
+            message: "the file could not be parsed (internal parser failure)".into(),
+        })
+    })
+}
+
 /// The glTF importer on bytes in memory (a `.gltf` or `.glb` as if read from `path`, which
 /// names it in errors and places relative URIs), without [`load`]'s `catch_unwind`, so that the
 /// fuzz target (fuzz/fuzz_targets/gltf.rs) sees every panic. Not an API: use [`load`].

@@ -22,6 +22,32 @@ use super::{sanitize_normals, ImportError, TriangleFilter};
 use crate::math::color::luminance;
 use crate::scene::{AlphaMode, Instance, Material, Mesh, Scene, TextureRef, UvTransform, WrapMode};
 
+/// [`super::triangle_count`] for OBJ: the faces' triangles (k − 2 for k corners), read a
+/// line at a time and stopped once past `at_most`.
+pub fn triangle_count(path: &Path, at_most: u64) -> Result<u64, ImportError> {
+    use std::io::BufRead;
+    let io = |source| ImportError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut reader = std::io::BufReader::new(std::fs::File::open(path).map_err(io)?);
+    let mut line = Vec::new();
+    let mut count = 0u64;
+    while count <= at_most {
+        line.clear();
+        if reader.read_until(b'\n', &mut line).map_err(io)? == 0 {
+            break;
+        }
+        let mut words = line
+            .split(|b| b.is_ascii_whitespace())
+            .filter(|w| !w.is_empty());
+        if words.next() == Some(b"f".as_slice()) {
+            count += (words.count() as u64).saturating_sub(2);
+        }
+    }
+    Ok(count)
+}
+
 pub fn load(path: &Path) -> Result<Scene, ImportError> {
     if let Err(source) = std::fs::metadata(path) {
         return Err(ImportError::Io {

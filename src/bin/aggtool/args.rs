@@ -88,6 +88,12 @@ pub struct RenderArgs {
     /// needed), as a renderer does.
     #[arg(long)]
     pub no_mesh: bool,
+    /// Assemblies: draw every asset of at most N triangles (counted from its source file)
+    /// from its mesh at every distance: an aggregate pays where it replaces many triangles,
+    /// and a small mesh is cheaper to trace, smaller and exact. 0 keeps every asset's
+    /// aggregate wherever it is seen at least as coarse as its finest level.
+    #[arg(long, value_name = "N", default_value_t = aggtool::assembly::render_file::DEFAULT_MESH_BELOW)]
+    pub mesh_below: u64,
     /// Assemblies: also write a PNG colouring each pixel by what its first hit was drawn
     /// with (mesh, or the aggregate's level, named by its resolution), with a legend.
     #[arg(long, value_name = "PNG")]
@@ -498,6 +504,7 @@ impl RenderArgs {
             },
             level: self.level,
             meshes: !self.no_mesh,
+            mesh_below: self.mesh_below,
             level_map: self.level_map.clone(),
             cache_mib: self.cache_mib,
         }
