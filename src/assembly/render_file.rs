@@ -16,10 +16,11 @@ use crate::runtime::{BlockCache, CacheStats, LodScene, PrimitiveKind, TraceSetti
 use crate::util::Progress;
 
 /// `aggtool render MANIFEST`'s default for [`RenderRequest::mesh_below`]: assets of at most
-/// this many triangles are drawn from their meshes. Below the 20,000 triangles of `aggtool gen
-/// forest`'s trees, whose aggregates render a forest in half the reference's time, and above
-/// the 11,799 of the largest piece of the city kits, whose aggregates cost 2.7–3.0× (the
-/// book's page of 2026-12-07, "Small meshes drawn as meshes").
+/// this many triangles are drawn from their meshes. Above the 11,799 of the largest piece of
+/// the city kits, whose aggregates cost 2.6–3.0× the reference's time for no less error, and
+/// below the 20,000 of `aggtool gen forest`'s trees, whose aggregates seen from above give
+/// 0.65× the error of the reference at the same spp, less than the reference's at equal time
+/// (the book's page of 2026-12-07, "Small meshes drawn as meshes").
 pub const DEFAULT_MESH_BELOW: u64 = 16_384;
 
 /// What `render` does besides the view.
