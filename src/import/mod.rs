@@ -77,28 +77,7 @@ pub struct ImportOptions {
 
 /// Loads an asset by its extension: `.gltf`, `.glb` or `.obj`.
 pub fn load(path: &Path, options: ImportOptions) -> Result<Scene, ImportError> {
-    let ext = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(|e| e.to_ascii_lowercase())
-        .unwrap_or_default();
-    // A panic inside a third-party parser on hostile input must not take the caller down.
-    let result = std::panic::catch_unwind(|| match ext.as_str() {
-        "gltf" | "glb" => gltf::load(path),
-        "obj" => obj::load(path),
-        _ => Err(ImportError::UnsupportedFormat {
-            path: path.to_path_buf(),
-        }),
-    });
-    let mut scene = match result {
-        Ok(r) => r?,
-        Err(_) => {
-            return Err(ImportError::Parse {
-                path: path.to_path_buf(),
-                message: "the file could not be parsed (internal parser failure)".into(),
-            })
-        }
-    };
+    let mut scene = by_format(path, gltf::load, obj::load)?;
     scene.source = Some(path.to_path_buf());
     if options.strict {
         if let Some(w) = scene.warnings.first() {
@@ -125,14 +104,29 @@ pub fn load(path: &Path, options: ImportOptions) -> Result<Scene, ImportError> {
 /// draw an asset before importing it (an assembly draws an asset of few triangles from its
 /// mesh, `crate::assembly::Assembly::draw_small_meshes`).
 pub fn triangle_count(path: &Path, at_most: u64) -> Result<u64, ImportError> {
+    by_format(
+        path,
+        |p| gltf::triangle_count(p, at_most),
+        |p| obj::triangle_count(p, at_most),
+    )
+}
+
+/// `gltf` or `obj` on `path` by its extension (`.gltf`, `.glb` or `.obj`). A panic inside a
+/// third-party parser on hostile input must not take the caller down: it becomes a parse
+/// error.
+fn by_format<T>(
+    path: &Path,
+    gltf: impl FnOnce(&Path) -> Result<T, ImportError> + std::panic::UnwindSafe,
+    obj: impl FnOnce(&Path) -> Result<T, ImportError> + std::panic::UnwindSafe,
+) -> Result<T, ImportError> {
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
         .map(|e| e.to_ascii_lowercase())
         .unwrap_or_default();
     let result = std::panic::catch_unwind(|| match ext.as_str() {
-        "gltf" | "glb" => gltf::triangle_count(path, at_most),
-        "obj" => obj::triangle_count(path, at_most),
+        "gltf" | "glb" => gltf(path),
+        "obj" => obj(path),
         _ => Err(ImportError::UnsupportedFormat {
             path: path.to_path_buf(),
         }),

@@ -352,6 +352,16 @@ fn voxel_of(scene: &Opened, instance: u32, level: u32, key: u64) -> Option<Voxel
         .voxel(level as usize, key)
 }
 
+/// A voxel's ABSDF sample for local `wo` from the first three of `u` (clamped into [0, 1)):
+/// (local ω_i, f̂, pdf), `None` where no direction was drawn.
+fn absdf_sample(v: &VoxelHandle<'_>, wo: Vec3, u: &[f32]) -> Option<(Vec3, Vec3, f32)> {
+    let x = Vec3::from_slice(u).clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
+    match v.sample(wo, x.x, Vec2::new(x.y, x.z)) {
+        Some(s) if s.pdf > 0.0 && s.pdf.is_finite() => Some((s.wi, s.value, s.pdf)),
+        _ => None,
+    }
+}
+
 /// The voxels of a batch: `level` (M,) uint32 and `key` (M,) uint64 of the same length.
 fn voxel_ids<'a>(
     level: &'a PyReadonlyArray1<'_, u32>,
@@ -807,14 +817,11 @@ impl Scene {
                 .map(|i| {
                     let v = voxel_of(scene, inst[i], lv[i], ky[i])?;
                     let j = inst[i] as usize;
-                    let x = Vec3::from_slice(&us[3 * i..])
-                        .clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
                     let wo = scene.direction_to_local(j, wo[i]);
-                    Some(match v.sample(wo, x.x, Vec2::new(x.y, x.z)) {
-                        Some(s) if s.pdf > 0.0 && s.pdf.is_finite() => {
-                            (scene.direction_to_world(j, s.wi), s.value, s.pdf)
-                        }
-                        _ => (Vec3::ZERO, Vec3::ZERO, 0.0),
+                    let s = absdf_sample(&v, wo, &us[3 * i..]);
+                    Some(match s {
+                        Some((wi, value, pdf)) => (scene.direction_to_world(j, wi), value, pdf),
+                        None => (Vec3::ZERO, Vec3::ZERO, 0.0),
                     })
                 })
                 .collect()
@@ -937,16 +944,14 @@ impl Scene {
                         let (f, p) = v.eval_pdf(wl, wo);
                         (f, p, v.incident_visibility(wl))
                     };
-                    let x = Vec3::from_slice(&us[3 * i..])
-                        .clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
-                    let (wi, value, pdf, vis) = match v.sample(wo, x.x, Vec2::new(x.y, x.z)) {
-                        Some(s) if s.pdf > 0.0 && s.pdf.is_finite() => (
-                            scene.direction_to_world(j, s.wi),
-                            s.value,
-                            s.pdf,
-                            v.incident_visibility(s.wi),
+                    let (wi, value, pdf, vis) = match absdf_sample(&v, wo, &us[3 * i..]) {
+                        Some((wi, value, pdf)) => (
+                            scene.direction_to_world(j, wi),
+                            value,
+                            pdf,
+                            v.incident_visibility(wi),
                         ),
-                        _ => (Vec3::ZERO, Vec3::ZERO, 0.0, 0.0),
+                        None => (Vec3::ZERO, Vec3::ZERO, 0.0, 0.0),
                     };
                     Some((f, pdf_l, vis_l, wi, value, pdf, vis))
                 })
