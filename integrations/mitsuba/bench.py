@@ -1,6 +1,9 @@
 """The Mitsuba host against Mitsuba's own `direct` on the mesh, timed as the runtime issue
-asks: each integrator after a warm-up render in the same process (its kernels compiled), three
-renders alternating, the medians' ratio.
+asks: each integrator in a process of its own (Mitsuba's virtual calls dispatch over every
+shape and BSDF loaded in the process, so one scene's kernels grow with the other's: the
+forest's mesh kernel had 21,152 operations beside the instanced trees and 1,927 alone), after
+a warm-up render there (its kernels compiled); two processes each, alternating, two renders in
+each, the medians' ratio.
 
     python3 integrations/mitsuba/bench.py tree [--triangles 200000] [--max-res 64]
         [--size 256] [--spp 64] [-o bench-tree]
@@ -19,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -29,19 +33,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import example  # noqa: E402
 
 
-def timed(mi, scenes: dict, spp: int, runs=3) -> dict:
-    for s in scenes.values():
-        np.array(mi.render(s, spp=spp, seed=0))
-    t = {k: [] for k in scenes}
+def timed(mi, scene, spp: int, runs=2) -> list:
+    """Seconds of `runs` renders of `scene` after a warm-up render."""
+    np.array(mi.render(scene, spp=spp, seed=0))
+    t = []
     for r in range(runs):
-        for k, s in scenes.items():
-            t0 = time.perf_counter()
-            np.array(mi.render(s, spp=spp, seed=1 + r))
-            t[k].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        np.array(mi.render(scene, spp=spp, seed=1 + r))
+        t.append(time.perf_counter() - t0)
     return t
 
 
-def forest_scene(mi, folder: Path, glb: Path, agg: Path, size: int, spp: int):
+def forest_scene(mi, folder: Path, glb: Path, agg: Path, size: int, spp: int, only: str):
     inst, xf = [], []
     for k in range(100):
         i, j = k % 10, k // 10
@@ -61,13 +64,14 @@ def forest_scene(mi, folder: Path, glb: Path, agg: Path, size: int, spp: int):
         d["ground"]["to_world"] = mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(8.0)
         return d
 
-    lod = mi.load_dict(scene({"type": "aggtool_lod", "agg_forest": str(manifest)}))
+    if only == "aggtool_lod":
+        return mi.load_dict(scene({"type": "aggtool_lod", "agg_forest": str(manifest)}))
     shapes = example.glb_shapes(mi, glb, folder, None, cut=False)
     extra = {"trees": {"type": "shapegroup", **shapes}}
     for k, t in enumerate(xf):
         extra[f"tree{k}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": "trees"},
                              "to_world": t}
-    return lod, mi.load_dict(scene({"type": "direct"}, extra))
+    return mi.load_dict(scene({"type": "direct"}, extra))
 
 
 def main():
@@ -81,32 +85,51 @@ def main():
     ap.add_argument("--glb", type=Path)
     ap.add_argument("--agg", type=Path)
     ap.add_argument("-o", "--output", type=Path)
+    # Internal: render one integrator's scene in this process and print its times as JSON.
+    ap.add_argument("--only", choices=["aggtool_lod", "direct"], help=argparse.SUPPRESS)
     args = ap.parse_args()
-    import mitsuba as mi
-    mi.set_variant(args.variant)
-    import aggtool_mitsuba
-    aggtool_mitsuba.register()
     out = args.output or Path(f"bench-{args.what}")
     out.mkdir(parents=True, exist_ok=True)
     if args.what == "tree":
         size, spp = args.size or 256, args.spp or 64
-        glb, agg = example.make_tree(out, example.find_aggtool(), args.triangles, args.max_res)
-        lod = mi.load_dict(example.scene_dict(
-            mi, out, {"type": "aggtool_lod", "agg_tree": str(agg),
-                      "agg_tree_to_world": example.tree_to_world(mi)}, size, spp))
-        ref = mi.load_dict(example.scene_dict(
-            mi, out, {"type": "direct"}, size, spp,
-            example.glb_shapes(mi, glb, out, example.tree_to_world(mi))))
     else:
         if not (args.glb and args.agg):
             sys.exit("forest: give --glb TREE.glb and --agg TREE.agg")
         size, spp = args.size or 128, args.spp or 16
-        lod, ref = forest_scene(mi, out, args.glb, args.agg, size, spp)
-    t = timed(mi, {"aggtool_lod": lod, "direct": ref}, spp)
-    for k, v in t.items():
-        print(f"{k}: " + " ".join(f"{x:.3f}" for x in v) + " s")
-    print(f"{args.what}, {size}², {spp} spp: aggtool_lod / direct = "
-          f"{np.median(t['aggtool_lod']) / np.median(t['direct']):.2f} (medians)")
+    if args.only is None:
+        if args.what == "tree":
+            glb, agg = example.make_tree(out, example.find_aggtool(), args.triangles,
+                                         args.max_res)
+            given = ["--glb", str(glb), "--agg", str(agg)]
+        else:
+            given = []
+        t = {"aggtool_lod": [], "direct": []}
+        for _ in range(2):
+            for k in t:
+                r = subprocess.run([sys.executable, __file__, *sys.argv[1:], *given, "--only", k],
+                                   check=True, capture_output=True, text=True)
+                t[k] += json.loads(r.stdout.strip().splitlines()[-1])
+        for k, v in t.items():
+            print(f"{k}: " + " ".join(f"{x:.3f}" for x in v) + " s")
+        print(f"{args.what}, {size}², {spp} spp: aggtool_lod / direct = "
+              f"{np.median(t['aggtool_lod']) / np.median(t['direct']):.2f} (medians)")
+        return
+    import mitsuba as mi
+    mi.set_variant(args.variant)
+    import aggtool_mitsuba
+    aggtool_mitsuba.register()
+    if args.what == "tree":
+        if args.only == "aggtool_lod":
+            scene = mi.load_dict(example.scene_dict(
+                mi, out, {"type": "aggtool_lod", "agg_tree": str(args.agg),
+                          "agg_tree_to_world": example.tree_to_world(mi)}, size, spp))
+        else:
+            scene = mi.load_dict(example.scene_dict(
+                mi, out, {"type": "direct"}, size, spp,
+                example.glb_shapes(mi, args.glb, out, example.tree_to_world(mi))))
+    else:
+        scene = forest_scene(mi, out, args.glb, args.agg, size, spp, args.only)
+    print(json.dumps(timed(mi, scene, spp)))
 
 
 if __name__ == "__main__":
