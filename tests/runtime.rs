@@ -1188,3 +1188,48 @@ fn visibility_levels_read_the_coarser_voxels_aiv() {
         "RMSE: full 16³ {e_full}, 16³ with the 8³ AIV {e_vis}, 8³ {e_coarse}"
     );
 }
+
+/// A hit's V̂(ω_o) comes from the cell its voxel's record kept from the last look-up where the
+/// cell is the same (`WeightRecord::viewer_aiv`): the weights must not depend on which cones
+/// walked before. Cones from two opposite sides, alternating (each voxel's kept cell changes
+/// at every cone), and the same cones in a fresh scene, one side after the other (mostly
+/// kept cells), give the same hits with the same weights, bit for bit.
+#[test]
+fn viewer_aiv_kept_in_the_record_is_the_lookup() {
+    let scene = generated("foliage", 4000);
+    let bytes = baked_bytes(&scene, &small(16));
+    let (lo, hi) = scene.bounds();
+    let mid = 0.5 * (lo + hi);
+    let r = (hi - lo).length();
+    let mut rng = Pcg32::new(7, 3);
+    let mut cones = Vec::new();
+    for _ in 0..400 {
+        let target = lo + (hi - lo) * Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32());
+        for side in [Vec3::new(1.0, 0.3, 0.2), Vec3::new(-1.0, 0.2, -0.3)] {
+            let o = mid + side.normalize() * 2.0 * r;
+            cones.push(cone(o, (target - o).normalize(), 0.01));
+        }
+    }
+    let walk = |lod: &LodScene, c: &Cone| -> Vec<(u64, u32)> {
+        lod.hits(c, &TraceSettings::default())
+            .map(|h| (h.voxel.key(), h.weight.to_bits()))
+            .collect()
+    };
+    let alternating = LodScene::new(Aggregate::from_bytes(bytes.clone()).unwrap());
+    let a: Vec<_> = cones.iter().map(|c| walk(&alternating, c)).collect();
+    let sides = LodScene::new(Aggregate::from_bytes(bytes).unwrap());
+    let mut b = vec![Vec::new(); cones.len()];
+    for first in [0, 1] {
+        for i in (first..cones.len()).step_by(2) {
+            b[i] = walk(&sides, &cones[i]);
+        }
+    }
+    assert!(
+        a.iter().map(Vec::len).sum::<usize>() > 400,
+        "the cones meet the tree"
+    );
+    assert_eq!(a, b);
+    // And walking them all again in the first scene (every cell kept) changes nothing.
+    let again: Vec<_> = cones.iter().map(|c| walk(&alternating, c)).collect();
+    assert_eq!(a, again);
+}

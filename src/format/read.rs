@@ -228,14 +228,28 @@ impl AivMap<'_> {
     /// The interior visibility towards `d` (unit), walking one path of the tree.
     #[inline]
     pub fn eval(&self, d: Vec3) -> f32 {
+        match self.cell(d) {
+            None => self.eval_cell(0),
+            Some(cell) => self.eval_cell(cell),
+        }
+    }
+
+    /// The cell of the map holding direction `d` (unit): the map is constant over a cell, so
+    /// [`AivMap::eval_cell`] of it is [`AivMap::eval`] of `d`. `None` for a constant map.
+    #[inline]
+    pub fn cell(&self, d: Vec3) -> Option<u32> {
+        self.tree
+            .map(|_| grid_cell(equal_area_sphere_to_square(d), self.n))
+    }
+
+    /// The map's value in cell `cell` ([`AivMap::cell`]; any cell for a constant map).
+    #[inline]
+    pub fn eval_cell(&self, cell: u32) -> f32 {
         let n = self.n;
         match self.tree {
             None => (self.scaling / n.max(1) as f32).clamp(0.0, 1.0),
-            Some(tree) => {
-                let cell = grid_cell(equal_area_sphere_to_square(d), n);
-                // A visibility: truncated wavelets may ring slightly outside [0, 1].
-                eval_bytes(n, self.scaling, tree, cell)
-            }
+            // A visibility: truncated wavelets may ring slightly outside [0, 1].
+            Some(tree) => eval_bytes(n, self.scaling, tree, cell),
         }
     }
 }

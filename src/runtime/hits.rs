@@ -13,7 +13,7 @@ use std::sync::Arc;
 
 use glam::{IVec3, Vec3};
 
-use super::level::{Brick, Level, Voxels, BRICK, MAX_GRANULARITY};
+use super::level::{Brick, Level, ViewerAiv, Voxels, BRICK, MAX_GRANULARITY};
 use super::{Cone, LodScene, PrimitiveKind, TraceSettings, VoxelHandle};
 use crate::spatial::entry_axis;
 use crate::spatial::entry_face;
@@ -626,9 +626,15 @@ impl<'s> Hits<'s> {
             Some((b, j)) => &b.weight[*j as usize],
             None => &block.weight[i as usize],
         };
-        record.aiv.prefetch();
+        let look = record.viewer_aiv(-self.cone.dir);
+        if let ViewerAiv::Cell(_) = look {
+            record.aiv.prefetch();
+        }
         let (g, g_exact, area) = self.geometric_weight(level, block, i, exact);
-        let vo = record.aiv.eval(-self.cone.dir);
+        let vo = match look {
+            ViewerAiv::Known(v) => v,
+            ViewerAiv::Cell(cell) => record.keep_viewer_aiv(cell),
+        };
         (vo * g, vo * g_exact, area)
     }
 
