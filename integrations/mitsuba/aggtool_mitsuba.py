@@ -25,7 +25,7 @@ Parameters (properties of the integrator):
                                      footprint's level; 1 walks the next coarser level:
                                      faster where cones cross many voxels, blurrier)
     batch_rays            integer    rays traced together in one batch (default 524288,
-                                     about 450 MB; larger is a little faster)
+                                     a few hundred bytes a ray; larger is a little faster)
     samples_per_walk      integer    samples of a pixel that share one camera ray and one
                                      walk of the aggregates, each with its own pick, light
                                      and BSDF samples (default 0: pairs from 64 spp up,
@@ -90,7 +90,7 @@ _KEY = re.compile(r"^agg_(\w+?)$")
 # spin for a while (nanothread's TaskQueue::pop, 14% of the CPU samples of a render at 2^18),
 # taking the CPU from the runtime's threads: fewer, larger batches spin less. bench.py's
 # 200k-triangle tree at 256², 64 spp: 2^18 / 2^19 / 2^20 rays a batch, render 3.78–3.87 /
-# 3.32–3.55 / 3.22–3.42 s, the whole process's peak RSS 323 / 448 / 727 MB.
+# 3.32–3.55 / 3.22–3.42 s, the whole process's peak RSS 315 / 438 / 709 MiB.
 BATCH = 1 << 19
 
 
