@@ -1267,6 +1267,34 @@ fn command_line_hybrid_and_no_mesh() {
     ]);
     assert!(!out.contains("drawn from its mesh"), "{out}");
     assert!(read("far-fewer.exr").pixels == read("far.exr").pixels);
+    // A small asset whose mesh fails to import (its JSON whole, its buffer cut off): the
+    // error says why the mesh was needed and how to do without it.
+    let glb = std::fs::read(d.join("tree.glb")).unwrap();
+    let json_len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    std::fs::write(d.join("tree.glb"), &glb[..20 + json_len]).unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_aggtool"))
+        .args(["render", m, "--view", "far.json", "-o", "broken.exr"])
+        .current_dir(d)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("asset 'tree': its mesh is needed (it has at most 16384 triangles")
+            && err.contains("--mesh-below 0"),
+        "{err}"
+    );
+    run(&[
+        "render",
+        m,
+        "--view",
+        "far.json",
+        "-o",
+        "broken.exr",
+        "--mesh-below",
+        "0",
+    ]);
+    std::fs::write(d.join("tree.glb"), &glb).unwrap();
     // (The far view does show the trees: not all sky, the default white environment.)
     assert!(read("far.exr")
         .pixels

@@ -278,9 +278,22 @@ fn render_assembly(
         }
     }
     if let Some((a, e)) = asm.mesh_error() {
+        let (why, instead) = if asm.representation(a) == Representation::Mesh {
+            (
+                format!(
+                    "it has at most {} triangles, so it is drawn from its mesh",
+                    request.mesh_below
+                ),
+                "--mesh-below 0 draws it from its aggregate where it is seen coarse",
+            )
+        } else {
+            (
+                "an instance is seen finer than its aggregate's finest level".to_string(),
+                "--no-mesh draws every instance from its aggregate",
+            )
+        };
         bail!(
-            "asset '{}': its mesh is needed (an instance is seen finer than its aggregate's \
-             finest level) but {e}; --no-mesh draws every instance from its aggregate",
+            "asset '{}': its mesh is needed ({why}) but {e}; {instead}",
             m.assets[a].id
         );
     }
