@@ -163,6 +163,41 @@ typedef struct AggPick {
   float entry;
 } AggPick;
 
+/*
+ What [`agg_instance_voxel_shade`] gives for one picked voxel: its ABSDF towards a light
+ sample and one ABSDF sample, with the incident visibility of both directions.
+ */
+typedef struct AggShade {
+  /*
+   f̂(ω_light, ω_o), RGB, as [`agg_voxel_eval`] gives it (0 without a light sample).
+   */
+  float light_value[3];
+  /*
+   The solid-angle pdf of the ABSDF sampling ω_light (for MIS).
+   */
+  float light_pdf;
+  /*
+   min(1, V̂(ω_light)/η), as [`agg_voxel_visibility`]'s `incident`.
+   */
+  float light_visibility;
+  /*
+   The sampled direction ω_i (opened frame), 0 where none was drawn.
+   */
+  float wi[3];
+  /*
+   f̂(ω_i, ω_o), RGB, not divided by the pdf.
+   */
+  float value[3];
+  /*
+   Its solid-angle pdf; 0 where no direction was drawn.
+   */
+  float pdf;
+  /*
+   min(1, V̂(ω_i)/η).
+   */
+  float visibility;
+} AggShade;
+
 #ifdef __cplusplus
 extern "C" {
 #endif // __cplusplus
@@ -313,6 +348,24 @@ int agg_pick_cones(const struct AggScene *scene,
                    const float *u,
                    const float *tmax,
                    struct AggPick *out);
+
+/*
+ A picked voxel's shading inputs in one call, the voxel looked up once: what
+ [`agg_instance_voxel_eval`] towards the light sample `wi_light`, [`agg_instance_voxel_sample`]
+ for `u` and [`agg_instance_voxel_visibility`] of both directions give (the Python
+ module's `Scene.voxel_shade`). `wo` towards the viewer and `wi_light` in the opened frame;
+ `wi_light` NULL where the host has no light sample (the light fields are then 0); `u`
+ three uniform numbers in [0, 1). A sample that draws no direction is not an error: its
+ fields are 0.
+ */
+int agg_instance_voxel_shade(const struct AggScene *scene,
+                             uint32_t instance,
+                             uint32_t level,
+                             uint64_t key,
+                             const float *wo,
+                             const float *wi_light,
+                             const float *u,
+                             struct AggShade *out);
 
 /*
  [`agg_voxel_eval`] of a voxel of `instance` (as [`agg_pick_cones`] gives it; 0 for an

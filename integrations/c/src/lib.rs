@@ -124,6 +124,27 @@ pub struct AggPick {
     pub entry: f32,
 }
 
+/// What [`agg_instance_voxel_shade`] gives for one picked voxel: its ABSDF towards a light
+/// sample and one ABSDF sample, with the incident visibility of both directions.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct AggShade {
+    /// f̂(ω_light, ω_o), RGB, as [`agg_voxel_eval`] gives it (0 without a light sample).
+    pub light_value: [f32; 3],
+    /// The solid-angle pdf of the ABSDF sampling ω_light (for MIS).
+    pub light_pdf: f32,
+    /// min(1, V̂(ω_light)/η), as [`agg_voxel_visibility`]'s `incident`.
+    pub light_visibility: f32,
+    /// The sampled direction ω_i (opened frame), 0 where none was drawn.
+    pub wi: [f32; 3],
+    /// f̂(ω_i, ω_o), RGB, not divided by the pdf.
+    pub value: [f32; 3],
+    /// Its solid-angle pdf; 0 where no direction was drawn.
+    pub pdf: f32,
+    /// min(1, V̂(ω_i)/η).
+    pub visibility: f32,
+}
+
 thread_local! {
     static LAST_ERROR: RefCell<CString> = RefCell::new(CString::default());
 }
@@ -731,6 +752,61 @@ pub unsafe extern "C" fn agg_pick_cones(
                 entry: p.entry,
             };
         }
+        Ok(())
+    })
+}
+
+/// A picked voxel's shading inputs in one call, the voxel looked up once: what
+/// [`agg_instance_voxel_eval`] towards the light sample `wi_light`, [`agg_instance_voxel_sample`]
+/// for `u` and [`agg_instance_voxel_visibility`] of both directions give (the Python
+/// module's `Scene.voxel_shade`). `wo` towards the viewer and `wi_light` in the opened frame;
+/// `wi_light` NULL where the host has no light sample (the light fields are then 0); `u`
+/// three uniform numbers in [0, 1). A sample that draws no direction is not an error: its
+/// fields are 0.
+#[no_mangle]
+#[allow(clippy::too_many_arguments)]
+pub unsafe extern "C" fn agg_instance_voxel_shade(
+    scene: *const AggScene,
+    instance: u32,
+    level: u32,
+    key: u64,
+    wo: *const f32,
+    wi_light: *const f32,
+    u: *const f32,
+    out: *mut AggShade,
+) -> c_int {
+    guard(|| {
+        let s = scene_ref(scene)?;
+        let wo = unit(wo, "wo")?;
+        let wl = if wi_light.is_null() {
+            None
+        } else {
+            Some(unit(wi_light, "wi_light")?)
+        };
+        let u = vec3(u, "u")?.clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
+        if out.is_null() {
+            return Err(arg("out"));
+        }
+        let v = instance_voxel(s, instance, level, key)?;
+        let j = instance as usize;
+        let wo = s.scene.direction_to_local(j, wo);
+        let mut r = AggShade::default();
+        if let Some(wl) = wl {
+            let wl = s.scene.direction_to_local(j, wl);
+            let (f, pdf) = v.eval_pdf(wl, wo);
+            r.light_value = f.to_array();
+            r.light_pdf = pdf;
+            r.light_visibility = v.incident_visibility(wl);
+        }
+        if let Some(smp) = v.sample(wo, u.x, Vec2::new(u.y, u.z)) {
+            if smp.pdf > 0.0 && smp.pdf.is_finite() {
+                r.wi = s.scene.direction_to_world(j, smp.wi).to_array();
+                r.value = smp.value.to_array();
+                r.pdf = smp.pdf;
+                r.visibility = v.incident_visibility(smp.wi);
+            }
+        }
+        *out = r;
         Ok(())
     })
 }

@@ -466,6 +466,57 @@ fn a_manifest_opens_and_traces_as_the_library_does() {
                 "{}",
                 last_error()
             );
+            // The shading call: the same numbers as the calls above, in one look-up.
+            let mut sh = AggShade::default();
+            assert_eq!(
+                agg_instance_voxel_shade(
+                    s,
+                    p.instance,
+                    p.level,
+                    p.key,
+                    wo.as_ptr(),
+                    wi.as_ptr(),
+                    uu.as_ptr(),
+                    &mut sh
+                ),
+                AGG_OK,
+                "{}",
+                last_error()
+            );
+            assert_eq!(sh.light_value, rgb);
+            assert_eq!(sh.light_visibility, inc);
+            if code == AGG_OK {
+                assert_eq!((sh.wi, sh.value, sh.pdf), (wi2, val, pdf));
+                let (mut a2, mut i2) = (0f32, 0f32);
+                agg_instance_voxel_visibility(
+                    s,
+                    p.instance,
+                    p.level,
+                    p.key,
+                    wi2.as_ptr(),
+                    &mut a2,
+                    &mut i2,
+                );
+                assert_eq!(sh.visibility, i2);
+            } else {
+                assert_eq!((sh.pdf, sh.visibility), (0.0, 0.0));
+            }
+            let mut dark = AggShade::default();
+            assert_eq!(
+                agg_instance_voxel_shade(
+                    s,
+                    p.instance,
+                    p.level,
+                    p.key,
+                    wo.as_ptr(),
+                    std::ptr::null(),
+                    uu.as_ptr(),
+                    &mut dark
+                ),
+                AGG_OK
+            );
+            assert_eq!((dark.light_value, dark.light_pdf), ([0.0; 3], 0.0));
+            assert_eq!((dark.wi, dark.pdf), (sh.wi, sh.pdf));
         }
         assert!(instances[0] > 0 && instances[1] > 0, "{instances:?}");
         let mut rgb = [0f32; 3];
