@@ -15,7 +15,7 @@ pub mod render_file;
 pub use hybrid::*;
 pub use lod::*;
 pub use manifest::*;
-pub use opened::{LayerPick, OpenError, Opened};
+pub use opened::{LayerPick, OpenError, Opened, VoxelShade};
 
 /// Whether a path names a manifest (a `.json` file) rather than an asset or an aggregate: what
 /// the CLI's `render`, `reference` and `inspect` go by.

@@ -4,11 +4,14 @@
 
 use std::path::Path;
 
-use glam::Vec3;
+use glam::{Vec2, Vec3};
 
 use super::{is_manifest, Assembly, AssemblyError};
+use crate::bsdf::Bsdf;
 use crate::lights::Lights;
-use crate::runtime::{Cone, LayerHit, LodScene, PixelSamples, RuntimeError, TraceSettings};
+use crate::runtime::{
+    Cone, LayerHit, LodScene, PixelSamples, RuntimeError, TraceSettings, VoxelHandle,
+};
 
 /// Why a path could not be opened.
 #[derive(Debug, thiserror::Error)]
@@ -19,6 +22,26 @@ pub enum OpenError {
     /// The manifest or one of its aggregates could not be opened.
     #[error(transparent)]
     Assembly(#[from] AssemblyError),
+}
+
+/// What a host needs to shade a picked voxel with one light sample and one ABSDF sample
+/// (multiple importance sampling): [`Opened::shade_voxel`]. Directions in the opened frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct VoxelShade {
+    /// f̂(ω_light, ω_o) (0 without a light sample).
+    pub light_value: Vec3,
+    /// The pdf of the ABSDF sampling ω_light.
+    pub light_pdf: f32,
+    /// min(1, V̂(ω_light)/η) ([`VoxelHandle::incident_visibility`]).
+    pub light_visibility: f32,
+    /// The ABSDF sample's direction (0 where none was drawn).
+    pub wi: Vec3,
+    /// f̂(ω_i, ω_o), not divided by the pdf.
+    pub value: Vec3,
+    /// Its solid-angle pdf, 0 where no direction was drawn.
+    pub pdf: f32,
+    /// min(1, V̂(ω_i)/η).
+    pub visibility: f32,
 }
 
 /// One cone's pick from its layer: [`Opened::pick`].
@@ -269,6 +292,38 @@ impl Opened {
             Opened::Aggregate(_) => crate::math::unit_or_zero(w),
             Opened::Assembly(a) => a.direction_to_local(instance, w),
         }
+    }
+
+    /// The shading inputs of voxel `v` of `instance` (as [`Opened::instance_scene`]'s
+    /// `voxel` gives it) for outgoing `wo`, the light sample `wi_light` (if any) and the
+    /// uniform numbers `u` (clamped into [0, 1)) of one ABSDF sample: the voxel's ABSDF and
+    /// interior visibility towards both, the voxel looked up once by the caller. What the
+    /// Python module's `voxel_shade` and the C ABI's `agg_instance_voxel_shade` compute.
+    pub fn shade_voxel(
+        &self,
+        instance: usize,
+        v: &VoxelHandle<'_>,
+        wo: Vec3,
+        wi_light: Option<Vec3>,
+        u: Vec3,
+    ) -> VoxelShade {
+        let wo = self.direction_to_local(instance, wo);
+        let mut r = VoxelShade::default();
+        if let Some(wl) = wi_light {
+            let wl = self.direction_to_local(instance, wl);
+            (r.light_value, r.light_pdf) = v.eval_pdf(wl, wo);
+            r.light_visibility = v.incident_visibility(wl);
+        }
+        let u = u.clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
+        if let Some(smp) = v.sample(wo, u.x, Vec2::new(u.y, u.z)) {
+            if smp.pdf > 0.0 && smp.pdf.is_finite() {
+                r.wi = self.direction_to_world(instance, smp.wi);
+                r.value = smp.value;
+                r.pdf = smp.pdf;
+                r.visibility = v.incident_visibility(smp.wi);
+            }
+        }
+        r
     }
 
     /// `instance`'s direction `v` in the opened frame, unit. `instance` must be in range.

@@ -228,10 +228,7 @@ impl AivMap<'_> {
     /// The interior visibility towards `d` (unit), walking one path of the tree.
     #[inline]
     pub fn eval(&self, d: Vec3) -> f32 {
-        match self.cell(d) {
-            None => self.eval_cell(0),
-            Some(cell) => self.eval_cell(cell),
-        }
+        self.eval_cell(self.cell(d).unwrap_or(0))
     }
 
     /// The cell of the map holding direction `d` (unit): the map is constant over a cell, so

@@ -58,6 +58,23 @@ impl Ctx<'_> {
     }
 }
 
+/// The root nodes [`load`] and [`triangle_count`] walk: the default scene's (or the first
+/// scene's), or every node that is no node's child when the file has no scene.
+fn scene_roots(doc: &gltf::Document) -> Vec<gltf::Node<'_>> {
+    match doc.default_scene().or_else(|| doc.scenes().next()) {
+        Some(s) => s.nodes().collect(),
+        None => {
+            let mut is_child = vec![false; doc.nodes().count()];
+            for n in doc.nodes() {
+                for c in n.children() {
+                    is_child[c.index()] = true;
+                }
+            }
+            doc.nodes().filter(|n| !is_child[n.index()]).collect()
+        }
+    }
+}
+
 /// [`super::triangle_count`] for glTF: the JSON alone (a `.glb`'s first chunk, its buffers
 /// unread), each triangle primitive counted by its accessors (indices, else positions) once
 /// for every node that places its mesh in the scene [`load`] reads, stopped once past
@@ -73,8 +90,10 @@ pub fn triangle_count(path: &Path, at_most: u64) -> Result<u64, ImportError> {
         message,
     };
     let mut file = std::fs::File::open(path).map_err(io)?;
-    let mut head = [0u8; 20];
-    let n = file.read(&mut head).map_err(io)?;
+    // The first 20 bytes (fewer for a shorter file), whatever a single read returns.
+    let mut head = Vec::with_capacity(20);
+    (&mut file).take(20).read_to_end(&mut head).map_err(io)?;
+    let n = head.len();
     let json = if n >= 4 && &head[..4] == b"glTF" {
         // Header (magic, version, length), then the JSON chunk's length and type.
         if n < 20 || &head[16..20] != b"JSON" {
@@ -120,22 +139,7 @@ pub fn triangle_count(path: &Path, at_most: u64) -> Result<u64, ImportError> {
         .collect();
     // The scene's nodes as `load` walks them. A valid file's nodes form trees, each visited
     // once: more visits than nodes is a cycle or a node with two parents.
-    let mut stack: Vec<(gltf::Node, u32)> =
-        match doc.default_scene().or_else(|| doc.scenes().next()) {
-            Some(s) => s.nodes().map(|n| (n, 0)).collect(),
-            None => {
-                let mut is_child = vec![false; doc.nodes().count()];
-                for n in doc.nodes() {
-                    for c in n.children() {
-                        is_child[c.index()] = true;
-                    }
-                }
-                doc.nodes()
-                    .filter(|n| !is_child[n.index()])
-                    .map(|n| (n, 0))
-                    .collect()
-            }
-        };
+    let mut stack: Vec<(gltf::Node, u32)> = scene_roots(&doc).into_iter().map(|n| (n, 0)).collect();
     let (mut count, mut visits, nodes) = (0u64, 0usize, doc.nodes().count());
     while let Some((node, depth)) = stack.pop() {
         if count > at_most {
@@ -231,26 +235,7 @@ pub fn load_slice(bytes: &[u8], path: &Path) -> Result<Scene, ImportError> {
         mesh_map.push(ids);
     }
 
-    // Nodes of the default scene (or the first, or every root node when there is none).
-    let roots: Vec<gltf::Node> = match gltf
-        .document
-        .default_scene()
-        .or_else(|| gltf.document.scenes().next())
-    {
-        Some(s) => s.nodes().collect(),
-        None => {
-            let mut is_child = vec![false; gltf.document.nodes().count()];
-            for n in gltf.document.nodes() {
-                for c in n.children() {
-                    is_child[c.index()] = true;
-                }
-            }
-            gltf.document
-                .nodes()
-                .filter(|n| !is_child[n.index()])
-                .collect()
-        }
-    };
+    let roots = scene_roots(&gltf.document);
     let mut on_path = vec![false; gltf.document.nodes().count()];
     for root in roots {
         visit_node(

@@ -783,29 +783,21 @@ pub unsafe extern "C" fn agg_instance_voxel_shade(
         } else {
             Some(unit(wi_light, "wi_light")?)
         };
-        let u = vec3(u, "u")?.clamp(Vec3::ZERO, Vec3::splat(1.0 - f32::EPSILON));
+        let u = vec3(u, "u")?;
         if out.is_null() {
             return Err(arg("out"));
         }
         let v = instance_voxel(s, instance, level, key)?;
-        let j = instance as usize;
-        let wo = s.scene.direction_to_local(j, wo);
-        let mut r = AggShade::default();
-        if let Some(wl) = wl {
-            let wl = s.scene.direction_to_local(j, wl);
-            let (f, pdf) = v.eval_pdf(wl, wo);
-            r.light_value = f.to_array();
-            r.light_pdf = pdf;
-            r.light_visibility = v.incident_visibility(wl);
-        }
-        if let Some(smp) = v.sample(wo, u.x, Vec2::new(u.y, u.z)) {
-            if smp.pdf > 0.0 && smp.pdf.is_finite() {
-                r.wi = s.scene.direction_to_world(j, smp.wi).to_array();
-                r.value = smp.value.to_array();
-                r.pdf = smp.pdf;
-                r.visibility = v.incident_visibility(smp.wi);
-            }
-        }
+        let x = s.scene.shade_voxel(instance as usize, &v, wo, wl, u);
+        let r = AggShade {
+            light_value: x.light_value.to_array(),
+            light_pdf: x.light_pdf,
+            light_visibility: x.light_visibility,
+            wi: x.wi.to_array(),
+            value: x.value.to_array(),
+            pdf: x.pdf,
+            visibility: x.visibility,
+        };
         *out = r;
         Ok(())
     })

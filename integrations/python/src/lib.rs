@@ -26,7 +26,7 @@
 
 use std::path::PathBuf;
 
-use aggtool::assembly::Opened;
+use aggtool::assembly::{Opened, VoxelShade};
 use aggtool::bsdf::Bsdf;
 use aggtool::lights::{EnvMap, Environment, Lights as RtLights, Sun};
 use aggtool::runtime::{Cone, LayerHit, LodScene, TraceSettings, VoxelHandle};
@@ -928,32 +928,15 @@ impl Scene {
         }
         let inst = self.instance_ids(instance.as_ref(), m)?;
         let scene = &self.scene;
-        type Shaded = (Vec3, f32, f32, Vec3, Vec3, f32, f32);
-        let r: Vec<Option<Shaded>> = py.detach(|| {
+        let r: Vec<Option<VoxelShade>> = py.detach(|| {
             (0..m)
                 .into_par_iter()
                 .map(|i| {
                     let v = voxel_of(scene, inst[i], lv[i], ky[i])?;
-                    let j = inst[i] as usize;
-                    let wo = scene.direction_to_local(j, wo[i]);
                     let wl = aggtool::math::unit_or_zero(Vec3::from_slice(&ls[3 * i..]));
-                    let (f, pdf_l, vis_l) = if wl == Vec3::ZERO {
-                        (Vec3::ZERO, 0.0, 0.0)
-                    } else {
-                        let wl = scene.direction_to_local(j, wl);
-                        let (f, p) = v.eval_pdf(wl, wo);
-                        (f, p, v.incident_visibility(wl))
-                    };
-                    let (wi, value, pdf, vis) = match absdf_sample(&v, wo, &us[3 * i..]) {
-                        Some((wi, value, pdf)) => (
-                            scene.direction_to_world(j, wi),
-                            value,
-                            pdf,
-                            v.incident_visibility(wi),
-                        ),
-                        None => (Vec3::ZERO, Vec3::ZERO, 0.0, 0.0),
-                    };
-                    Some((f, pdf_l, vis_l, wi, value, pdf, vis))
+                    let wl = (wl != Vec3::ZERO).then_some(wl);
+                    let u = Vec3::from_slice(&us[3 * i..]);
+                    Some(scene.shade_voxel(inst[i] as usize, &v, wo[i], wl, u))
                 })
                 .collect()
         });
@@ -967,14 +950,14 @@ impl Scene {
             Vec::with_capacity(m),
             Vec::with_capacity(m),
         );
-        for (f, pl, vl, wi, value, pdf, vis) in r {
-            cols.0.extend_from_slice(&f.to_array());
-            cols.1.push(pl);
-            cols.2.push(vl);
-            cols.3.extend_from_slice(&wi.to_array());
-            cols.4.extend_from_slice(&value.to_array());
-            cols.5.push(pdf);
-            cols.6.push(vis);
+        for x in r {
+            cols.0.extend_from_slice(&x.light_value.to_array());
+            cols.1.push(x.light_pdf);
+            cols.2.push(x.light_visibility);
+            cols.3.extend_from_slice(&x.wi.to_array());
+            cols.4.extend_from_slice(&x.value.to_array());
+            cols.5.push(x.pdf);
+            cols.6.push(x.visibility);
         }
         let d = PyDict::new(py);
         d.set_item(
