@@ -332,7 +332,10 @@ class BakeJob:
         return self.fraction
 
     def done(self):
-        return self.proc.poll() is not None
+        """Whether convert has ended and its output has been read to the end: the reader
+        threads can still be queueing the last progress lines when the process has exited,
+        and a final `progress()` must see them (else the bar stops short of 100%)."""
+        return self.proc.poll() is not None and not any(t.is_alive() for t in self.threads)
 
     def finish(self):
         """After the process ended: moves the .agg into place; returns its path. Raises
