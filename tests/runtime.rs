@@ -1108,6 +1108,36 @@ fn shared_walks_estimate_the_same_image() {
     common::assert_shared_walks_agree(render);
 }
 
+/// Magnified pixels share walks further ([`aggtool::runtime::MAX_MAGNIFIED_SHARING`]): an 8³
+/// bake framed in 64² pixels (each finest voxel about eight pixels wide) renders by default
+/// exactly as with every walk shared among 2 · 2² samples, and a 16³ bake framed in 8²
+/// pixels (voxels narrower than a pixel) exactly as with the pairs of the unmagnified
+/// default; a reuse the user sets is kept as set.
+#[test]
+fn magnified_pixels_share_walks_further() {
+    let scene = generated("foliage", 3000);
+    let render = |lod: &LodScene, size: u32, reuse: u32| {
+        let view = view_of(&scene, size, 64);
+        let s = TraceSettings {
+            samples_per_walk: reuse,
+            ..Default::default()
+        };
+        let cam = view.camera();
+        let img =
+            aggtool::runtime::render(lod, &cam, &view.lights().unwrap(), 64, 5, &s, &no_progress).0;
+        img.pixels
+    };
+    let coarse = baked(&scene, &small(8));
+    let max = 2 << aggtool::runtime::MAX_MAGNIFIED_SHARING;
+    let auto = render(&coarse, 64, 0);
+    assert_eq!(auto, render(&coarse, 64, max));
+    assert_ne!(auto, render(&coarse, 64, 2));
+    // Set by the user: kept.
+    assert_ne!(render(&coarse, 64, 2), render(&coarse, 64, max));
+    let fine = baked(&scene, &small(16));
+    assert_eq!(render(&fine, 8, 0), render(&fine, 8, 2));
+}
+
 /// Visibility levels (`BakeSettings::visibility_levels`, format 1.7): a 16³ bake whose finest
 /// level is a visibility level keeps that level's geometry, lobes and boundary visibility but
 /// stores no AIV trees and no directional moments there, and every hit of that level takes its

@@ -935,6 +935,7 @@ pub fn render(
         settings,
         progress,
         |cone, sampler| asm.trace(cone, lights, settings, sampler),
+        |_| 0,
         |walk: &mut AssemblyWalk, cone, dither| walk.start(asm, *cone, dither),
         |walk, sampler| walk.estimate(asm, lights, settings, sampler),
     )

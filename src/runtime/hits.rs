@@ -162,7 +162,7 @@ pub struct Hits<'s> {
 /// series x + x³/3 + 2x⁵/15 is exact to f32 precision (relative error below 2·10⁻⁷ for
 /// x < 0.05; 2% of a cone's time went to `tanf` in the profile); `tan` above.
 #[inline]
-fn half_tan(aperture: f32) -> f32 {
+pub(crate) fn half_tan(aperture: f32) -> f32 {
     let x = 0.5 * aperture;
     if x.abs() < 0.05 {
         let x2 = x * x;
