@@ -468,31 +468,38 @@ class _AggtoolLod:
                 out[s] += r["value"][k] * le * (r["visibility"][k] * tr * mis / pdf)[:, None]
         return out
 
-    def _aggregate_layers(self, scene, rng, o, d, t_mesh, aperture, groups=None):
+    def _aggregate_layers(self, scene, rng, o, d, t_mesh, aperture, groups=()):
         """Per aggregate: (entry distance, surfaces' radiance, transmittance) of every ray.
         The runtime picks one primitive per cone in proportion to its weight (`Scene.pick`:
         an assembly's instances composed into one layer) and gives the weights' sum, an
-        unbiased estimate of Eq. 30's sum with the picked primitive's radiance. `groups`
-        (G, k) rows of ray indices with the same camera ray: one walk a row (its first ray's),
-        a pick for each."""
+        unbiased estimate of Eq. 30's sum with the picked primitive's radiance. `groups`:
+        arrays (G, k) of rows of ray indices with the same camera ray, one walk a row (its
+        first ray's) and a pick for each; the rays in no row walk alone."""
         n = len(o)
+        alone = np.ones(n, bool)
+        for g in groups:
+            alone[g.ravel()] = False
+        alone = np.nonzero(alone)[0]
         picks, layers = [], []
         for j, a in enumerate(self.aggregates):
             if a.bounds is None:
                 continue
-            if groups is None:
-                r = a.scene.pick(a.point_to_local(o), a.dir_to_local(d), aperture,
-                                 rng.random(n, dtype=np.float32), a.t_to_local(t_mesh),
-                                 self.lod_bias)
-            else:
-                w = groups[:, 0]
-                g = a.scene.pick(a.point_to_local(o[w]), a.dir_to_local(d[w]), aperture,
-                                 rng.random(groups.shape, dtype=np.float32),
-                                 a.t_to_local(t_mesh[w]), self.lod_bias)
-                r = {}
-                for key, v in g.items():
-                    r[key] = np.empty(n, v.dtype)
-                    r[key][groups.ravel()] = v.ravel()
+            r = {}
+
+            def put(rows, got):
+                for key, v in got.items():
+                    if key not in r:
+                        r[key] = np.empty(n, v.dtype)
+                    r[key][rows.ravel()] = v.ravel()
+            if len(alone):
+                put(alone, a.scene.pick(a.point_to_local(o[alone]), a.dir_to_local(d[alone]),
+                                        aperture, rng.random(len(alone), dtype=np.float32),
+                                        a.t_to_local(t_mesh[alone]), self.lod_bias))
+            for g in groups:
+                w = g[:, 0]
+                put(g, a.scene.pick(a.point_to_local(o[w]), a.dir_to_local(d[w]), aperture,
+                                    rng.random(g.shape, dtype=np.float32),
+                                    a.t_to_local(t_mesh[w]), self.lod_bias))
             weight = r["weight"]
             entry = r["entry"].astype(np.float64) * a.scale
             rays = np.nonzero(weight > 0)[0]
@@ -518,19 +525,28 @@ class _AggtoolLod:
 
     # -- the image ----------------------------------------------------------------------------
 
-    def _pass(self, scene, sensor, rng, xy, full, aperture, blocks=1, share=1):
+    def _pass(self, scene, sensor, rng, xy, full, aperture, blocks=1, share=None):
         """Radiance of the rays of `blocks` samples of every pixel (`xy`, block-major);
-        `share` consecutive blocks share each pixel's camera ray and the aggregates' walk
+        pixel p's `share[p]` consecutive blocks share its camera ray and the aggregates' walk
         (each sample still draws its own pick, light and BSDF samples)."""
         n = len(xy)
+        npix = n // blocks
         jitter = rng.random((n, 2), dtype=np.float32)
-        groups = None
-        if share > 1 and blocks % share == 0:
-            npix = n // blocks
-            jitter.reshape(blocks // share, share, npix, 2)[:, 1:] = \
-                jitter.reshape(blocks // share, share, npix, 2)[:, :1]
-            groups = np.arange(n).reshape(blocks // share, share, npix).transpose(0, 2, 1) \
-                .reshape(-1, share)
+        groups = []
+        if share is not None:
+            for sh in np.unique(share):
+                # The longest run that divides the pass's blocks (its last pass may be short).
+                r = int(sh)
+                while blocks % r:
+                    r //= 2
+                if r <= 1:
+                    continue
+                pix = np.nonzero(share == sh)[0]
+                # Rows of r rays: one pixel's samples r·j … r·j + r − 1 of the pass.
+                g = (np.arange(blocks).reshape(blocks // r, 1, r) * npix
+                     + pix[None, :, None]).reshape(-1, r)
+                jitter[g[:, 1:]] = jitter[g[:, :1]]
+                groups.append(g)
         pos = (xy + jitter) / full
         o, d, w = _batch(self._camera(sensor), n, (pos, "p2"))
         d = _normalize(d)
@@ -567,6 +583,30 @@ class _AggtoolLod:
                 radiance = s + t[:, None] * radiance
         return radiance * w
 
+    def _shares(self, sensor, xy, full, aperture, spp):
+        """Samples of each pixel sharing one walk, as the runtime's image loop shares them
+        (TraceSettings::walk_reuse, MAX_MAGNIFIED_SHARING): pairs where a pixel still gets 32
+        walks, and 2^m times that where the pixel's centre cone is m ≤ 2 levels narrower than
+        the finest voxels of every aggregate it meets (`Scene.magnification`)."""
+        npix = len(xy)
+        if self.samples_per_walk:
+            return np.full(npix, self.samples_per_walk, np.int64)
+        base = 2 if spp >= 64 else 1
+        share = np.full(npix, base, np.int64)
+        if base == 1 or not self.aggregates or not npix:
+            return share
+        o, d, _ = _batch(self._camera(sensor), npix, (((xy + 0.5) / full).astype(np.float32),
+                                                      "p2"))
+        d = _normalize(d)
+        m = np.full(npix, 2, np.int64)
+        for a in self.aggregates:
+            if a.bounds is None:
+                continue
+            k = a.scene.magnification(a.point_to_local(o), a.dir_to_local(d), aperture,
+                                      self.lod_bias)
+            m = np.where(k >= 0, np.minimum(m, k), m)
+        return share << np.clip(m, 0, 2)
+
     def render(self, scene, sensor, seed=0, spp=0, develop=True, evaluate=True):
         if not isinstance(sensor, mi.Sensor):
             sensor = scene.sensors()[sensor]
@@ -586,16 +626,16 @@ class _AggtoolLod:
         aperture = float(np.arccos(np.clip(np.dot(dd[0], dd[1]), -1.0, 1.0)))
         # Several samples per pixel in one batch, up to `batch_rays` rays.
         npix = len(xy)
-        # Samples of a pixel sharing one walk: as the runtime's image loop
-        # (TraceSettings::walk_reuse), pairs where a pixel still gets 32 walks.
-        share = self.samples_per_walk or (2 if spp >= 64 else 1)
-        per = max(share, (self.batch_rays // max(npix, 1)) // share * share)
+        share = self._shares(sensor, xy, full, aperture, spp)
+        top = int(share.max()) if npix else 1
+        per = max(top, (self.batch_rays // max(npix, 1)) // top * top)
         acc = np.zeros((npix, 3))
         done, b = 0, 0
         while done < spp:
             k = min(per, spp - done)
             rng = np.random.default_rng([int(seed), b])
-            out = self._pass(scene, sensor, rng, np.tile(xy, (k, 1)), full, aperture, k, share)
+            out = self._pass(scene, sensor, rng, np.tile(xy, (k, 1)), full, aperture, k,
+                             share)
             acc += out.reshape(k, npix, 3).sum(axis=0)
             done, b = done + k, b + 1
         img = (acc / spp).reshape(size[1], size[0], 3)

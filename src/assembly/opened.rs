@@ -145,6 +145,20 @@ impl Opened {
         }
     }
 
+    /// [`LodScene::magnification`] of an aggregate: by how many levels its finest voxels are
+    /// wider than `cone`, `None` where the cone misses it. An assembly's instances each choose
+    /// their own levels: 0 where the cone meets the assembly's bounds.
+    pub fn magnification(&self, cone: &Cone, settings: &TraceSettings) -> Option<u32> {
+        match self {
+            Opened::Aggregate(s) => s.magnification(cone, settings),
+            Opened::Assembly(_) => {
+                let (lo, hi) = self.bounds()?;
+                let (t0, t1) = crate::spatial::box_interval(lo, hi, cone.origin, cone.dir.recip());
+                (t0.max(cone.tmin) <= t1.min(cone.tmax)).then_some(0)
+            }
+        }
+    }
+
     /// What the aggregate, or every instance of the assembly, lets through along `cone`.
     pub fn transmittance(&self, cone: &Cone, settings: &TraceSettings) -> f32 {
         self.transmittance_skipping(cone, settings, None)

@@ -259,6 +259,17 @@ def test_traversal_layer(aggtool_module):
         # surfaces met as their weights are (the runtime's Occlusion): at most the ABV, and
         # equal to it on cones whose weights stayed under the onset (3/4).
         shadow = scene.transmittance(o, dirs, ap)
+        # How many levels the cones are narrower than the finest voxels (the walks a pixel
+        # may share): -1 off the aggregate; 2^3 times narrower, 3 levels more wherever the
+        # cone was already narrower (up to the rounding of the floor); as wide at a bias of 3.
+        k = scene.magnification(o, dirs, ap)
+        assert k.dtype == np.int32 and k.shape == (n,) and (k >= 0).all()
+        assert (scene.magnification(o, -dirs, ap) == -1).all()
+        k8 = scene.magnification(o, dirs, ap / 8)
+        assert (k8 >= k).all() and (k8 >= 3).all()
+        assert np.mean(k8[k >= 1] - k[k >= 1] == 3) > 0.99
+        assert np.mean(scene.magnification(o, dirs, ap / 8, lod_bias=3.0) == k) > 0.99
+        assert (scene.magnification(o, dirs, 0.5) == 0).all()
         wsum = np.zeros(n)
         np.add.at(wsum, cone, w)
         under = wsum < 0.749

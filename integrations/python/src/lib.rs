@@ -632,6 +632,34 @@ impl Scene {
         Ok(PyArray1::from_vec(py, out))
     }
 
+    /// By how many levels the aggregate's finest voxels are wider than each cone
+    /// (`LodScene::magnification`): (N,) int32, -1 where the cone misses the aggregate, 0
+    /// where it is as wide as the voxels it meets (and for an assembly). The runtime's image
+    /// loop shares each walk of a pixel whose cone is m levels narrower among 2^min(m, 2)
+    /// times its samples; a host that shares walks (`pick` with `u` of shape (N, k)) can do
+    /// the same. `lod_bias` as for `trace`.
+    #[pyo3(signature = (origins, directions, aperture, lod_bias = 0.0))]
+    fn magnification<'py>(
+        &self,
+        py: Python<'py>,
+        origins: PyReadonlyArray2<'py, f32>,
+        directions: PyReadonlyArray2<'py, f32>,
+        aperture: f32,
+        lod_bias: f32,
+    ) -> PyResult<Bound<'py, PyArray1<i32>>> {
+        let settings = trace_settings(lod_bias)?;
+        let cones = cones(&origins, &directions, aperture, None)?;
+        let out: Vec<i32> = cones
+            .iter()
+            .map(|c| {
+                self.scene
+                    .magnification(c, &settings)
+                    .map_or(-1, |m| m.min(i32::MAX as u32) as i32)
+            })
+            .collect();
+        Ok(PyArray1::from_vec(py, out))
+    }
+
     /// One primitive per cone for a host that shades one hit a cone and composites the
     /// aggregate (or the assembly: every instance in one layer) over what lies behind it, as
     /// the Mitsuba host does. Cones as for `trace` (`tmax` clips them at the host's surface);
