@@ -29,7 +29,8 @@ Parameters (properties of the integrator):
     samples_per_walk      integer    samples of a pixel that share one camera ray and one
                                      walk of the aggregates, each with its own pick, light
                                      and BSDF samples (default 0: pairs from 64 spp up,
-                                     else 1, as `aggtool render`)
+                                     else 1, and 4 or 8 where the pixel's cone is 2 or 4
+                                     times finer than the voxels, as `aggtool render`)
 
 `mi.render(scene, spp=N, seed=S)`: N samples per pixel (default: the sensor's sampler's
 count), S seeds numpy's PCG64 (one stream per batch of rays).

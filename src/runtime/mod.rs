@@ -185,11 +185,11 @@ pub struct TraceSettings {
 /// shares each walk among 2^min(m, this) times the default's samples.
 ///
 /// Measured at 64 spp (`aggtool render --samples-per-walk 2, 4, 8` against a 1,024-spp
-/// reference; the book's magnified-walks page): where the finest voxels are 2^1.4 times the
+/// reference; the book's magnified-walks page): where the finest voxels are 2^1.1 times the
 /// cone (the maple's 128³ bake at 256²) sharing each walk among 4 samples instead of 2 adds
-/// 1.1% to the RMSE for 0.70× the CPU time, among 8 4.8%; where they are 2^2.4 times (64³
-/// bakes at 256²), among 8 adds 0.7–2.2% for 0.56–0.58×; unmagnified (64³ bakes at 64²), among
-/// 4 adds 6–14%.
+/// 1.1% to the RMSE for 0.68× the CPU time, among 8 4.8%; where they are 2^2.1–2^2.4 times
+/// (64³ bakes at 256²), among 8 adds 0.7–2.2% for 0.54–0.58×; unmagnified (64³ bakes at 64²),
+/// among 4 adds 6–14%.
 pub const MAX_MAGNIFIED_SHARING: u32 = 2;
 
 /// The fewest walks a pixel gets when [`TraceSettings::samples_per_walk`] is left to choose:
