@@ -1108,34 +1108,50 @@ fn shared_walks_estimate_the_same_image() {
     common::assert_shared_walks_agree(render);
 }
 
-/// Magnified pixels share walks further ([`aggtool::runtime::MAX_MAGNIFIED_SHARING`]): an 8³
-/// bake framed in 64² pixels (each finest voxel about eight pixels wide) renders by default
-/// exactly as with every walk shared among 2 · 2² samples, and a 16³ bake framed in 8²
-/// pixels (voxels narrower than a pixel) exactly as with the pairs of the unmagnified
-/// default; a reuse the user sets is kept as set.
+/// Magnified pixels share walks further ([`aggtool::runtime::magnified_reuse`]): an 8³ bake
+/// framed in 64² pixels (each finest voxel about eight pixels wide) renders by default
+/// exactly as with every walk shared among 2 · 2² samples at 64 spp and among 2 at 16 spp
+/// (8 walks a pixel either way), and a 16³ bake framed in 8² pixels (voxels narrower than a
+/// pixel) exactly as with the pairs of the unmagnified default at 64 spp and a walk a sample
+/// at 16; a reuse the user sets is kept.
 #[test]
 fn magnified_pixels_share_walks_further() {
+    use aggtool::runtime::{magnified_reuse, MAX_MAGNIFIED_SHARING, MIN_SHARED_WALKS};
     let scene = generated("foliage", 3000);
-    let render = |lod: &LodScene, size: u32, reuse: u32| {
-        let view = view_of(&scene, size, 64);
+    let render = |lod: &LodScene, size: u32, spp: u32, reuse: u32| {
+        let view = view_of(&scene, size, spp);
         let s = TraceSettings {
             samples_per_walk: reuse,
             ..Default::default()
         };
         let cam = view.camera();
-        let img =
-            aggtool::runtime::render(lod, &cam, &view.lights().unwrap(), 64, 5, &s, &no_progress).0;
-        img.pixels
+        let lights = view.lights().unwrap();
+        aggtool::runtime::render(lod, &cam, &lights, spp, 5, &s, &no_progress)
+            .0
+            .pixels
     };
     let coarse = baked(&scene, &small(8));
-    let max = 2 << aggtool::runtime::MAX_MAGNIFIED_SHARING;
-    let auto = render(&coarse, 64, 0);
-    assert_eq!(auto, render(&coarse, 64, max));
-    assert_ne!(auto, render(&coarse, 64, 2));
+    let max = 2 << MAX_MAGNIFIED_SHARING;
+    let auto = render(&coarse, 64, 64, 0);
+    assert_eq!(auto, render(&coarse, 64, 64, max));
+    assert_ne!(auto, render(&coarse, 64, 64, 2));
+    assert_eq!(render(&coarse, 64, 16, 0), render(&coarse, 64, 16, 2));
     // Set by the user: kept.
-    assert_ne!(render(&coarse, 64, 2), render(&coarse, 64, max));
+    assert_ne!(render(&coarse, 64, 64, 2), render(&coarse, 64, 64, max));
     let fine = baked(&scene, &small(16));
-    assert_eq!(render(&fine, 8, 0), render(&fine, 8, 2));
+    assert_eq!(render(&fine, 8, 64, 0), render(&fine, 8, 64, 2));
+    assert_eq!(render(&fine, 8, 16, 0), render(&fine, 8, 16, 1));
+    // The rule: unmagnified, the default's; else at least MIN_SHARED_WALKS >> m walks.
+    for spp in [1, 4, 16, 32, 64, 256] {
+        let reuse = TraceSettings::default().walk_reuse(spp);
+        assert_eq!(magnified_reuse(reuse, spp, 0), reuse);
+        for m in 1..6 {
+            let r = magnified_reuse(reuse, spp, m);
+            let walks = spp.div_ceil(r);
+            assert!(r >= reuse && r <= reuse.max(1) << m.min(MAX_MAGNIFIED_SHARING));
+            assert!(walks >= (MIN_SHARED_WALKS >> m.min(MAX_MAGNIFIED_SHARING)).min(spp));
+        }
+    }
 }
 
 /// Visibility levels (`BakeSettings::visibility_levels`, format 1.7): a 16³ bake whose finest

@@ -29,7 +29,7 @@ Parameters (properties of the integrator):
     samples_per_walk      integer    samples of a pixel that share one camera ray and one
                                      walk of the aggregates, each with its own pick, light
                                      and BSDF samples (default 0: pairs from 64 spp up,
-                                     else 1, and 4 or 8 where the pixel's cone is 2 or 4
+                                     else 1, and more where the pixel's cone is 2 or 4
                                      times finer than the voxels, as `aggtool render`)
 
 `mi.render(scene, spp=N, seed=S)`: N samples per pixel (default: the sensor's sampler's
@@ -586,15 +586,16 @@ class _AggtoolLod:
 
     def _shares(self, sensor, xy, full, aperture, spp):
         """Samples of each pixel sharing one walk, as the runtime's image loop shares them
-        (TraceSettings::walk_reuse, MAX_MAGNIFIED_SHARING): pairs where a pixel still gets 32
-        walks, and 2^m times that where the pixel's centre cone is m ≤ 2 levels narrower than
-        the finest voxels of every aggregate it meets (`Scene.magnification`)."""
+        (TraceSettings::walk_reuse, runtime::magnified_reuse): pairs where a pixel still gets
+        32 walks; where the pixel's centre cone is m ≤ 2 levels narrower than the finest
+        voxels of every aggregate it meets (`Scene.magnification`), 2^m times that from 64 spp
+        up, and below as many as leave 32 / 2^m walks."""
         npix = len(xy)
         if self.samples_per_walk:
             return np.full(npix, self.samples_per_walk, np.int64)
         base = 2 if spp >= 64 else 1
         share = np.full(npix, base, np.int64)
-        if base == 1 or not self.aggregates or not npix:
+        if spp < 8 or not self.aggregates or not npix:
             return share
         o, d, _ = _batch(self._camera(sensor), npix, (((xy + 0.5) / full).astype(np.float32),
                                                       "p2"))
@@ -606,7 +607,10 @@ class _AggtoolLod:
             k = a.scene.magnification(a.point_to_local(o), a.dir_to_local(d), aperture,
                                       self.lod_bias)
             m = np.where(k >= 0, np.minimum(m, k), m)
-        return share << np.clip(m, 0, 2)
+        m = np.clip(m, 0, 2)
+        if base >= 2:
+            return share << m
+        return np.where(m > 0, np.maximum(1, (spp << m) // 32), share)
 
     def render(self, scene, sensor, seed=0, spp=0, develop=True, evaluate=True):
         if not isinstance(sensor, mi.Sensor):

@@ -181,15 +181,17 @@ pub struct TraceSettings {
 }
 
 /// Most levels of magnification by which a pixel's walks are shared further
-/// ([`render_sharing_walks`]): a pixel whose cone is narrower than the finest voxels by 2^m
-/// shares each walk among 2^min(m, this) times the default's samples.
+/// ([`render_sharing_walks`], [`magnified_reuse`]): a pixel whose cone is narrower than the
+/// finest voxels by 2^m needs [`MIN_SHARED_WALKS`] / 2^min(m, this) walks, and shares each
+/// among 2^min(m, this) times the default's samples from 64 spp up.
 ///
 /// Measured at 64 spp (`aggtool render --samples-per-walk 2, 4, 8` against a 1,024-spp
 /// reference; the book's magnified-walks page): where the finest voxels are 2^1.1 times the
 /// cone (the maple's 128³ bake at 256²) sharing each walk among 4 samples instead of 2 adds
 /// 1.1% to the RMSE for 0.68× the CPU time, among 8 4.8%; where they are 2^2.1–2^2.4 times
 /// (64³ bakes at 256²), among 8 adds 0.7–2.2% for 0.54–0.58×; unmagnified (64³ bakes at 64²),
-/// among 4 adds 6–14%.
+/// among 4 adds 6–14%. At 16 spp, 2^2.1–2^2.4 times: pairs add 0.4–1.2% for 0.64–0.66×, fours
+/// 2–6%; 2^1.1 times: pairs 2.7%.
 pub const MAX_MAGNIFIED_SHARING: u32 = 2;
 
 /// The fewest walks a pixel gets when [`TraceSettings::samples_per_walk`] is left to choose:
@@ -856,8 +858,8 @@ pub(crate) fn render_sharing_walks<W: Default>(
 ) -> (crate::film::Image, crate::film::ImageStats) {
     let reuse = settings.walk_reuse(spp);
     // Only the default choice adapts to magnification; a reuse the user set is kept.
-    let adapt = settings.samples_per_walk == 0;
-    if reuse == 1 || settings.primitive == PrimitiveKind::Volume {
+    let adapt = settings.samples_per_walk == 0 && settings.primitive != PrimitiveKind::Volume;
+    if settings.primitive == PrimitiveKind::Volume || (reuse == 1 && !adapt) {
         return crate::film::render_image(camera, spp, seed, "LoD", progress, |mut s| {
             *s.rays += 1;
             let cone = Cone::of_sample(&s);
@@ -873,21 +875,23 @@ pub(crate) fn render_sharing_walks<W: Default>(
         <(W, u32)>::default,
         |mut s, (walk, pixel_reuse)| {
             if s.index == 0 {
-                // Walk 0's cone is the same whatever the run length; what it meets sets the
-                // pixel's.
                 *pixel_reuse = if adapt {
-                    let centre = Cone::of_sample(&s);
-                    reuse * (1u32 << magnification(&centre).min(MAX_MAGNIFIED_SHARING))
+                    magnified_reuse(reuse, spp, magnification(&Cone::of_sample(&s)))
                 } else {
                     reuse
                 };
-                let (cone, dither) = shared_walk_cone(camera, &s, *pixel_reuse);
-                start(walk, &cone, dither);
-            } else if s.index % (*pixel_reuse).max(1) == 0 {
-                let (cone, dither) = shared_walk_cone(camera, &s, *pixel_reuse);
-                start(walk, &cone, dither);
             }
             *s.rays += 1;
+            let run = (*pixel_reuse).max(1);
+            if run == 1 {
+                // The pixel's samples walk their own cones, as without sharing.
+                let cone = Cone::of_sample(&s);
+                return trace(&cone, &mut Stratified::of_sample(&mut s)).radiance;
+            }
+            if s.index % run == 0 {
+                let (cone, dither) = shared_walk_cone(camera, &s, run);
+                start(walk, &cone, dither);
+            }
             let mut sampler = Stratified::of_sample(&mut s);
             if shade::draws_dither(settings) {
                 sampler.next_1d();
@@ -895,6 +899,23 @@ pub(crate) fn render_sharing_walks<W: Default>(
             estimate(walk, &mut sampler).radiance
         },
     )
+}
+
+/// The samples each walk of a pixel serves under the default choice, for a pixel whose cone
+/// is `m` levels narrower than the finest voxels ([`LodScene::magnification`]) at `spp`
+/// samples a pixel, `reuse` being [`TraceSettings::walk_reuse`]'s: `reuse` where m is 0;
+/// else `reuse` · 2^m where the pixel's walks are shared anyway (64 spp and more), and
+/// below that as many as leave the pixel [`MIN_SHARED_WALKS`] / 2^m walks; m at most
+/// [`MAX_MAGNIFIED_SHARING`].
+pub fn magnified_reuse(reuse: u32, spp: u32, m: u32) -> u32 {
+    let m = m.min(MAX_MAGNIFIED_SHARING);
+    if m == 0 {
+        reuse
+    } else if reuse >= 2 {
+        reuse.saturating_mul(1 << m)
+    } else {
+        (spp.saturating_mul(1 << m) / MIN_SHARED_WALKS).max(1)
+    }
 }
 
 /// The cone and the level's dither of the walk sample `s` starts when a pixel's samples share

@@ -636,8 +636,9 @@ impl Scene {
     /// (`LodScene::magnification`): (N,) int32, -1 where the cone misses the aggregate, 0
     /// where it is as wide as the voxels it meets (and for an assembly). The runtime's image
     /// loop shares each walk of a pixel whose cone is m levels narrower among 2^min(m, 2)
-    /// times its samples; a host that shares walks (`pick` with `u` of shape (N, k)) can do
-    /// the same. `lod_bias` as for `trace`.
+    /// times its samples from 64 spp up, and below that among as many as leave the pixel
+    /// 32 / 2^min(m, 2) walks; a host that shares walks (`pick` with `u` of shape (N, k)) can
+    /// do the same. `lod_bias` as for `trace`.
     #[pyo3(signature = (origins, directions, aperture, lod_bias = 0.0))]
     fn magnification<'py>(
         &self,

@@ -75,8 +75,9 @@ pub struct RenderArgs {
     /// Samples of a pixel that shade from one walk of its cone (the walks stratified over
     /// the pixel and the level's blend): fewer walks, faster, a little noisier. 1 walks
     /// every sample's own cone; by default 2 where a pixel still gets 32 walks (64 spp and
-    /// more), else 1, and 4 or 8 where the pixel's cone is 2 or 4 times narrower than the
-    /// finest voxels (their walks meet the same voxels).
+    /// more), else 1; where the pixel's cone is 2 or 4 times narrower than the finest voxels
+    /// (its walks meet the same voxels) 4 or 8 from 64 spp up, and below that as many as
+    /// leave it 16 or 8 walks.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub samples_per_walk: Option<u32>,
     /// Level-of-detail bias in levels (as a texture's LOD bias): 1 walks the next coarser
