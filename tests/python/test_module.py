@@ -226,6 +226,10 @@ def test_bad_input_is_a_clear_exception(aggtool_module):
             scene.trace(o, bad, 0.01)
         with pytest.raises(ValueError, match="aperture"):
             scene.trace(o, dirs, float("nan"))
+        with pytest.raises(ValueError, match="cone 2"):
+            scene.magnification(o, bad, 0.01)
+        with pytest.raises(ValueError, match="lod_bias"):
+            scene.magnification(o, dirs, 0.01, lod_bias=float("inf"))
         with pytest.raises(ValueError, match="both"):
             aggtool.Lights(sun_direction=(0, 1, 0))
         with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
