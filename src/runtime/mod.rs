@@ -416,9 +416,9 @@ impl LodScene {
     /// ⌊−log2(tan(θ/2)·2^bias·t / s)⌋ at the ray parameter t halfway through the finest
     /// level's clip box, s the finest voxel size; 0 where the cone is as wide as the voxels
     /// there (its footprint's level is then the finest or a coarser one) or `settings`
-    /// forces a level; `None` where the cone misses the box. The image loop shares a pixel's
-    /// walks among 2^min(this, [`MAX_MAGNIFIED_SHARING`]) times the default's samples; a host
-    /// that shares walks does the same.
+    /// forces a level; `None` where the cone misses the box. The image loop shares the walks
+    /// of a pixel whose centre cone this is as [`magnified_reuse`] says; a host that shares
+    /// walks does the same.
     pub fn magnification(&self, cone: &Cone, settings: &TraceSettings) -> Option<u32> {
         let &(lo, hi) = self.clip.first()?;
         let (t0, t1) = crate::spatial::box_interval(lo, hi, cone.origin, cone.dir.recip());
@@ -840,10 +840,10 @@ pub fn render(
 /// (walked by the run's first sample, [`shared_walk_cone`]); each sample's sampler skips the
 /// dither's dimension, which the shared walk drew instead, so that its shading numbers stay
 /// in the dimensions a sample of its own would give them. Where the reuse is the default's
-/// ([`TraceSettings::samples_per_walk`] 0), a pixel whose cone `magnification` finds m levels
-/// finer than the finest voxels ([`LodScene::magnification`]) has runs 2^m times as long, m
-/// at most [`MAX_MAGNIFIED_SHARING`]: walks from across a pixel that narrow meet the same
-/// voxels.
+/// ([`TraceSettings::samples_per_walk`] 0), a pixel whose centre cone `magnification` finds m
+/// levels finer than the finest voxels ([`LodScene::magnification`]) has the longer runs of
+/// [`magnified_reuse`] (walks from across a pixel that narrow meet the same voxels); a pixel
+/// left at runs of 1 traces each sample's own cone with `trace`.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn render_sharing_walks<W: Default>(
     camera: &crate::film::Camera,
