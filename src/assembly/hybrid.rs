@@ -69,7 +69,14 @@ impl MeshAsset {
     /// Whether anything blocks a ray in the asset's space.
     #[inline]
     pub fn occluded(&self, origin: Vec3, dir: Vec3) -> bool {
-        self.accel.occluded(&Ray::new(origin, dir))
+        self.blocks(&Ray::new(origin, dir))
+    }
+
+    /// Whether anything blocks `ray` within its interval (any hit: what
+    /// [`MeshAsset::intersect`] finding one says, without looking for the closest).
+    #[inline]
+    pub fn blocks(&self, ray: &Ray) -> bool {
+        self.accel.occluded(ray)
     }
 }
 

@@ -455,12 +455,7 @@ impl Assembly {
         let Some(mesh) = self.meshes[a].get(&self.manifest.assets[a].source) else {
             return Pick::Aggregate;
         };
-        let ray = Ray {
-            origin: xf.to_local.transform_point3(cone.origin),
-            dir: xf.to_local.transform_vector3(cone.dir),
-            tmin: cone.tmin,
-            tmax: cone.tmax,
-        };
+        let ray = local_ray(xf, cone);
         match mesh.intersect(&ray) {
             None => Pick::Miss,
             Some(hit) if hybrid && !finer(radius * hit.t, finest) => Pick::Aggregate,
@@ -680,6 +675,18 @@ impl Assembly {
             for &(entry, i) in list.iter() {
                 let i = i as usize;
                 let xf = self.xf(i);
+                let a = self.manifest.asset_of(i);
+                if self.representation[a] == Representation::Mesh {
+                    // Drawn as a mesh at every distance: whether it blocks the centre ray is
+                    // all a shadow cone asks, which any hit answers (what `pick`'s closest
+                    // hit would say, sooner).
+                    if let Some(mesh) = self.meshes[a].get(&self.manifest.assets[a].source) {
+                        if mesh.blocks(&local_ray(&xf, cone)) {
+                            return 0.0;
+                        }
+                        continue;
+                    }
+                }
                 match self.pick(i, &xf, cone, entry, settings) {
                     Pick::Miss => continue,
                     Pick::Mesh { .. } => return 0.0,
@@ -851,6 +858,18 @@ fn flush_layers(
 #[inline]
 fn finer(r: f32, finest: f32) -> bool {
     r < finest
+}
+
+/// The centre ray of a world cone in an instance's space, its direction mapped unnormalised so
+/// that its parameter is the world's.
+#[inline]
+fn local_ray(xf: &Xf, cone: &Cone) -> Ray {
+    Ray {
+        origin: xf.to_local.transform_point3(cone.origin),
+        dir: xf.to_local.transform_vector3(cone.dir),
+        tmin: cone.tmin,
+        tmax: cone.tmax,
+    }
 }
 
 /// A world cone in an instance's own space: the origin and the direction mapped, the ray
