@@ -162,7 +162,7 @@ pub struct Hits<'s> {
 /// series x + x³/3 + 2x⁵/15 is exact to f32 precision (relative error below 2·10⁻⁷ for
 /// x < 0.05; 2% of a cone's time went to `tanf` in the profile); `tan` above.
 #[inline]
-pub(crate) fn half_tan(aperture: f32) -> f32 {
+fn half_tan(aperture: f32) -> f32 {
     let x = 0.5 * aperture;
     if x.abs() < 0.05 {
         let x2 = x * x;
@@ -208,11 +208,7 @@ impl LodScene {
     ) -> Hits<'_> {
         let inv = cone.dir.recip();
         let tan_half = half_tan(cone.aperture);
-        let bias = if settings.lod_bias.is_finite() {
-            settings.lod_bias.clamp(-16.0, 16.0)
-        } else {
-            0.0
-        };
+        let bias = settings.bias_levels();
         let lod_tan = match dither {
             Some(u) if super::shade::draws_dither(settings) && u.is_finite() => {
                 tan_half * (u.clamp(0.0, 1.0) - 0.5 + bias).exp2()

@@ -201,6 +201,17 @@ pub const MAX_MAGNIFIED_SHARING: u32 = 2;
 pub const MIN_SHARED_WALKS: u32 = 32;
 
 impl TraceSettings {
+    /// [`TraceSettings::lod_bias`] as the level choice reads it: within ±16 levels, 0 where
+    /// it is not finite.
+    #[inline]
+    pub(crate) fn bias_levels(&self) -> f32 {
+        if self.lod_bias.is_finite() {
+            self.lod_bias.clamp(-16.0, 16.0)
+        } else {
+            0.0
+        }
+    }
+
     /// The samples a pixel's walk serves at `spp` samples a pixel: `samples_per_walk` where
     /// set, else 2 where that leaves at least [`MIN_SHARED_WALKS`] walks, else 1.
     pub fn walk_reuse(&self, spp: u32) -> u32 {
@@ -429,14 +440,10 @@ impl LodScene {
         if settings.level.is_some() {
             return Some(0);
         }
-        let bias = if settings.lod_bias.is_finite() {
-            settings.lod_bias.clamp(-16.0, 16.0)
-        } else {
-            0.0
-        };
-        let x = hits::half_tan(cone.aperture) * bias.exp2() * 0.5 * (t0 + t1) / self.base;
-        Some(if x > 0.0 && x < 1.0 {
-            (-x.log2()).floor().min(16.0) as u32
+        let f = self.fractional_level(cone.aperture, 0.5 * (t0 + t1)) + settings.bias_levels();
+        // A cone of no width (f = −∞) or a NaN: no magnification to share by.
+        Some(if f < 0.0 && f.is_finite() {
+            (-f).floor().min(16.0) as u32
         } else {
             0
         })
