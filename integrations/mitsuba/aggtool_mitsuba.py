@@ -586,31 +586,23 @@ class _AggtoolLod:
 
     def _shares(self, sensor, xy, full, aperture, spp):
         """Samples of each pixel sharing one walk, as the runtime's image loop shares them
-        (TraceSettings::walk_reuse, runtime::magnified_reuse): pairs where a pixel still gets
-        32 walks; where the pixel's centre cone is m ≤ 2 levels narrower than the finest
-        voxels of every aggregate it meets (`Scene.magnification`), 2^m times that from 64 spp
-        up, and below as many as leave 32 / 2^m walks."""
+        (`aggtool.samples_per_walk`): by the least magnification (`Scene.magnification`) of
+        the aggregates the pixel's centre ray meets."""
         npix = len(xy)
         if self.samples_per_walk:
             return np.full(npix, self.samples_per_walk, np.int64)
-        base = 2 if spp >= 64 else 1
-        share = np.full(npix, base, np.int64)
-        if spp < 8 or not self.aggregates or not npix:
-            return share
-        o, d, _ = _batch(self._camera(sensor), npix, (((xy + 0.5) / full).astype(np.float32),
-                                                      "p2"))
-        d = _normalize(d)
-        m = np.full(npix, 2, np.int64)
-        for a in self.aggregates:
-            if a.bounds is None:
-                continue
-            k = a.scene.magnification(a.point_to_local(o), a.dir_to_local(d), aperture,
-                                      self.lod_bias)
-            m = np.where(k >= 0, np.minimum(m, k), m)
-        m = np.clip(m, 0, 2)
-        if base >= 2:
-            return share << m
-        return np.where(m > 0, np.maximum(1, (spp << m) // 32), share)
+        m = np.full(npix, -1, np.int32)
+        if self.aggregates and npix:
+            o, d, _ = _batch(self._camera(sensor), npix,
+                             (((xy + 0.5) / full).astype(np.float32), "p2"))
+            d = _normalize(d)
+            for a in self.aggregates:
+                if a.bounds is None:
+                    continue
+                k = a.scene.magnification(a.point_to_local(o), a.dir_to_local(d), aperture,
+                                          self.lod_bias)
+                m = np.where((k >= 0) & ((m < 0) | (k < m)), k, m)
+        return aggtool.samples_per_walk(spp, m)
 
     def render(self, scene, sensor, seed=0, spp=0, develop=True, evaluate=True):
         if not isinstance(sensor, mi.Sensor):

@@ -274,6 +274,12 @@ def test_traversal_layer(aggtool_module):
         assert np.mean(k8[k >= 1] - k[k >= 1] == 3) > 0.99
         assert np.mean(scene.magnification(o, dirs, ap / 8, lod_bias=3.0) == k) > 0.99
         assert (scene.magnification(o, dirs, 0.5) == 0).all()
+        # The runtime's default sharing: pairs from 64 spp up, 2^m times them where magnified
+        # (at most 2^2), and below 64 spp as many as leave a pixel 32 / 2^m walks.
+        mag = np.int32([-1, 0, 1, 2, 5])
+        assert aggtool.samples_per_walk(64, mag).tolist() == [2, 2, 4, 8, 8]
+        assert aggtool.samples_per_walk(16, mag).tolist() == [1, 1, 1, 2, 2]
+        assert aggtool.samples_per_walk(256, mag).tolist() == [2, 2, 4, 8, 8]
         wsum = np.zeros(n)
         np.add.at(wsum, cone, w)
         under = wsum < 0.749

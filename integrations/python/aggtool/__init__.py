@@ -22,6 +22,7 @@ try:
         open,
         preset_table,
         presets,
+        samples_per_walk,
         set_cache_mib,
     )
 except ImportError as _e:  # only the generated reader: the native module is not built here

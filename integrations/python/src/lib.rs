@@ -635,10 +635,9 @@ impl Scene {
     /// By how many levels the aggregate's finest voxels are wider than each cone
     /// (`LodScene::magnification`): (N,) int32, -1 where the cone misses the aggregate, 0
     /// where it is as wide as the voxels it meets (and for an assembly). The runtime's image
-    /// loop shares each walk of a pixel whose cone is m levels narrower among 2^min(m, 2)
-    /// times its samples from 64 spp up, and below that among as many as leave the pixel
-    /// 32 / 2^min(m, 2) walks; a host that shares walks (`pick` with `u` of shape (N, k)) can
-    /// do the same. `lod_bias` as for `trace`.
+    /// loop shares the walks of a pixel whose cone is m levels narrower among more samples
+    /// (`aggtool.samples_per_walk(spp, m)` gives how many); a host that shares walks (`pick`
+    /// with `u` of shape (N, k)) can do the same. `lod_bias` as for `trace`.
     #[pyo3(signature = (origins, directions, aperture, lod_bias = 0.0))]
     fn magnification<'py>(
         &self,
@@ -1019,6 +1018,25 @@ fn open(path: PathBuf) -> PyResult<Scene> {
     Ok(Scene { scene, path })
 }
 
+/// The samples each walk of a pixel serves at `spp` samples a pixel, for pixels whose cones
+/// `Scene.magnification` gives (`magnification`, (N,) int32; -1, a cone that misses, counts
+/// as 0): the runtime image loop's default (`runtime::magnified_reuse`), for a host that
+/// shares walks as it does (`Scene.pick` with `u` of shape (N, k)). (N,) int64.
+#[pyfunction]
+fn samples_per_walk<'py>(
+    py: Python<'py>,
+    spp: u32,
+    magnification: PyReadonlyArray1<'py, i32>,
+) -> Bound<'py, PyArray1<i64>> {
+    let reuse = TraceSettings::default().walk_reuse(spp);
+    let out: Vec<i64> = magnification
+        .as_array()
+        .iter()
+        .map(|&m| aggtool::runtime::magnified_reuse(reuse, spp, m.max(0) as u32) as i64)
+        .collect();
+    PyArray1::from_vec(py, out)
+}
+
 /// Sets the memory budget of the block cache every scene of the process shares, in MiB (the
 /// CLI's `render --cache-mib`): prepared blocks of every aggregate stay within it, the least
 /// recently used evicted; a smaller budget gives the same results, only slower. The default
@@ -1199,6 +1217,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(preset_table, m)?)?;
     m.add_function(wrap_pyfunction!(bake_settings, m)?)?;
     m.add_function(wrap_pyfunction!(set_cache_mib, m)?)?;
+    m.add_function(wrap_pyfunction!(samples_per_walk, m)?)?;
     m.add_function(wrap_pyfunction!(cache_stats, m)?)?;
     m.add_class::<Scene>()?;
     m.add_class::<Lights>()?;
