@@ -466,23 +466,24 @@ fn a_manifest_opens_and_traces_as_the_library_does() {
                 "{}",
                 last_error()
             );
-            // The shading call: the same numbers as the calls above, in one look-up.
-            let mut sh = AggShade::default();
-            assert_eq!(
-                agg_instance_voxel_shade(
+            // The shading call: the same numbers as the calls above, in one look-up (with a
+            // light sample, and without one: NULL).
+            let shade = |wi_light: *const f32| {
+                let mut out = AggShade::default();
+                let code = agg_instance_voxel_shade(
                     s,
                     p.instance,
                     p.level,
                     p.key,
                     wo.as_ptr(),
-                    wi.as_ptr(),
+                    wi_light,
                     uu.as_ptr(),
-                    &mut sh
-                ),
-                AGG_OK,
-                "{}",
-                last_error()
-            );
+                    &mut out,
+                );
+                assert_eq!(code, AGG_OK, "{}", last_error());
+                out
+            };
+            let sh = shade(wi.as_ptr());
             assert_eq!(sh.light_value, rgb);
             assert_eq!(sh.light_visibility, inc);
             if code == AGG_OK {
@@ -501,20 +502,7 @@ fn a_manifest_opens_and_traces_as_the_library_does() {
             } else {
                 assert_eq!((sh.pdf, sh.visibility), (0.0, 0.0));
             }
-            let mut dark = AggShade::default();
-            assert_eq!(
-                agg_instance_voxel_shade(
-                    s,
-                    p.instance,
-                    p.level,
-                    p.key,
-                    wo.as_ptr(),
-                    std::ptr::null(),
-                    uu.as_ptr(),
-                    &mut dark
-                ),
-                AGG_OK
-            );
+            let dark = shade(std::ptr::null());
             assert_eq!((dark.light_value, dark.light_pdf), ([0.0; 3], 0.0));
             assert_eq!((dark.wi, dark.pdf), (sh.wi, sh.pdf));
         }
