@@ -1154,6 +1154,59 @@ fn magnified_pixels_share_walks_further() {
     }
 }
 
+/// `LodScene::walk_bounds`, the box hosts cull their rays with (the Mitsuba host hands the
+/// module only the rays that meet it): every primitive that a cone of that aperture meets
+/// before `t_max` lies in it, at any LoD bias and at either end of continuous LoD's dither, so
+/// a ray that misses it meets nothing; and for narrow cones near the aggregate it is smaller
+/// than every level's box (the coarse levels' boxes reach to the cube), or culling would
+/// gain nothing. Cones of apertures 0.001–0.3 rad from 0.6–20 cube diagonals away, aimed
+/// into the cube and past it.
+#[test]
+fn walk_bounds_hold_every_primitive_met() {
+    let scene = generated("foliage", 3000);
+    let lod = baked(&scene, &small(16));
+    let (lo, hi) = lod.bounds().unwrap();
+    let (c, r) = (0.5 * (lo + hi), (hi - lo).length());
+    let every = lod
+        .walk_bounds(0.0, f32::INFINITY, &TraceSettings::default())
+        .unwrap();
+    assert!(every.0.cmpge(lo).all() && every.1.cmple(hi).all());
+    let mut rng = Pcg32::new(11, 3);
+    let (mut hits, mut tighter) = (0usize, 0usize);
+    for _ in 0..1500 {
+        let aperture = 10f32.powf(-3.0 + 2.5 * rng.next_f32());
+        let dir = aggtool::math::sampling::square_to_uniform_sphere(rng.next_2d());
+        let o = c + dir * r * (0.6 + 20.0 * rng.next_f32());
+        let target =
+            c + (Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) - 0.5) * (hi - lo) * 1.3;
+        let d = (target - o).normalize();
+        let t_max = (o - c).length() + r;
+        for bias in [-1.0, 0.0, 1.5] {
+            let s = TraceSettings {
+                lod_bias: bias,
+                ..Default::default()
+            };
+            let (blo, bhi) = lod.walk_bounds(aperture, t_max, &s).unwrap();
+            tighter += usize::from(blo != every.0 || bhi != every.1);
+            let eps = Vec3::splat(1e-4 * r);
+            for u in [0.0, 0.999] {
+                for h in lod.hits_dithered(&cone(o, d, aperture), &s, u) {
+                    let p = o + h.t * d;
+                    assert!(
+                        p.cmpge(blo - eps).all() && p.cmple(bhi + eps).all(),
+                        "hit at {p} outside {blo}..{bhi} (aperture {aperture}, bias {bias})"
+                    );
+                    hits += 1;
+                }
+            }
+        }
+    }
+    assert!(
+        hits > 10_000 && tighter > 1000,
+        "{hits} hits, {tighter} tighter boxes"
+    );
+}
+
 /// Visibility levels (`BakeSettings::visibility_levels`, format 1.7): a 16³ bake whose finest
 /// level is a visibility level keeps that level's geometry, lobes and boundary visibility but
 /// stores no AIV trees and no directional moments there, and every hit of that level takes its

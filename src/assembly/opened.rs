@@ -92,6 +92,22 @@ impl Opened {
         }
     }
 
+    /// The box outside which cones of full aperture `aperture` meet nothing before ray
+    /// parameter `t_max` ([`LodScene::walk_bounds`]; for an assembly, its instances' cubes, as
+    /// its instance BVH bounds them): a host may skip the cones whose rays miss it. `None`
+    /// when nothing can be met.
+    pub fn walk_bounds(
+        &self,
+        aperture: f32,
+        t_max: f32,
+        settings: &TraceSettings,
+    ) -> Option<(Vec3, Vec3)> {
+        match self {
+            Opened::Aggregate(s) => s.walk_bounds(aperture, t_max, settings),
+            Opened::Assembly(a) => a.bounds(),
+        }
+    }
+
     /// The levels' resolutions, finest first: the aggregate's, or for an assembly the
     /// distinct resolutions of its aggregates' levels, finest first.
     pub fn level_resolutions(&self) -> Vec<u32> {

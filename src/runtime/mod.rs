@@ -408,6 +408,39 @@ impl LodScene {
         self.grids.first().map(|g| g.bounds())
     }
 
+    /// The box that cones of full aperture `aperture` walk in up to ray parameter `t_max`:
+    /// the union of the clip boxes of the levels their footprints can choose before `t_max`
+    /// (the walk's level only grows with t: at most ⌊log2(tan(θ/2)·2^(bias+1/2)·t_max/s)⌋,
+    /// the half level for continuous level of detail's dither), or the forced level's. A cone
+    /// whose ray misses it before `t_max` meets no primitive (no hits, transmittance 1), so a
+    /// host may skip such cones before calling in: the Mitsuba host culls its rays with it.
+    /// Every level's box for an infinite `t_max`; `None` without levels.
+    pub fn walk_bounds(
+        &self,
+        aperture: f32,
+        t_max: f32,
+        settings: &TraceSettings,
+    ) -> Option<(Vec3, Vec3)> {
+        let n = self.clip.len();
+        let last = match settings.level {
+            Some(l) => l.min(n.checked_sub(1)?),
+            None => {
+                let tan = (0.5 * aperture).tan() * (settings.bias_levels() + 0.5).exp2();
+                let x = tan * t_max / self.base;
+                if x.is_nan() || x == f32::INFINITY {
+                    n.checked_sub(1)?
+                } else {
+                    self.level_for_tan(tan, t_max)
+                }
+            }
+        };
+        let first = settings.level.map_or(0, |l| l.min(last));
+        self.clip[first..=last]
+            .iter()
+            .copied()
+            .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)))
+    }
+
     /// The level (0 = finest) whose voxel matches a cone of full aperture `aperture` at
     /// distance `t` (Algorithm 1, line 7: ⌊log2(tan(θ/2)·t / s)⌋, clamped).
     #[inline]

@@ -54,6 +54,19 @@ def test_open_trace_and_inspect(aggtool_module):
         assert scene.levels == [l["res"] for l in ours["levels"]] == [16, 8, 4]
         lo, hi = scene.bounds
         assert np.allclose(lo, ours["bounds"][0]) and np.allclose(hi, ours["bounds"][1])
+        # The culling box: every level's holds the bounds; narrow cones near by walk the
+        # finest levels only, in a box inside it (tests/runtime.rs checks every hit is in it).
+        every = np.array(scene.walk_bounds())
+        assert (every[0] <= np.array(lo)).all() and (every[1] >= np.array(hi)).all()
+        near = np.array(scene.walk_bounds(0.001, 10.0))
+        assert (near[0] >= every[0]).all() and (near[1] <= every[1]).all()
+        assert (near[0] <= np.array(lo)).all() and (near[1] >= np.array(hi)).all()
+        assert (near[0] > every[0]).any() or (near[1] < every[1]).any()
+        assert np.array_equal(np.array(scene.walk_bounds(0.001, np.inf)), every)
+        for bad in ({"aperture": -1.0, "tmax": 1.0}, {"aperture": 0.01, "tmax": float("nan")},
+                    {"aperture": 0.01, "tmax": 1.0, "lod_bias": 20.0}):
+            with pytest.raises(ValueError):
+                scene.walk_bounds(**bad)
         info = scene.inspect()
         assert info["levels"] == ours["levels"] and info["format"] == ours["format"]
         # An image through Scene.trace against `aggtool render` of the same view.
@@ -450,6 +463,7 @@ def test_open_a_manifest(aggtool_module):
         assert scene.levels == single.levels
         (mlo, mhi) = scene.bounds
         assert mhi[0] - mlo[0] >= 3.9 * width
+        assert scene.walk_bounds(0.001, 10.0) == scene.walk_bounds() == scene.bounds
         c = [(lo[i] + hi[i]) / 2 for i in range(3)]
         o = np.array([[c[0], c[1], hi[2] + width], [c[0] + 3 * width, c[1], hi[2] + width],
                       [c[0] + 1.5 * width, c[1], hi[2] + width]], np.float32)

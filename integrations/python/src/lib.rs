@@ -413,6 +413,44 @@ impl Scene {
             .map(|(a, b)| (a.to_array(), b.to_array()))
     }
 
+    /// The box outside which cones meet nothing, ((x, y, z), (x, y, z)), or None when nothing
+    /// can be met: for cones of full `aperture` (radians) whose ray parameter stays below
+    /// `tmax` (both given: a host bounds tmax by its scene's size), the union of the clip
+    /// boxes of the levels their footprints can choose there (`LodScene::walk_bounds`);
+    /// without them, every level's (a little larger than `bounds`). An assembly's: its
+    /// instances' cubes. Cones whose rays miss it get no hits, weight 0 and transmittance 1
+    /// from every call, so a host may skip them (the Mitsuba host culls its rays with it).
+    /// `lod_bias` as for `trace`.
+    #[pyo3(signature = (aperture = None, tmax = None, lod_bias = 0.0))]
+    fn walk_bounds(
+        &self,
+        aperture: Option<f32>,
+        tmax: Option<f32>,
+        lod_bias: f32,
+    ) -> PyResult<Option<([f32; 3], [f32; 3])>> {
+        let settings = trace_settings(lod_bias)?;
+        let (aperture, tmax) = match (aperture, tmax) {
+            (Some(a), Some(t)) => {
+                if !(a.is_finite() && a >= 0.0) {
+                    return Err(PyValueError::new_err(
+                        "aperture must be finite and non-negative",
+                    ));
+                }
+                if !(t >= 0.0) {
+                    return Err(PyValueError::new_err(format!(
+                        "tmax must be non-negative (inf for no limit), not {t}"
+                    )));
+                }
+                (a, t)
+            }
+            _ => (0.0, f32::INFINITY),
+        };
+        Ok(self
+            .scene
+            .walk_bounds(aperture, tmax, &settings)
+            .map(|(a, b)| (a.to_array(), b.to_array())))
+    }
+
     /// Instances: an assembly's, 1 for an aggregate (`pick`'s `instance` indexes them).
     #[getter]
     fn instances(&self) -> usize {
