@@ -154,6 +154,35 @@ def test_shadows_both_ways(tree, variant_guard):
     assert r_roof < 0.85 and abs(r_roof - r_roof_mesh) < 0.2
 
 
+@pytest.mark.parametrize("name", ["scalar_rgb", "llvm_ad_rgb"])
+def test_culling_changes_no_bits(tree, variant_guard, monkeypatch, name):
+    """The host hands the module only the rays that meet an aggregate's culling box
+    (`Scene.walk_bounds` for the render's cones): the same image bits as handing it every
+    ray, with two aggregates (the tree, and a second one far off to the side that most rays
+    miss) beside the ground, so that masks of several aggregates are read. The render draws
+    its random numbers for every ray, culled or not."""
+    use_variant(name)
+    import aggtool_mitsuba
+    import example
+    aggtool_mitsuba.register()
+    folder, _, agg = tree
+    integrator = {"type": "aggtool_lod", "agg_tree": str(agg),
+                  "agg_tree_to_world": example.tree_to_world(mi), "agg_far": str(agg),
+                  "agg_far_to_world": mi.ScalarTransform4f().translate([2.5, 0, -1])}
+    scene = mi.load_dict(example.scene_dict(mi, folder, integrator, 16, 4))
+    culled = np.array(mi.render(scene, spp=4, seed=2))
+    boxes = scene.integrator()._culls
+    assert len(boxes) == 2 and all(b is not None for b in boxes)
+
+    def every_ray(self, scene, sensor, aperture):
+        self._culls = [([-1e20] * 3, [1e20] * 3) for _ in self.aggregates]
+    monkeypatch.setattr(aggtool_mitsuba.integrator_class(), "_set_culls", every_ray)
+    scene = mi.load_dict(example.scene_dict(mi, folder, integrator, 16, 4))
+    every = np.array(mi.render(scene, spp=4, seed=2))
+    assert np.isfinite(culled).all() and culled.max() > 0
+    assert np.array_equal(culled, every)
+
+
 def test_bad_input(tree, variant_guard, tmp_path):
     """Each bad aggregate or transform is a clear error naming the property or the file
     (Mitsuba wraps the plugin's exception in a RuntimeError ending with its message)."""
