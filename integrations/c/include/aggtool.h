@@ -234,6 +234,21 @@ void agg_close(struct AggScene *scene);
 int agg_bounds(const struct AggScene *scene, float *lo, float *hi);
 
 /*
+ The box outside which cones of full aperture `aperture` (radians) meet nothing before ray
+ parameter `t_max` (`INFINITY`: any distance): the clip boxes of the levels their footprints
+ can choose there (`LodScene::walk_bounds`), or an assembly's instances' cubes. A host may
+ leave out of its calls the cones whose rays miss it: they get no hits, weight 0 and
+ transmittance 1. `lo` and `hi` receive three floats each. [`AGG_ERR_VALUE`] for a negative
+ or non-finite aperture or a negative or NaN `t_max`; [`AGG_ERR_NOT_FOUND`] where nothing
+ can be met.
+ */
+int agg_walk_bounds(const struct AggScene *scene,
+                    float aperture,
+                    float t_max,
+                    float *lo,
+                    float *hi);
+
+/*
  The number of levels (0 when `scene` is not valid); for an assembly, of distinct level
  resolutions over its aggregates.
  */

@@ -297,6 +297,44 @@ pub unsafe extern "C" fn agg_bounds(scene: *const AggScene, lo: *mut f32, hi: *m
     })
 }
 
+/// The box outside which cones of full aperture `aperture` (radians) meet nothing before ray
+/// parameter `t_max` (`INFINITY`: any distance): the clip boxes of the levels their footprints
+/// can choose there (`LodScene::walk_bounds`), or an assembly's instances' cubes. A host may
+/// leave out of its calls the cones whose rays miss it: they get no hits, weight 0 and
+/// transmittance 1. `lo` and `hi` receive three floats each. [`AGG_ERR_VALUE`] for a negative
+/// or non-finite aperture or a negative or NaN `t_max`; [`AGG_ERR_NOT_FOUND`] where nothing
+/// can be met.
+#[no_mangle]
+pub unsafe extern "C" fn agg_walk_bounds(
+    scene: *const AggScene,
+    aperture: f32,
+    t_max: f32,
+    lo: *mut f32,
+    hi: *mut f32,
+) -> c_int {
+    guard(|| {
+        let s = scene_ref(scene)?;
+        if lo.is_null() || hi.is_null() {
+            return Err(arg("lo or hi"));
+        }
+        if !(aperture.is_finite() && aperture >= 0.0 && t_max >= 0.0) {
+            return Err((
+                AGG_ERR_VALUE,
+                format!("aperture {aperture} and t_max {t_max} must be non-negative numbers"),
+            ));
+        }
+        let Some((a, b)) = s
+            .scene
+            .walk_bounds(aperture, t_max, &TraceSettings::default())
+        else {
+            return Err((AGG_ERR_NOT_FOUND, "the aggregate is empty".to_string()));
+        };
+        write3(lo, a);
+        write3(hi, b);
+        Ok(())
+    })
+}
+
 /// The number of levels (0 when `scene` is not valid); for an assembly, of distinct level
 /// resolutions over its aggregates.
 #[no_mangle]

@@ -80,6 +80,24 @@ fn bad_input_is_an_error_code_with_a_message() {
             AGG_ERR_ARGUMENT
         );
         assert_eq!(agg_bounds(scene, lo.as_mut_ptr(), hi.as_mut_ptr()), AGG_OK);
+        // The culling box: every level's holds the bounds, a narrow near cone's lies in it.
+        let (mut wlo, mut whi) = ([0f32; 3], [0f32; 3]);
+        let (mut nlo, mut nhi) = ([0f32; 3], [0f32; 3]);
+        let walk = |a: f32, t: f32, l: &mut [f32; 3], h: &mut [f32; 3]| {
+            agg_walk_bounds(scene, a, t, l.as_mut_ptr(), h.as_mut_ptr())
+        };
+        assert_eq!(walk(0.0, f32::INFINITY, &mut wlo, &mut whi), AGG_OK);
+        assert_eq!(walk(0.001, 5.0, &mut nlo, &mut nhi), AGG_OK);
+        for i in 0..3 {
+            assert!(wlo[i] <= lo[i] && whi[i] >= hi[i]);
+            assert!(nlo[i] >= wlo[i] && nhi[i] <= whi[i]);
+        }
+        assert_eq!(walk(-1.0, 5.0, &mut nlo, &mut nhi), AGG_ERR_VALUE);
+        assert_eq!(walk(0.01, f32::NAN, &mut nlo, &mut nhi), AGG_ERR_VALUE);
+        assert_eq!(
+            agg_walk_bounds(scene, 0.01, 1.0, std::ptr::null_mut(), nhi.as_mut_ptr()),
+            AGG_ERR_ARGUMENT
+        );
         // A lights pointer passed as a scene is refused, not dereferenced as one.
         assert_eq!(
             agg_bounds(lights as *const AggScene, lo.as_mut_ptr(), hi.as_mut_ptr()),
