@@ -302,11 +302,7 @@ fn cones(
             "{n} origins but {m} directions"
         )));
     }
-    if !aperture.is_finite() || aperture < 0.0 {
-        return Err(PyValueError::new_err(
-            "aperture must be finite and non-negative",
-        ));
-    }
+    check_aperture(aperture)?;
     let tmax = tmax.map(|t| column(t, "tmax", Some(n))).transpose()?;
     let mut cones = Vec::with_capacity(n);
     for i in 0..n {
@@ -330,6 +326,17 @@ fn cones(
         cones.push(c);
     }
     Ok(cones)
+}
+
+/// A cone's full aperture: finite and non-negative.
+fn check_aperture(aperture: f32) -> PyResult<()> {
+    if aperture.is_finite() && aperture >= 0.0 {
+        Ok(())
+    } else {
+        Err(PyValueError::new_err(
+            "aperture must be finite and non-negative",
+        ))
+    }
 }
 
 /// The runtime's settings with `lod_bias` (levels in [-8, 8]).
@@ -431,11 +438,7 @@ impl Scene {
         let settings = trace_settings(lod_bias)?;
         let (aperture, tmax) = match (aperture, tmax) {
             (Some(a), Some(t)) => {
-                if !(a.is_finite() && a >= 0.0) {
-                    return Err(PyValueError::new_err(
-                        "aperture must be finite and non-negative",
-                    ));
-                }
+                check_aperture(a)?;
                 if !(t >= 0.0) {
                     return Err(PyValueError::new_err(format!(
                         "tmax must be non-negative (inf for no limit), not {t}"
