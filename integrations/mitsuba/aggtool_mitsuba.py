@@ -392,11 +392,12 @@ class _AggtoolLod:
         point, and the culling masks of the camera ray and the two shadow rays)."""
         jit = _jit()
 
+        camera = self._camera(sensor)
+
         def fn(pos, u_e, u_b1, u_b2):
-            ray, w = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
-            o, d = ray.o, dr.normalize(ray.d)
+            o, d, w = camera(pos)
+            d = dr.normalize(d)
             ray = mi.Ray3f(o, d)
-            w = mi.Color3f(w)
             si = scene.ray_intersect(ray)
             valid = si.is_valid()
             le = _emit(si.emitter(scene), si)
@@ -552,6 +553,7 @@ class _AggtoolLod:
         alone = np.ones(n, bool)
         for g in groups:
             alone[g.ravel()] = False
+        one = np.nonzero(alone)[0]
         picks, layers = [], []
         for j, a in enumerate(self.aggregates):
             if a.bounds is None:
@@ -563,7 +565,6 @@ class _AggtoolLod:
             picked = np.zeros(n, bool)
             hit = {"instance": np.zeros(n, np.uint32), "level": np.zeros(n, np.uint32),
                    "key": np.zeros(n, np.uint64), "t": np.zeros(n, np.float32)}
-            one = np.nonzero(alone)[0]
             # The same numbers for every ray, culled or not: the culling changes no bits.
             calls = [(one, rng.random(len(one), dtype=np.float32))] if len(one) else []
             calls += [(g, rng.random(g.shape, dtype=np.float32)) for g in groups]
@@ -579,7 +580,7 @@ class _AggtoolLod:
                 wt = got["weight"].ravel()
                 weight[rows] = wt
                 trans[rows] = got["transmittance"].ravel()
-                entry[rows] = got["entry"].ravel() * a.scale
+                entry[rows] = got["entry"].ravel().astype(np.float64) * a.scale
                 k = np.nonzero(wt > 0)[0]
                 picked[rows[k]] = True
                 for x, v in hit.items():
