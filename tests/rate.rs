@@ -250,6 +250,40 @@ fn block_allocation_keeps_the_per_map_error_in_fewer_bytes() {
     );
 }
 
+/// Black voxels (albedo 0: a black material with its specular reflection switched off) still
+/// have their maps truncated by the block allocation: with weights a·ρ² of 0 a block had no
+/// error to spend and kept every candidate, several times the bytes of the per-map rule
+/// ([`aggtool::bake::rate::ALBEDO_FLOOR`]).
+#[test]
+fn black_voxels_are_truncated() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut sc = scene();
+    for m in &mut sc.materials {
+        m.base_color = glam::Vec4::new(0.0, 0.0, 0.0, m.base_color.w);
+        m.specular_factor = 0.0;
+        m.metallic = 0.0;
+    }
+    let base = settings();
+    assert!(base.block_allocation, "the default");
+    let maps = dir.path().join("maps.agg");
+    bake(
+        &sc,
+        &BakeSettings {
+            block_allocation: false,
+            ..base.clone()
+        },
+        &maps,
+    );
+    let blocks = dir.path().join("blocks.agg");
+    bake(&sc, &base, &blocks);
+    let all = dir.path().join("all.agg");
+    bake_candidates(&sc, &base, &all);
+    let bytes = |p: &Path| std::fs::metadata(p).unwrap().len();
+    let (m, b, a) = (bytes(&maps), bytes(&blocks), bytes(&all));
+    assert!(a > m + m / 4, "the candidates ({a}) barely outweigh the per-map rule ({m})");
+    assert!(b <= m, "block allocation {b} bytes > per-map rule {m}");
+}
+
 /// A level's weighted squared error against its candidates, as decoded (the rate control's
 /// estimate, [`error_bound_holds_on_the_decoded_maps`]), and how many voxels lost their
 /// directional moments.
