@@ -280,7 +280,10 @@ fn black_voxels_are_truncated() {
     bake_candidates(&sc, &base, &all);
     let bytes = |p: &Path| std::fs::metadata(p).unwrap().len();
     let (m, b, a) = (bytes(&maps), bytes(&blocks), bytes(&all));
-    assert!(a > m + m / 4, "the candidates ({a}) barely outweigh the per-map rule ({m})");
+    assert!(
+        a > m + m / 4,
+        "the candidates ({a}) barely outweigh the per-map rule ({m})"
+    );
     assert!(b <= m, "block allocation {b} bytes > per-map rule {m}");
 }
 
