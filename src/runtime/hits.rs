@@ -634,10 +634,12 @@ impl<'s> Hits<'s> {
         (vo * g, vo * g_exact, area)
     }
 
-    /// The next primitive met, with its geometric weight |A|·E|n·ω|/|B|_ω (Eq. 24's primitive
-    /// coverage, without the V̂(ω_o) of the full weight), zero or not: the error budget
-    /// ([`crate::eval::budget`]) replaces the factors of the weight one at a time.
-    pub(crate) fn next_geometric(&mut self) -> Option<(VoxelHandle<'s>, f32, f32)> {
+    /// The next primitive met (its voxel and ray parameter), with its geometric weight
+    /// |A|·E|n·ω|/|B|_ω (Eq. 24's primitive coverage, without the V̂(ω_o) of the full weight
+    /// and without occlusion), zero or not: the error budget ([`crate::eval::budget`])
+    /// replaces the factors of the weight one at a time, and
+    /// `tools/src/bin/cone_weights_probe.rs` sets them against the mesh.
+    pub fn next_geometric(&mut self) -> Option<(VoxelHandle<'s>, f32, f32)> {
         let (level, li, block, i, t, c) = self.next_primitive()?;
         let g = crate::math::finite_or_zero(self.geometric_weight(level, &block, i, false).0);
         Some((

@@ -1,0 +1,247 @@
+//! Where a view's LoD transmittance goes wrong: for the camera cones of a view that meet a
+//! primitive, the parts of Eq. 30's weights against the mesh.
+//!
+//! ```sh
+//! cargo run --release -p aggtool-tools --bin cone_weights_probe -- ASSET ASSET.agg VIEW.json [N]
+//! ```
+//!
+//! N × N cones a pixel (4), each walked with the runtime's default settings. Prints, as means
+//! over the cones that meet a primitive:
+//! - **background**: the runtime's normalised background weight T / (T + Σw), the ray's own
+//!   escape through the mesh, and the share of rays escaping the mesh from that cone's entry
+//!   face (64 uniform points the cone could enter by, the cone's direction, P⁺ only: what the
+//!   face's ABV map estimates, Eq. 26) beside the baked ABV;
+//! - **surfaces**: Σ V̂(ω_o)·c over the hits (un-normalised, Eq. 30), the same with V̂ traced
+//!   from 32 samples of each voxel's real surface (the budget's oracle), and 1 − the ray's own
+//!   escape, which both estimate;
+//! - **geometry**: Σ c (Eq. 24's |A|_ω·E|n·ω|/|B|_ω, without V̂) over the hits against the
+//!   number of surfaces the ray crosses, which it estimates;
+//! - V̂(ω_o) baked and traced by the hit's order along the cone.
+//!
+//! The sums walk every primitive the centre ray meets, without the runtime's front-to-back
+//! occlusion (which only the normalised background sees). A voxel without oracle samples, or
+//! of a coarser level, keeps its baked V̂ in the traced sum.
+
+use aggtool::eval::budget::Truth;
+use aggtool::math::rng::Pcg32;
+use aggtool::render::View;
+use aggtool::runtime::{Cone, LodScene, TraceSettings};
+use aggtool::trace::{Accel, Ray};
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+
+/// Sums over cones (and, for `by_hit`, over the k-th hit of each).
+#[derive(Clone, Default)]
+struct Sums {
+    cones: f64,
+    normalised: f64,
+    own: f64,
+    face: f64,
+    face_cones: f64,
+    baked_abv_face: f64,
+    baked_abv: f64,
+    s_baked: f64,
+    s_traced: f64,
+    g: f64,
+    crossings: f64,
+    by_hit: [(f64, f64, f64); 8],
+}
+
+impl Sums {
+    fn add(mut self, o: Sums) -> Sums {
+        self.cones += o.cones;
+        self.normalised += o.normalised;
+        self.own += o.own;
+        self.face += o.face;
+        self.face_cones += o.face_cones;
+        self.baked_abv_face += o.baked_abv_face;
+        self.baked_abv += o.baked_abv;
+        self.s_baked += o.s_baked;
+        self.s_traced += o.s_traced;
+        self.g += o.g;
+        self.crossings += o.crossings;
+        for (a, b) in self.by_hit.iter_mut().zip(o.by_hit) {
+            a.0 += b.0;
+            a.1 += b.1;
+            a.2 += b.2;
+        }
+        self
+    }
+}
+
+/// Of 64 rays along `d` from uniform points of the entry face (`level`, `voxel`, `face`) where
+/// a cone can come in, the share of those meeting a primitive that escape the mesh.
+fn face_escape(
+    lod: &LodScene,
+    accel: &Accel,
+    (level, voxel, face): (usize, glam::UVec3, u8),
+    d: Vec3,
+    rng: &mut Pcg32,
+) -> Option<f64> {
+    let (lo, hi) = lod.grid(level).voxel_bounds(voxel);
+    let axis = (face / 2) as usize % 3;
+    let plane = if face % 2 == 0 { lo[axis] } else { hi[axis] };
+    let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+    let st = TraceSettings {
+        level: Some(level),
+        normalize: false,
+        ..Default::default()
+    };
+    let (mut met, mut escaped) = (0u32, 0u32);
+    for _ in 0..64 {
+        let mut q = Vec3::ZERO;
+        q[axis] = plane;
+        q[u] = lo[u] + rng.next_f32() * (hi[u] - lo[u]);
+        q[v] = lo[v] + rng.next_f32() * (hi[v] - lo[v]);
+        let o = q - d * (1e-3 * (hi[u] - lo[u]));
+        let mut back = lod.hits(&Cone::new(o, -d, 0.0), &st);
+        for _ in &mut back {}
+        if back.entry().is_some() {
+            continue;
+        }
+        let mut walk = lod.hits(&Cone::new(o, d, 0.0), &st);
+        for _ in &mut walk {}
+        if walk.primitives() == 0 {
+            continue;
+        }
+        met += 1;
+        escaped += !accel.occluded(&Ray::new(o, d)) as u32;
+    }
+    (met > 0).then(|| escaped as f64 / met as f64)
+}
+
+fn main() -> anyhow::Result<()> {
+    let a: Vec<String> = std::env::args().collect();
+    if a.len() < 4 {
+        anyhow::bail!("usage: cone_weights_probe ASSET ASSET.agg VIEW.json [N]");
+    }
+    let scene = aggtool::import::load(std::path::Path::new(&a[1]), Default::default())?;
+    let lod = LodScene::open(std::path::Path::new(&a[2]))?;
+    let view = View::load(std::path::Path::new(&a[3]))?;
+    let n: u32 = a.get(4).map_or(Ok(4), |s| s.parse())?;
+    let accel = Accel::build(&scene);
+    let cam = view.camera();
+    let finest = (0..lod.level_count())
+        .max_by_key(|&l| lod.grid(l).res)
+        .unwrap_or(0);
+    let truth = Truth::new(&accel, lod.grid(finest), finest, 32);
+    let raw = TraceSettings {
+        normalize: false,
+        ..TraceSettings::default()
+    };
+    let normalised = TraceSettings::default();
+    let sums = (0..cam.height)
+        .into_par_iter()
+        .map(|y| {
+            let mut s = Sums::default();
+            let mut rng = Pcg32::new(y as u64, 0xc0e5);
+            for x in 0..cam.width {
+                for k in 0..n * n {
+                    let p = Vec2::new(
+                        x as f32 + ((k % n) as f32 + 0.5) / n as f32,
+                        y as f32 + ((k / n) as f32 + 0.5) / n as f32,
+                    );
+                    let (o, d) = cam.ray(p);
+                    let cone = Cone::new(o, d, cam.pixel_angle());
+                    let mut hits = lod.hits(&cone, &raw);
+                    let (mut s_b, mut s_t, mut g) = (0f64, 0f64, 0f64);
+                    let mut i = 0;
+                    while let Some((voxel, _, c)) = hits.next_geometric() {
+                        let (c, vb) = (c as f64, voxel.aiv(-d) as f64);
+                        s_b += vb * c;
+                        g += c;
+                        let traced = (voxel.level() == finest)
+                            .then(|| truth.traced(voxel.key(), -d))
+                            .flatten();
+                        match traced {
+                            Some(vt) => {
+                                s_t += c * vt as f64;
+                                let e = &mut s.by_hit[i.min(7)];
+                                e.0 += 1.0;
+                                e.1 += vb;
+                                e.2 += vt as f64;
+                            }
+                            None => s_t += vb * c,
+                        }
+                        i += 1;
+                    }
+                    if hits.primitives() == 0 {
+                        continue;
+                    }
+                    let abv = hits.transmittance() as f64;
+                    let mut nh = lod.hits(&cone, &normalised);
+                    let w: f64 = nh.by_ref().map(|h| h.weight as f64).sum();
+                    let t = nh.transmittance() as f64;
+                    let own = !accel.occluded(&Ray::new(o, d)) as u32 as f64;
+                    let mut r = Ray::new(o, d);
+                    let mut crossings = 0u32;
+                    while let Some(hit) = accel.intersect(&r) {
+                        crossings += 1;
+                        r.tmin = hit.t * (1.0 + 1e-5) + 1e-6;
+                        if crossings > 10_000 {
+                            break;
+                        }
+                    }
+                    s.cones += 1.0;
+                    s.normalised += if t + w > 0.0 { t / (t + w) } else { 0.0 };
+                    s.own += own;
+                    s.baked_abv += abv;
+                    s.s_baked += s_b;
+                    s.s_traced += s_t;
+                    s.g += g;
+                    s.crossings += crossings as f64;
+                    if let Some(entry) = hits.entry() {
+                        if let Some(f) = face_escape(&lod, &accel, entry, d, &mut rng) {
+                            s.face += f;
+                            s.face_cones += 1.0;
+                            s.baked_abv_face += abv;
+                        }
+                    }
+                }
+            }
+            s
+        })
+        .reduce(Sums::default, Sums::add);
+    let m = |x: f64| x / sums.cones.max(1.0);
+    let f = |x: f64| x / sums.face_cones.max(1.0);
+    println!(
+        "{} cones meet a primitive ({} × {} a pixel, {}×{} pixels)",
+        sums.cones, n, n, cam.width, cam.height
+    );
+    println!(
+        "background: normalised T/(T+Σw) {:.4}, the ray's own escape {:.4}",
+        m(sums.normalised),
+        m(sums.own)
+    );
+    println!(
+        "ABV: baked {:.4}, the entry face's escape in the ray's direction {:.4} (over {} cones whose face has P⁺ rays; baked over the same {:.4})",
+        m(sums.baked_abv),
+        f(sums.face),
+        sums.face_cones,
+        f(sums.baked_abv_face)
+    );
+    println!(
+        "surfaces: Σ V̂·c baked {:.4}, with V̂ traced {:.4}, 1 − own escape {:.4}",
+        m(sums.s_baked),
+        m(sums.s_traced),
+        1.0 - m(sums.own)
+    );
+    println!(
+        "geometry: Σ c {:.4}, surfaces crossed {:.4}",
+        m(sums.g),
+        m(sums.crossings)
+    );
+    for (i, e) in sums.by_hit.iter().enumerate() {
+        if e.0 > 0.0 {
+            println!(
+                "hit {}{}: {} hits, V̂(ω_o) baked {:.4}, traced {:.4}",
+                i + 1,
+                if i == 7 { " and after" } else { "" },
+                e.0,
+                e.1 / e.0,
+                e.2 / e.0
+            );
+        }
+    }
+    Ok(())
+}
