@@ -16,19 +16,27 @@
 //!   escape, which both estimate;
 //! - **geometry**: Σ c (Eq. 24's |A|_ω·E|n·ω|/|B|_ω, without V̂) over the hits against the
 //!   number of surfaces the ray crosses, which it estimates;
-//! - V̂(ω_o) baked and traced by the hit's order along the cone.
+//! - V̂(ω_o) baked and traced by the hit's order along the cone;
+//! - c's factors at the finest level's hits (means over hits): the lobes' E|n·ω| (the SGGX
+//!   mixture's projected area, as the runtime's weight takes it) against 64 fresh samples'
+//!   Σ w|n_g·ω| / Σ w, and the stored area
+//!   after cut-outs against the voxel's pieces' area times those samples' coverage.
 //!
 //! The sums walk every primitive the centre ray meets, without the runtime's front-to-back
 //! occlusion (which only the normalised background sees). A voxel without oracle samples, or
 //! of a coarser level, keeps its baked V̂ in the traced sum.
 
+use aggtool::bake::sampling::{pieces_by_voxel, sample_voxel};
 use aggtool::eval::budget::Truth;
+use aggtool::math::microfacet::m5_exact;
 use aggtool::math::rng::Pcg32;
+use aggtool::math::sggx::Sggx;
 use aggtool::render::View;
 use aggtool::runtime::{Cone, LodScene, TraceSettings};
 use aggtool::trace::{Accel, Ray};
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
+use std::collections::HashMap;
 
 /// Sums over cones (and, for `by_hit`, over the k-th hit of each).
 #[derive(Clone, Default)]
@@ -45,6 +53,8 @@ struct Sums {
     g: f64,
     crossings: f64,
     by_hit: [(f64, f64, f64); 8],
+    /// Finest-level hits: count, lobes' E|n·ω|, samples' E|n·ω|, stored area, pieces' area.
+    factors: [f64; 5],
 }
 
 impl Sums {
@@ -60,6 +70,9 @@ impl Sums {
         self.s_traced += o.s_traced;
         self.g += o.g;
         self.crossings += o.crossings;
+        for (a, b) in self.factors.iter_mut().zip(o.factors) {
+            *a += b;
+        }
         for (a, b) in self.by_hit.iter_mut().zip(o.by_hit) {
             a.0 += b.0;
             a.1 += b.1;
@@ -125,6 +138,39 @@ fn main() -> anyhow::Result<()> {
         .max_by_key(|&l| lod.grid(l).res)
         .unwrap_or(0);
     let truth = Truth::new(&accel, lod.grid(finest), finest, 32);
+    // Per voxel of the finest level: 64 fresh samples' (geometric normal, weight) and the
+    // pieces' area; the stored area after cut-outs.
+    let pieces: Vec<_> = pieces_by_voxel(&scene, &lod.grid(finest))
+        .into_iter()
+        .collect();
+    let fresh: HashMap<u64, (Vec<(Vec3, f32)>, f64)> = pieces
+        .par_iter()
+        .map(|(key, p)| {
+            let s = sample_voxel(&scene, p, 64, (*key as u32) ^ 0x5eed_c0e5);
+            let s = s
+                .iter()
+                .map(|x| (x.geometric_normal.normalize_or_zero(), x.surface.weight));
+            (*key, (s.collect(), p.iter().map(|q| q.area).sum()))
+        })
+        .collect();
+    // The stored area after cut-outs and the lobes' E|n·ω| as the runtime's weight takes it:
+    // Σ_k σ_k(ω)·w_k / m5_k, σ_k the lobe's SGGX of unit normal axis.
+    let stored: HashMap<u64, (f64, Vec<(f32, Sggx)>)> =
+        aggtool::format::Aggregate::open(std::path::Path::new(&a[2]))?
+            .read_level(finest)
+            .voxels
+            .iter()
+            .map(|v| {
+                let lobes = v.appearance.lobes.iter().take(4).map(|l| {
+                    let mass = m5_exact((l.alpha.x * l.alpha.y).sqrt()).max(1e-6);
+                    (
+                        l.weight / mass,
+                        Sggx::from_frame_roughness(l.frame, l.alpha),
+                    )
+                });
+                (v.key, (v.area * v.coverage as f64, lobes.collect()))
+            })
+            .collect();
     let raw = TraceSettings {
         normalize: false,
         ..TraceSettings::default()
@@ -150,6 +196,26 @@ fn main() -> anyhow::Result<()> {
                         let (c, vb) = (c as f64, voxel.aiv(-d) as f64);
                         s_b += vb * c;
                         g += c;
+                        if let (true, Some((fs, area)), Some((st, lobes))) = (
+                            voxel.level() == finest,
+                            fresh.get(&voxel.key()),
+                            stored.get(&voxel.key()),
+                        ) {
+                            let w: f64 = fs.iter().map(|x| x.1 as f64).sum();
+                            if w > 0.0 {
+                                let mc = fs
+                                    .iter()
+                                    .map(|x| x.1 as f64 * x.0.dot(d).abs() as f64)
+                                    .sum::<f64>()
+                                    / w;
+                                s.factors[0] += 1.0;
+                                let lobe_mc: f32 = lobes.iter().map(|(k, l)| k * l.sigma(d)).sum();
+                                s.factors[1] += lobe_mc.clamp(0.0, 1.0) as f64;
+                                s.factors[2] += mc;
+                                s.factors[3] += *st;
+                                s.factors[4] += area * w;
+                            }
+                        }
                         let traced = (voxel.level() == finest)
                             .then(|| truth.traced(voxel.key(), -d))
                             .flatten();
@@ -230,6 +296,16 @@ fn main() -> anyhow::Result<()> {
         "geometry: Σ c {:.4}, surfaces crossed {:.4}",
         m(sums.g),
         m(sums.crossings)
+    );
+    let fc = &sums.factors;
+    let h = fc[0].max(1.0);
+    println!(
+        "c's factors over {} finest hits: E|n·ω| lobes {:.4}, samples {:.4}; area after cut-outs stored {:.4e}, pieces × samples' coverage {:.4e}",
+        fc[0],
+        fc[1] / h,
+        fc[2] / h,
+        fc[3] / h,
+        fc[4] / h
     );
     for (i, e) in sums.by_hit.iter().enumerate() {
         if e.0 > 0.0 {
