@@ -33,7 +33,7 @@ pub struct DemoSettings {
     /// instead of 0.0187 for 1.29× the file and the same bake time
     /// (`docs/src/studies/2026-12-07-transmittance-through-foliage.md`).
     pub bake: BakeSettings,
-    /// Image side in pixels (128: one finest voxel about one pixel).
+    /// Image side in pixels (128: a finest voxel about 1.3 pixels wide at the target).
     pub image: u32,
     /// Cones per pixel of the LoD.
     pub lod_spp: u32,
