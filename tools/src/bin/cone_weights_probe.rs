@@ -16,6 +16,8 @@
 //!   escape, which both estimate;
 //! - **geometry**: Σ c (Eq. 24's |A|_ω·E|n·ω|/|B|_ω, without V̂) over the hits against the
 //!   number of surfaces the ray crosses, which it estimates;
+//! - the ABV baked and the face's escape by the cosine of the cone with the face's inward
+//!   normal (four bins);
 //! - V̂(ω_o) baked and traced by the hit's order along the cone;
 //! - c's factors at the finest level's hits (means over hits): the lobes' E|n·ω| (the SGGX
 //!   mixture's projected area, as the runtime's weight takes it) against 64 fresh samples'
@@ -55,6 +57,9 @@ struct Sums {
     by_hit: [(f64, f64, f64); 8],
     /// Finest-level hits: count, lobes' E|n·ω|, samples' E|n·ω|, stored area, pieces' area.
     factors: [f64; 5],
+    /// By the cosine of the cone's direction with the entry face's inward normal, in four
+    /// bins of width 1/4: cones, baked ABV, the face's escape.
+    by_cosine: [(f64, f64, f64); 4],
 }
 
 impl Sums {
@@ -70,6 +75,11 @@ impl Sums {
         self.s_traced += o.s_traced;
         self.g += o.g;
         self.crossings += o.crossings;
+        for (a, b) in self.by_cosine.iter_mut().zip(o.by_cosine) {
+            a.0 += b.0;
+            a.1 += b.1;
+            a.2 += b.2;
+        }
         for (a, b) in self.factors.iter_mut().zip(o.factors) {
             *a += b;
         }
@@ -261,6 +271,12 @@ fn main() -> anyhow::Result<()> {
                             s.face += f;
                             s.face_cones += 1.0;
                             s.baked_abv_face += abv;
+                            let inward = -aggtool::spatial::face_normal(entry.2);
+                            let bin = ((inward.dot(d).clamp(0.0, 1.0) * 4.0) as usize).min(3);
+                            let e = &mut s.by_cosine[bin];
+                            e.0 += 1.0;
+                            e.1 += abv;
+                            e.2 += f;
                         }
                     }
                 }
@@ -297,6 +313,18 @@ fn main() -> anyhow::Result<()> {
         m(sums.g),
         m(sums.crossings)
     );
+    for (i, e) in sums.by_cosine.iter().enumerate() {
+        if e.0 > 0.0 {
+            println!(
+                "ABV at cos(cone, inward normal) in [{:.2}, {:.2}): {} cones, baked {:.4}, face {:.4}",
+                i as f64 / 4.0,
+                (i + 1) as f64 / 4.0,
+                e.0,
+                e.1 / e.0,
+                e.2 / e.0
+            );
+        }
+    }
     let fc = &sums.factors;
     let h = fc[0].max(1.0);
     println!(
