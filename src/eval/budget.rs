@@ -626,8 +626,9 @@ pub fn radiance(
 /// The sub-face ABV oracle ([`Oracles::abv_part`]): of [`ABV_PART_RAYS`] rays along the
 /// cone's direction from uniform points of the 1/n × 1/n part of `entry`'s face holding the
 /// cone's entry point, the share of those meeting a primitive of the level (P⁺) that miss the
-/// mesh; `None` when none meets a primitive.
-fn abv_over_part(
+/// mesh; `None` when none meets a primitive. `entry` is the walk's ([`crate::runtime::Hits::entry`]);
+/// `tools/src/bin/cone_weights_probe.rs` calls it too.
+pub fn abv_over_part(
     lod: &LodScene,
     truth: &Truth,
     (level, voxel, face): (usize, UVec3, u8),

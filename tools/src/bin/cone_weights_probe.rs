@@ -9,8 +9,9 @@
 //! over the cones that meet a primitive:
 //! - **background**: the runtime's normalised background weight T / (T + Σw), the ray's own
 //!   escape through the mesh, and the share of rays escaping the mesh from that cone's entry
-//!   face (64 uniform points the cone could enter by, the cone's direction, P⁺ only: what the
-//!   face's ABV map estimates, Eq. 26) beside the baked ABV;
+//!   face (the error budget's oracle, [`abv_over_part`]: 16 rays from the face's points a
+//!   cone could enter by, in the cone's direction, P⁺ only: what the face's ABV map
+//!   estimates, Eq. 26) beside the baked ABV;
 //! - **surfaces**: Σ V̂(ω_o)·c over the hits (un-normalised, Eq. 30), the same with V̂ traced
 //!   from 32 samples of each voxel's real surface (the budget's oracle), and 1 − the ray's own
 //!   escape, which both estimate;
@@ -29,7 +30,7 @@
 //! of a coarser level, keeps its baked V̂ in the traced sum.
 
 use aggtool::bake::sampling::{pieces_by_voxel, sample_voxel};
-use aggtool::eval::budget::Truth;
+use aggtool::eval::budget::{abv_over_part, Oracles, Truth};
 use aggtool::math::microfacet::m5_exact;
 use aggtool::math::rng::Pcg32;
 use aggtool::math::sggx::Sggx;
@@ -92,47 +93,6 @@ impl Sums {
     }
 }
 
-/// Of 64 rays along `d` from uniform points of the entry face (`level`, `voxel`, `face`) where
-/// a cone can come in, the share of those meeting a primitive that escape the mesh.
-fn face_escape(
-    lod: &LodScene,
-    accel: &Accel,
-    (level, voxel, face): (usize, glam::UVec3, u8),
-    d: Vec3,
-    rng: &mut Pcg32,
-) -> Option<f64> {
-    let (lo, hi) = lod.grid(level).voxel_bounds(voxel);
-    let axis = (face / 2) as usize % 3;
-    let plane = if face % 2 == 0 { lo[axis] } else { hi[axis] };
-    let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
-    let st = TraceSettings {
-        level: Some(level),
-        normalize: false,
-        ..Default::default()
-    };
-    let (mut met, mut escaped) = (0u32, 0u32);
-    for _ in 0..64 {
-        let mut q = Vec3::ZERO;
-        q[axis] = plane;
-        q[u] = lo[u] + rng.next_f32() * (hi[u] - lo[u]);
-        q[v] = lo[v] + rng.next_f32() * (hi[v] - lo[v]);
-        let o = q - d * (1e-3 * (hi[u] - lo[u]));
-        let mut back = lod.hits(&Cone::new(o, -d, 0.0), &st);
-        for _ in &mut back {}
-        if back.entry().is_some() {
-            continue;
-        }
-        let mut walk = lod.hits(&Cone::new(o, d, 0.0), &st);
-        for _ in &mut walk {}
-        if walk.primitives() == 0 {
-            continue;
-        }
-        met += 1;
-        escaped += !accel.occluded(&Ray::new(o, d)) as u32;
-    }
-    (met > 0).then(|| escaped as f64 / met as f64)
-}
-
 fn main() -> anyhow::Result<()> {
     let a: Vec<String> = std::env::args().collect();
     if a.len() < 4 {
@@ -186,6 +146,12 @@ fn main() -> anyhow::Result<()> {
         ..TraceSettings::default()
     };
     let normalised = TraceSettings::default();
+    // The budget's oracle of the entry face's ABV: its reachable points, the cone's direction.
+    let face = Oracles {
+        abv_part: 1,
+        abv_reachable: true,
+        ..Default::default()
+    };
     let sums = (0..cam.height)
         .into_par_iter()
         .map(|y| {
@@ -267,7 +233,8 @@ fn main() -> anyhow::Result<()> {
                     s.g += g;
                     s.crossings += crossings as f64;
                     if let Some(entry) = hits.entry() {
-                        if let Some(f) = face_escape(&lod, &accel, entry, d, &mut rng) {
+                        if let Some(f) = abv_over_part(&lod, &truth, entry, &cone, face, &mut rng) {
+                            let f = f as f64;
                             s.face += f;
                             s.face_cones += 1.0;
                             s.baked_abv_face += abv;
