@@ -1,5 +1,6 @@
 //! The validation voxels of the ABSDF (issue: flat, curved, foliage, anisotropic,
-//! orientation-varying colour, mixed roughness, metal–dielectric mixture): synthetic surface
+//! orientation-varying colour, mixed roughness, metal–dielectric mixture; and a flat leaf
+//! beside a twig, whose two lobes differ in mass): synthetic surface
 //! samples with known structure, their ground-truth ABSDF (direct integration of Eq. 3 over the
 //! samples) and the factored one, compared on grids of directions (plotted as paper Fig. 4's 8×8 lat-long
 //! outgoing slices by `eval::plot::plot_slices`).
@@ -25,6 +26,7 @@ pub const CASES: &[&str] = &[
     "orientation-color",
     "mixed-roughness",
     "metal-dielectric",
+    "leaf-and-twig",
 ];
 
 fn params(c: Vec3, metallic: f32, alpha: f32) -> SurfaceParams {
@@ -91,6 +93,19 @@ pub fn case_samples(name: &str, n: u32) -> Option<Vec<SurfaceSample>> {
                         params(Vec3::splat(0.8), 0.0, 0.2)
                     };
                     s(cap(u, 30f32.to_radians()), p)
+                }
+                // Half the area a flat green leaf, half a brown twig (normals around a
+                // circle): a flat lobe and one rough along one axis, of masses 2 and about π.
+                "leaf-and-twig" => {
+                    if i % 2 == 0 {
+                        s(Vec3::Z, params(Vec3::new(0.2, 0.5, 0.1), 0.0, 0.5))
+                    } else {
+                        let phi = 2.0 * PI * u.x;
+                        s(
+                            Vec3::new(phi.cos(), phi.sin(), 0.0),
+                            params(Vec3::new(0.4, 0.25, 0.1), 0.0, 0.8),
+                        )
+                    }
                 }
                 _ => s(Vec3::Z, params(Vec3::ONE, 0.0, 1.0)),
             }

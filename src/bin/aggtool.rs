@@ -232,7 +232,7 @@ enum Command {
     #[command(after_help = "Example:\n  aggtool absdf-plot foliage -o plots")]
     AbsdfPlot {
         /// One of: flat, curved, foliage, anisotropic, orientation-color, mixed-roughness,
-        /// metal-dielectric, or all.
+        /// metal-dielectric, leaf-and-twig, or all.
         case: String,
         /// Output folder.
         #[arg(short, long, default_value = ".")]

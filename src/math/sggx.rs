@@ -482,8 +482,74 @@ pub fn lobe_shape(alpha: Vec2) -> LobeShape {
     )
 }
 
+/// M5 of an anisotropic GGX lobe: ∫ D over the hemisphere, half of [`lobe_shape`]'s
+/// double-sided mass. A lobe holding a share w of a voxel's area adds w·σ(ω)/M5 to
+/// E|n·ω| (σ of the lobe's SGGX with unit normal axis). For αx = αy = α it is
+/// [`crate::math::microfacet::m5_exact`]; the isotropic form at the geometric mean
+/// √(αx·αy), which the runtime took before, is π/2 times too small in the limit of a lobe
+/// rough along one axis only, and made the demo tree's surfaces 5.4% too opaque
+/// (`cone_weights_probe`: E|n·ω| 0.6396 against 0.6069 from fresh samples; 0.6050 with this).
+pub fn lobe_hemisphere_mass(alpha: Vec2) -> f32 {
+    0.5 * lobe_shape(alpha).mass
+}
+
 #[cfg(test)]
 mod tests {
+
+    /// The hemisphere mass against two independent answers: Monte Carlo ∫ D over the
+    /// hemisphere (200k uniform sphere samples; relative standard error under 0.5% for α ≥ 0.2,
+    /// checked at 2%), and the slope-space identity M5(αx, αy) = mean over φ of
+    /// M5(√(αx² cos²φ + αy² sin²φ)) (4096 points; the table's bilinear error is under 2·10⁻⁴
+    /// of the mass, checked at 10⁻³), which gives π/2 for a lobe rough along one axis only.
+    #[test]
+    fn lobe_hemisphere_mass_is_the_integral_of_d() {
+        use crate::math::microfacet::{ggx_d, m5_exact};
+        let by_phi = |a: Vec2| {
+            let n = 4096;
+            (0..n)
+                .map(|i| {
+                    let p = (i as f64 + 0.5) / n as f64 * std::f64::consts::TAU;
+                    let s = (a.x as f64 * p.cos()).powi(2) + (a.y as f64 * p.sin()).powi(2);
+                    m5_exact(s.sqrt() as f32) as f64
+                })
+                .sum::<f64>()
+                / n as f64
+        };
+        for a in [(0.2, 0.2), (0.5, 0.5), (1.0, 0.25), (0.3, 0.8), (1.0, 1.0)] {
+            let a = Vec2::new(a.0, a.1);
+            let mut rng = crate::math::rng::Pcg32::new(3, 4);
+            let n = 200_000;
+            let mut sum = 0f64;
+            for _ in 0..n {
+                let m = crate::math::sampling::square_to_uniform_sphere(rng.next_2d());
+                if m.z > 0.0 {
+                    sum += ggx_d(m, a.x, a.y) as f64 * 4.0 * std::f64::consts::PI;
+                }
+            }
+            let mc = sum / n as f64;
+            let got = lobe_hemisphere_mass(a) as f64;
+            assert!((got - mc).abs() < 0.02 * mc, "α {a}: {got} against MC {mc}");
+        }
+        for a in [
+            (1.0, 0.0),
+            (0.5, 0.02),
+            (0.9, 0.3),
+            (0.02, 0.02),
+            (0.6, 0.6),
+        ] {
+            let a = Vec2::new(a.0, a.1);
+            let (got, want) = (lobe_hemisphere_mass(a) as f64, by_phi(a));
+            assert!(
+                (got - want).abs() < 1e-3 * want,
+                "α {a}: {got} against {want}"
+            );
+        }
+        let edge = lobe_hemisphere_mass(Vec2::new(1.0, 0.0)) as f64;
+        assert!((edge - std::f64::consts::FRAC_PI_2).abs() < 2e-3, "{edge}");
+        assert!(
+            (lobe_hemisphere_mass(Vec2::splat(0.4)) - m5_exact(0.4)).abs() < 1e-3 * m5_exact(0.4)
+        );
+    }
 
     /// The committed table is the quadrature's (within 10⁻⁶ relative: the same code on
     /// another libm may differ in the last bits); `AGGTOOL_BLESS=1` writes it again.

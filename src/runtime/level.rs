@@ -27,8 +27,7 @@ use super::cache::{BlockCache, Slot};
 use crate::absdf::Absdf;
 use crate::format::FaceAbv;
 use crate::format::{Aggregate, AivMap, LoadedBlock, VoxelRef};
-use crate::math::microfacet::m5_exact;
-use crate::math::sggx::Sggx;
+use crate::math::sggx::{lobe_hemisphere_mass, Sggx};
 use crate::spatial::AreaCase;
 use crate::spatial::{morton3, Ellipsoid, Grid, TruncatedEllipsoid};
 
@@ -73,7 +72,8 @@ pub struct HitRecord {
 pub struct WeightRecord<'a> {
     /// The voxel's Morton key in its level.
     pub key: u64,
-    /// The normal lobes scaled so that E|n·ω| = Σ σ_k(ω) (SGGX matrices times (w_k / m5_k)²).
+    /// The normal lobes scaled so that E|n·ω| = Σ σ_k(ω) (SGGX matrices times (w_k / M5_k)²,
+    /// M5_k of the anisotropic lobe: [`lobe_hemisphere_mass`]).
     pub lobes: [Sggx; 4],
     pub lobe_count: u8,
     /// 1 / exposure: the incident AIV counts exposed sides only.
@@ -298,7 +298,7 @@ fn records<'a>(grid: &Grid, v: VoxelRef<'a>) -> (HitRecord, WeightRecord<'a>) {
     let mut lobes = [Sggx::from_frame_roughness(Mat3::IDENTITY, glam::Vec2::ONE); 4];
     let mut lobe_count = 0;
     for lb in v.lobes().take(4) {
-        let mass = m5_exact((lb.alpha.x * lb.alpha.y).sqrt()).max(1e-6);
+        let mass = lobe_hemisphere_mass(lb.alpha).max(1e-6);
         let k = (lb.weight / mass).max(0.0);
         let s = Sggx::from_frame_roughness(lb.frame, lb.alpha);
         let k2 = k * k;

@@ -31,9 +31,8 @@
 
 use aggtool::bake::sampling::{pieces_by_voxel, sample_voxel};
 use aggtool::eval::budget::{abv_over_part, Oracles, Truth};
-use aggtool::math::microfacet::m5_exact;
 use aggtool::math::rng::Pcg32;
-use aggtool::math::sggx::Sggx;
+use aggtool::math::sggx::{lobe_hemisphere_mass, Sggx};
 use aggtool::render::View;
 use aggtool::runtime::{Cone, LodScene, TraceSettings};
 use aggtool::trace::{Accel, Ray};
@@ -124,7 +123,7 @@ fn main() -> anyhow::Result<()> {
         })
         .collect();
     // The stored area after cut-outs and the lobes' E|n·ω| as the runtime's weight takes it:
-    // Σ_k σ_k(ω)·w_k / m5_k, σ_k the lobe's SGGX of unit normal axis.
+    // Σ_k σ_k(ω)·w_k / M5_k, σ_k the lobe's SGGX of unit normal axis, M5_k its hemisphere mass.
     let stored: HashMap<u64, (f64, Vec<(f32, Sggx)>)> =
         aggtool::format::Aggregate::open(std::path::Path::new(&a[2]))?
             .read_level(finest)
@@ -132,7 +131,7 @@ fn main() -> anyhow::Result<()> {
             .iter()
             .map(|v| {
                 let lobes = v.appearance.lobes.iter().take(4).map(|l| {
-                    let mass = m5_exact((l.alpha.x * l.alpha.y).sqrt()).max(1e-6);
+                    let mass = lobe_hemisphere_mass(l.alpha).max(1e-6);
                     (
                         l.weight / mass,
                         Sggx::from_frame_roughness(l.frame, l.alpha),
