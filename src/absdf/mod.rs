@@ -605,19 +605,14 @@ impl<'t> Absdf<'t> {
         // 4 for a sphere), so the mixture with those shares weighs lobe k by w_k / mass_k. With
         // w_k alone, a rough lobe beside a flat one weighed up to twice its share: the
         // leaf-and-twig case's relative RMSE against Eq. 3 was 0.255, and is 0.157 so.
-        let shapes: Vec<_> = ndfs
-            .iter()
-            .map(|l| crate::math::sggx::lobe_shape(l.alpha))
-            .collect();
         ndfs.iter_mut()
-            .zip(&shapes)
-            .for_each(|(l, s)| l.weight /= s.mass.max(1e-6));
+            .for_each(|l| l.weight /= crate::math::sggx::lobe_shape(l.alpha).mass.max(1e-6));
         let wsum: f32 = ndfs.iter().map(|l| l.weight).sum();
         ndfs.iter_mut().for_each(|l| l.weight /= wsum);
         let lobes: Box<[MacroLobe]> = ndfs
             .iter()
-            .zip(shapes)
-            .map(|(l, shape)| {
+            .map(|l| {
+                let shape = crate::math::sggx::lobe_shape(l.alpha);
                 let m = l.frame * Mat3::from_diagonal(shape.second) * l.frame.transpose();
                 // The diffuse sampling lobe at the fixed κ (§7.3, M1).
                 let mut o = [0f32; 3];
