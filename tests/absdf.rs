@@ -22,17 +22,16 @@ fn appearance(name: &str) -> VoxelAppearance {
 }
 
 /// Relative RMSE (RMSE over direction pairs / RMS of the ground truth) per case, on a 6×6
-/// equal-area grid of both directions with 2048 samples. The bounds are regression guards 25%
-/// above the values measured, the flat voxel's 1% as in `flat_voxel_is_its_base_bsdf` (flat
-/// 0.003, curved 0.644, foliage 0.094, anisotropic 0.095, orientation-color 0.186,
-/// mixed-roughness 0.388, metal-dielectric 0.145, leaf-and-twig 0.157; with Eq. 21's S read at the microfacet
-/// roughness alone flat was 0.022, anisotropic 0.106, mixed-roughness 0.371 and
-/// metal-dielectric 0.149; with Eq. 14's SG diffuse term foliage was 0.174, orientation-color
-/// 0.248 and metal-dielectric 0.212; with the lobes weighed by their area shares alone, not
-/// over their masses, leaf-and-twig was 0.255); they are not goals. The curved voxel (normals uniform
-/// over a 60° cap) is the known weak case: a mixture of GGX-shaped lobes cannot take a
-/// flat-topped, sharp-edged normal distribution. `cargo test --release --test absdf -- --ignored --nocapture` prints the
-/// full-size figures.
+/// equal-area grid of both directions with 2048 samples. The bounds are regression guards 25% above
+/// the values measured, the flat voxel's 1% as in `flat_voxel_is_its_base_bsdf` (flat 0.003, curved
+/// 0.644, foliage 0.094, anisotropic 0.095, orientation-color 0.186, mixed-roughness 0.388,
+/// metal-dielectric 0.145, leaf-and-twig 0.157; with Eq. 21's S read at the microfacet roughness
+/// alone flat was 0.022, anisotropic 0.106, mixed-roughness 0.371 and metal-dielectric 0.149; with
+/// Eq. 14's SG diffuse term foliage was 0.174, orientation-color 0.248 and metal-dielectric 0.212;
+/// with the lobes weighed by their area shares alone, not over their masses, leaf-and-twig was
+/// 0.255); they are not goals. The curved voxel (normals uniform over a 60° cap) is the known weak
+/// case: a mixture of GGX-shaped lobes cannot take a flat-topped, sharp-edged normal distribution.
+/// `cargo test --release --test absdf -- --ignored --nocapture` prints the full-size figures.
 #[test]
 fn factored_absdf_tracks_ground_truth() {
     let t = Tables::embedded();
