@@ -26,7 +26,7 @@ pub struct DemoSettings {
     /// Triangles of the generated tree (`gen foliage`).
     pub triangles: usize,
     /// The bake (the default: 64³ finest, 8³ coarsest, 32² boundary maps, to stay within
-    /// the demo's minute and a half, whose cells may average centred windows,
+    /// the demo's two minutes, whose cells may average centred windows,
     /// [`BakeSettings::abv_windows`]). With blocks alone the tree's 32² maps let 7.8% too
     /// little sky through the crown, where a cone comes in (0.1879 against the mesh's 0.2039,
     /// `tools/src/bin/cone_weights_probe.rs`); with windows 0.2032, the LoD's RMSE 0.0177
