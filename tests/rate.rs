@@ -39,6 +39,24 @@ fn bake_candidates(sc: &Scene, base: &BakeSettings, path: &Path) -> BakeReport {
     bake(sc, &s, path)
 }
 
+/// `base` baked with the per-map rule (`block_allocation` off) and as it is (the block
+/// allocation) into `dir`: the two files' paths, maps first.
+fn bake_maps_and_blocks(
+    sc: &Scene,
+    base: &BakeSettings,
+    dir: &Path,
+) -> (std::path::PathBuf, std::path::PathBuf) {
+    let maps = dir.join("maps.agg");
+    let s = BakeSettings {
+        block_allocation: false,
+        ..base.clone()
+    };
+    bake(sc, &s, &maps);
+    let blocks = dir.join("blocks.agg");
+    bake(sc, base, &blocks);
+    (maps, blocks)
+}
+
 /// Every candidate kept, the smallest file, and a budget between them is met within 3% under
 /// it, by the bake and by re-rating the candidates' file; a budget below the smallest file
 /// says so and writes the smallest; one above everything keeps every candidate.
@@ -202,17 +220,7 @@ fn block_allocation_keeps_the_per_map_error_in_fewer_bytes() {
     let all_path = dir.path().join("all.agg");
     bake_candidates(&sc, &base, &all_path);
     let all = Aggregate::open(&all_path).unwrap();
-    let maps_path = dir.path().join("maps.agg");
-    bake(
-        &sc,
-        &BakeSettings {
-            block_allocation: false,
-            ..base.clone()
-        },
-        &maps_path,
-    );
-    let blocks_path = dir.path().join("blocks.agg");
-    bake(&sc, &base, &blocks_path);
+    let (maps_path, blocks_path) = bake_maps_and_blocks(&sc, &base, dir.path());
     let (maps, blocks) = (
         Aggregate::open(&maps_path).unwrap(),
         Aggregate::open(&blocks_path).unwrap(),
@@ -265,17 +273,7 @@ fn black_voxels_are_truncated() {
     }
     let base = settings();
     assert!(base.block_allocation, "the default");
-    let maps = dir.path().join("maps.agg");
-    bake(
-        &sc,
-        &BakeSettings {
-            block_allocation: false,
-            ..base.clone()
-        },
-        &maps,
-    );
-    let blocks = dir.path().join("blocks.agg");
-    bake(&sc, &base, &blocks);
+    let (maps, blocks) = bake_maps_and_blocks(&sc, &base, dir.path());
     let all = dir.path().join("all.agg");
     bake_candidates(&sc, &base, &all);
     let bytes = |p: &Path| std::fs::metadata(p).unwrap().len();
