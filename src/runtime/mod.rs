@@ -814,6 +814,13 @@ impl<'s> VoxelHandle<'s> {
         self.visibility_record().aiv.eval(d)
     }
 
+    /// E|n·ω| of the voxel's surfaces towards unit `d`, from its normal lobes, as Eq. 24's
+    /// coverage takes it ([`level::WeightRecord::mean_cosine`]).
+    #[inline]
+    pub fn mean_cosine(&self, d: Vec3) -> f32 {
+        self.block.weight[self.i as usize].mean_cosine(d)
+    }
+
     /// The voxel's exposure η in [1/16, 1] (see [`VoxelHandle::incident_visibility`]).
     #[inline]
     pub fn exposure(&self) -> f32 {

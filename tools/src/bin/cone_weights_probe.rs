@@ -21,9 +21,9 @@
 //!   normal (four bins);
 //! - V̂(ω_o) baked and traced by the hit's order along the cone;
 //! - c's factors at the finest level's hits (means over hits): the lobes' E|n·ω| (the SGGX
-//!   mixture's projected area, as the runtime's weight takes it) against 64 fresh samples'
-//!   Σ w|n_g·ω| / Σ w, and the stored area
-//!   after cut-outs against the voxel's pieces' area times those samples' coverage.
+//!   mixture's projected area, the runtime's own `VoxelHandle::mean_cosine`) against 64
+//!   fresh samples' Σ w|n_g·ω| / Σ w, and the stored area after cut-outs against the voxel's
+//!   pieces' area times those samples' coverage.
 //!
 //! The sums walk every primitive the centre ray meets, without the runtime's front-to-back
 //! occlusion (which only the normalised background sees). A voxel without oracle samples, or
@@ -32,7 +32,6 @@
 use aggtool::bake::sampling::{pieces_by_voxel, sample_voxel};
 use aggtool::eval::budget::{abv_over_part, Oracles, Truth};
 use aggtool::math::rng::Pcg32;
-use aggtool::math::sggx::{lobe_hemisphere_mass, Sggx};
 use aggtool::render::View;
 use aggtool::runtime::{Cone, LodScene, TraceSettings};
 use aggtool::trace::{Accel, Ray};
@@ -122,24 +121,13 @@ fn main() -> anyhow::Result<()> {
             (*key, (s.collect(), p.iter().map(|q| q.area).sum()))
         })
         .collect();
-    // The stored area after cut-outs and the lobes' E|n·ω| as the runtime's weight takes it:
-    // Σ_k σ_k(ω)·w_k / M5_k, σ_k the lobe's SGGX of unit normal axis, M5_k its hemisphere mass.
-    let stored: HashMap<u64, (f64, Vec<(f32, Sggx)>)> =
-        aggtool::format::Aggregate::open(std::path::Path::new(&a[2]))?
-            .read_level(finest)
-            .voxels
-            .iter()
-            .map(|v| {
-                let lobes = v.appearance.lobes.iter().take(4).map(|l| {
-                    let mass = lobe_hemisphere_mass(l.alpha).max(1e-6);
-                    (
-                        l.weight / mass,
-                        Sggx::from_frame_roughness(l.frame, l.alpha),
-                    )
-                });
-                (v.key, (v.area * v.coverage as f64, lobes.collect()))
-            })
-            .collect();
+    // The stored area after cut-outs.
+    let stored: HashMap<u64, f64> = aggtool::format::Aggregate::open(std::path::Path::new(&a[2]))?
+        .read_level(finest)
+        .voxels
+        .iter()
+        .map(|v| (v.key, v.area * v.coverage as f64))
+        .collect();
     let raw = TraceSettings {
         normalize: false,
         ..TraceSettings::default()
@@ -171,7 +159,7 @@ fn main() -> anyhow::Result<()> {
                         let (c, vb) = (c as f64, voxel.aiv(-d) as f64);
                         s_b += vb * c;
                         g += c;
-                        if let (true, Some((fs, area)), Some((st, lobes))) = (
+                        if let (true, Some((fs, area)), Some(st)) = (
                             voxel.level() == finest,
                             fresh.get(&voxel.key()),
                             stored.get(&voxel.key()),
@@ -184,8 +172,7 @@ fn main() -> anyhow::Result<()> {
                                     .sum::<f64>()
                                     / w;
                                 s.factors[0] += 1.0;
-                                let lobe_mc: f32 = lobes.iter().map(|(k, l)| k * l.sigma(d)).sum();
-                                s.factors[1] += lobe_mc.clamp(0.0, 1.0) as f64;
+                                s.factors[1] += voxel.mean_cosine(d) as f64;
                                 s.factors[2] += mc;
                                 s.factors[3] += *st;
                                 s.factors[4] += area * w;
