@@ -1154,6 +1154,39 @@ fn magnified_pixels_share_walks_further() {
     }
 }
 
+/// Shared walks keep state between a pixel's samples (the walk, the |B|_ω of the primitives
+/// crossing their voxels, taken along the pixel's centre ray and kept for its walks) and the
+/// scene keeps prepared blocks and per-voxel values between pixels: the image must not depend
+/// on how many threads split its tiles, nor on what an earlier render left prepared.
+#[test]
+fn shared_walk_renders_do_not_depend_on_the_threads() {
+    let scene = generated("foliage", 3000);
+    let lod = baked(&scene, &small(16));
+    let view = view_of(&scene, 48, 64);
+    let (cam, lights) = (view.camera(), view.lights().unwrap());
+    let settings = TraceSettings::default();
+    assert!(settings.walk_reuse(64) > 1, "64 spp shares walks");
+    let render = || {
+        aggtool::runtime::render(&lod, &cam, &lights, 64, 5, &settings, &no_progress)
+            .0
+            .pixels
+    };
+    let threads = |n: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .unwrap()
+            .install(render)
+    };
+    let one = threads(1);
+    assert_eq!(one, threads(2));
+    assert_eq!(one, threads(3));
+    // And from a fresh scene (empty caches, nothing prepared).
+    let fresh = baked(&scene, &small(16));
+    let again = aggtool::runtime::render(&fresh, &cam, &lights, 64, 5, &settings, &no_progress);
+    assert_eq!(one, again.0.pixels);
+}
+
 /// `LodScene::walk_bounds`, the box hosts cull their rays with (the Mitsuba host hands the
 /// module only the rays that meet it): every primitive that a cone of that aperture meets
 /// before `t_max` lies in it, at any LoD bias and at either end of continuous LoD's dither, so

@@ -955,7 +955,9 @@ pub fn render(
         progress,
         |cone, sampler| asm.trace(cone, lights, settings, sampler),
         |_| 0,
-        |walk: &mut AssemblyWalk, cone, dither| walk.start(asm, *cone, dither),
+        |walk: &mut AssemblyWalk, cone, dither, pixel_dir| {
+            walk.start(asm, *cone, dither, pixel_dir)
+        },
         |walk, sampler| walk.estimate(asm, lights, settings, sampler),
     )
 }
@@ -968,6 +970,8 @@ pub fn render(
 struct AssemblyWalk<'a> {
     cone: Option<Cone>,
     dither: f32,
+    /// The pixel's centre ray (world): the aggregates' walks take |B|_ω along it.
+    pixel_dir: Vec3,
     list: Vec<(f32, u32)>,
     pending: Vec<(f32, ConeResult)>,
     kept: Vec<Kept<'a>>,
@@ -995,13 +999,14 @@ enum Kept<'a> {
 
 impl<'a> AssemblyWalk<'a> {
     /// Starts a new cone (the instances on it, nothing kept yet).
-    fn start(&mut self, asm: &'a Assembly, cone: Cone, dither: f32) {
+    fn start(&mut self, asm: &'a Assembly, cone: Cone, dither: f32, pixel_dir: Vec3) {
         asm.along(&cone, None, true, &mut self.list);
         self.kept.clear();
         self.kept.resize_with(self.list.len(), || Kept::Unknown);
         self.used = 0;
         self.cone = Some(cone);
         self.dither = dither;
+        self.pixel_dir = pixel_dir;
     }
 
     /// One sample's estimate: [`Assembly::trace`] of the kept cone with what is kept.
@@ -1018,6 +1023,7 @@ impl<'a> AssemblyWalk<'a> {
         let background = lights.environment.eval(cone.dir);
         let AssemblyWalk {
             dither,
+            pixel_dir,
             list,
             pending,
             kept,
@@ -1039,7 +1045,11 @@ impl<'a> AssemblyWalk<'a> {
                             walks.push(crate::runtime::Walk::default());
                         }
                         let scene = &asm.scenes[asm.manifest.asset_of(i)];
-                        walks[*used].fill(scene, &local, lights, settings, *dither);
+                        let dir = xf
+                            .to_local
+                            .transform_vector3(*pixel_dir)
+                            .normalize_or_zero();
+                        walks[*used].fill(scene, &local, lights, settings, *dither, Some(dir));
                         *used += 1;
                         Kept::Aggregate { walk: *used - 1, k }
                     }

@@ -872,7 +872,9 @@ pub fn render(
         progress,
         |cone, sampler| scene.trace(cone, lights, settings, sampler),
         |cone| scene.magnification(cone, settings).unwrap_or(0),
-        |walk: &mut shade::Walk, cone, dither| walk.fill(scene, cone, lights, settings, dither),
+        |walk: &mut shade::Walk, cone, dither, pixel_dir| {
+            walk.fill(scene, cone, lights, settings, dither, Some(pixel_dir))
+        },
         |walk, sampler| walk.estimate(lights, settings, sampler),
     )
 }
@@ -900,7 +902,7 @@ pub(crate) fn render_sharing_walks<W: Default>(
     progress: crate::util::Progress,
     trace: impl Fn(&Cone, &mut Stratified<'_, Pcg32>) -> ConeResult + Sync,
     magnification: impl Fn(&Cone) -> u32 + Sync,
-    start: impl Fn(&mut W, &Cone, f32) + Sync,
+    start: impl Fn(&mut W, &Cone, f32, Vec3) + Sync,
     estimate: impl Fn(&mut W, &mut Stratified<'_, Pcg32>) -> ConeResult + Sync,
 ) -> (crate::film::Image, crate::film::ImageStats) {
     let reuse = settings.walk_reuse(spp);
@@ -919,14 +921,15 @@ pub(crate) fn render_sharing_walks<W: Default>(
         seed,
         "LoD",
         progress,
-        <(W, u32)>::default,
-        |mut s, (walk, pixel_reuse)| {
+        <(W, u32, Vec3)>::default,
+        |mut s, (walk, pixel_reuse, pixel_dir)| {
             if s.index == 0 {
                 *pixel_reuse = if adapt {
                     magnified_reuse(reuse, spp, magnification(&Cone::of_sample(&s)))
                 } else {
                     reuse
                 };
+                *pixel_dir = camera.ray(s.pixel.as_vec2() + 0.5).1;
             }
             *s.rays += 1;
             let run = (*pixel_reuse).max(1);
@@ -937,7 +940,7 @@ pub(crate) fn render_sharing_walks<W: Default>(
             }
             if s.index % run == 0 {
                 let (cone, dither) = shared_walk_cone(camera, &s, run);
-                start(walk, &cone, dither);
+                start(walk, &cone, dither, *pixel_dir);
             }
             let mut sampler = Stratified::of_sample(&mut s);
             if shade::draws_dither(settings) {

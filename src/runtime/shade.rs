@@ -2,7 +2,7 @@
 
 use glam::Vec3;
 
-use super::hits::{Hit, Hits, Weights};
+use super::hits::{AreaCache, Hit, Hits, Weights};
 use super::{
     Cone, ConeResult, LodScene, PrimitiveKind, Sampler, Shading, TraceSettings, VoxelHandle,
 };
@@ -270,7 +270,10 @@ pub(crate) struct Walk<'s> {
 }
 
 impl<'s> Walk<'s> {
-    /// Walks `cone` (with the level's dither `dither`) and keeps its hits.
+    /// Walks `cone` (with the level's dither `dither`) and keeps its hits. Where the walk is
+    /// one of a pixel's shared walks, `pixel_dir` is the pixel's centre ray: the walk takes
+    /// the |B|_ω of the primitives that cross their voxels along it, each computed once for
+    /// all the pixel's walks ([`AreaCache`]).
     pub(crate) fn fill(
         &mut self,
         scene: &'s LodScene,
@@ -278,14 +281,26 @@ impl<'s> Walk<'s> {
         lights: &Lights,
         settings: &TraceSettings,
         dither: f32,
+        pixel_dir: Option<Vec3>,
     ) {
         self.list.clear();
         let dither = draws_dither(settings).then_some(dither);
+        let areas = self
+            .hits
+            .as_mut()
+            .and_then(|h| h.areas.take())
+            .or_else(|| pixel_dir.map(|_| std::cell::RefCell::new(AreaCache::new())));
         // Built in its slot (moving the walk's state, a few hundred bytes, was 2% of a 64²
         // render in `memmove`).
         let hits =
             self.hits
                 .insert(scene.hits_weighted(cone, settings, walk_weights(settings), dither));
+        if let (Some(dir), Some(cache)) = (pixel_dir, areas) {
+            cache
+                .borrow_mut()
+                .aim(scene as *const LodScene as usize, dir);
+            hits.areas = Some(cache);
+        }
         self.list.extend(&mut *hits);
         self.cumulative.clear();
         let (mut c, mut sum, mut first) = (0.0f64, 0.0f32, f32::INFINITY);
@@ -585,6 +600,87 @@ mod tests {
     use super::*;
     use crate::math::rng::Pcg32;
     use crate::math::special::gamma_q;
+
+    /// A pixel's shared walks take the exact |B|_ω of the primitives that cross their voxels
+    /// along the pixel's centre ray (`Walk::fill`'s `pixel_dir`), and a walk whose cache was
+    /// filled by other pixels' walks gives what a fresh walk gives.
+    #[test]
+    fn shared_walks_take_the_pixels_areas() {
+        use crate::gen::{generate, GenSettings};
+        let scene = generate(
+            "foliage",
+            &GenSettings {
+                triangles: 3000,
+                ..Default::default()
+            },
+        )
+        .unwrap()
+        .to_scene();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.agg");
+        let bake = crate::bake::BakeSettings {
+            max_res: 16,
+            min_res: 2,
+            samples: 8,
+            aiv_res: 8,
+            aiv_rays: 8,
+            abv_res: 8,
+            abv_rays: 1,
+            ..Default::default()
+        };
+        crate::bake::bake_to_file(&scene, "t", &bake, &path, &crate::util::no_progress).unwrap();
+        let lod = LodScene::open(&path).unwrap();
+        let (lo, hi) = lod.bounds().unwrap();
+        let centre = 0.5 * (lo + hi);
+        let eye = centre + Vec3::new(0.3, 0.4, 2.5) * (hi - lo).max_element();
+        let settings = TraceSettings::default();
+        let lights = Lights::constant(Vec3::ONE);
+        let mut rng = Pcg32::new(3, 1);
+        let mut cones = Vec::new();
+        for _ in 0..200 {
+            let target = lo + (hi - lo) * Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32());
+            cones.push(Cone::new(eye, target - eye, 0.004));
+        }
+        let pixel = |c: &Cone| (c.dir + Vec3::new(0.003, -0.002, 0.001)).normalize();
+        // Each cone on a fresh walk, then all on one walk, twice over (the second pass finds
+        // every area kept from the walks of the pixels before).
+        fn areas<'s>(w: &mut Walk<'s>, lod: &'s LodScene, c: &Cone, pixel: Vec3) -> Vec<f32> {
+            let settings = TraceSettings::default();
+            w.fill(
+                lod,
+                c,
+                &Lights::constant(Vec3::ONE),
+                &settings,
+                0.5,
+                Some(pixel),
+            );
+            w.list.iter().map(|h| h.exact_area).collect()
+        }
+        let fresh: Vec<Vec<f32>> = cones
+            .iter()
+            .map(|c| areas(&mut Walk::default(), &lod, c, pixel(c)))
+            .collect();
+        let mut crossing = 0;
+        for (c, a) in cones.iter().zip(&fresh) {
+            let w = &mut Walk::default();
+            w.fill(&lod, c, &lights, &settings, 0.5, Some(pixel(c)));
+            for (h, &got) in w.list.iter().zip(a) {
+                let (level, block, i) = (h.voxel.data, &h.voxel.block, h.voxel.i);
+                if block.hit[i as usize].area_case == Some(crate::spatial::AreaCase::Crossing) {
+                    let want = block.primitive(level, i).unwrap().projected_area(pixel(c));
+                    assert_eq!(got, want, "|B| along the pixel's centre ray");
+                    crossing += 1;
+                }
+            }
+        }
+        assert!(crossing > 100, "{crossing} crossing primitives met");
+        let mut shared = Walk::default();
+        for _pass in 0..2 {
+            for (c, a) in cones.iter().zip(&fresh) {
+                assert_eq!(&areas(&mut shared, &lod, c, pixel(c)), a);
+            }
+        }
+    }
 
     /// Candidate k's weight: zero, NaN and a range of positive weights.
     fn weight(k: usize) -> f32 {
