@@ -32,7 +32,8 @@ pub struct Hit<'s> {
     /// ([`Occlusion`]).
     pub weight: f32,
     /// The exact |B|_ω of a primitive crossing its voxel where the walk computed it for
-    /// [`Occlusion`] under [`Weights::Bound`], else 0: [`Hits::exact_factor`] reuses it.
+    /// [`Occlusion`] under [`Weights::Bound`] (along the pixel's centre ray for a pixel's
+    /// shared walks, [`AreaCache`]), else 0: [`Hits::exact_factor`] reuses it.
     pub(crate) exact_area: f32,
 }
 

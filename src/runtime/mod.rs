@@ -882,8 +882,10 @@ pub fn render(
 /// The LoD's image loop, over [`crate::film::render_image_with`], for a single aggregate
 /// ([`render`]) and an assembly ([`crate::assembly::render`]) alike: each sample traces its
 /// own cone with `trace`, or, where [`TraceSettings::walk_reuse`] shares walks, runs of a
-/// pixel's samples shade from one walk of kind `W`, which `start(walk, cone, dither)` begins
-/// and `estimate(walk, sampler)` shades once a sample.
+/// pixel's samples shade from one walk of kind `W`, which `start(walk, cone, dither,
+/// pixel_dir)` begins (`pixel_dir` the pixel's centre ray, along which the walks of a pixel
+/// take the |B|_ω of crossing primitives: [`shade::Walk::fill`]) and `estimate(walk,
+/// sampler)` shades once a sample.
 ///
 /// The pixel's samples fall in runs of `reuse` consecutive samples, run k shading from walk k
 /// (walked by the run's first sample, [`shared_walk_cone`]); each sample's sampler skips the
