@@ -133,7 +133,10 @@ pub fn render(
         settings.seed,
         "reference",
         progress,
-        |s| radiance(accel, lights, &Ray::new(s.origin, s.dir), s.rng, s.rays),
+        |s| {
+            let (origin, dir) = s.ray();
+            radiance(accel, lights, &Ray::new(origin, dir), s.rng, s.rays)
+        },
     )
 }
 

@@ -72,9 +72,10 @@ impl Cone {
     /// The cone of one sample of the shared image loop ([`crate::film::render_image`]): the
     /// pixel's aperture, over the whole ray.
     pub fn of_sample(s: &crate::film::Sample) -> Cone {
+        let (origin, dir) = s.ray();
         Cone {
-            origin: s.origin,
-            dir: s.dir,
+            origin,
+            dir,
             aperture: s.aperture,
             tmin: 0.0,
             tmax: f32::INFINITY,
