@@ -1049,7 +1049,7 @@ impl<'a> AssemblyWalk<'a> {
                             .to_local
                             .transform_vector3(*pixel_dir)
                             .normalize_or_zero();
-                        walks[*used].fill(scene, &local, lights, settings, *dither, Some(dir));
+                        walks[*used].fill(scene, &local, lights, settings, *dither, dir);
                         *used += 1;
                         Kept::Aggregate { walk: *used - 1, k }
                     }

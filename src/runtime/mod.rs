@@ -874,7 +874,7 @@ pub fn render(
         |cone, sampler| scene.trace(cone, lights, settings, sampler),
         |cone| scene.magnification(cone, settings).unwrap_or(0),
         |walk: &mut shade::Walk, cone, dither, pixel_dir| {
-            walk.fill(scene, cone, lights, settings, dither, Some(pixel_dir))
+            walk.fill(scene, cone, lights, settings, dither, pixel_dir)
         },
         |walk, sampler| walk.estimate(lights, settings, sampler),
     )

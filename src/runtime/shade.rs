@@ -270,10 +270,10 @@ pub(crate) struct Walk<'s> {
 }
 
 impl<'s> Walk<'s> {
-    /// Walks `cone` (with the level's dither `dither`) and keeps its hits. Where the walk is
-    /// one of a pixel's shared walks, `pixel_dir` is the pixel's centre ray: the walk takes
-    /// the |B|_ω of the primitives that cross their voxels along it, each computed once for
-    /// all the pixel's walks ([`AreaCache`]).
+    /// Walks `cone` (with the level's dither `dither`), one of the shared walks of a pixel
+    /// whose centre ray is `pixel_dir`, and keeps its hits. The walk takes the |B|_ω of the
+    /// primitives that cross their voxels along `pixel_dir`, each computed once for all the
+    /// pixel's walks ([`AreaCache`]).
     pub(crate) fn fill(
         &mut self,
         scene: &'s LodScene,
@@ -281,7 +281,7 @@ impl<'s> Walk<'s> {
         lights: &Lights,
         settings: &TraceSettings,
         dither: f32,
-        pixel_dir: Option<Vec3>,
+        pixel_dir: Vec3,
     ) {
         self.list.clear();
         let dither = draws_dither(settings).then_some(dither);
@@ -289,18 +289,16 @@ impl<'s> Walk<'s> {
             .hits
             .as_mut()
             .and_then(|h| h.areas.take())
-            .or_else(|| pixel_dir.map(|_| std::cell::RefCell::new(AreaCache::new())));
+            .unwrap_or_else(|| std::cell::RefCell::new(AreaCache::new()));
         // Built in its slot (moving the walk's state, a few hundred bytes, was 2% of a 64²
         // render in `memmove`).
         let hits =
             self.hits
                 .insert(scene.hits_weighted(cone, settings, walk_weights(settings), dither));
-        if let (Some(dir), Some(cache)) = (pixel_dir, areas) {
-            cache
-                .borrow_mut()
-                .aim(scene as *const LodScene as usize, dir);
-            hits.areas = Some(cache);
-        }
+        areas
+            .borrow_mut()
+            .aim(scene as *const LodScene as usize, pixel_dir);
+        hits.areas = Some(areas);
         self.list.extend(&mut *hits);
         self.cumulative.clear();
         let (mut c, mut sum, mut first) = (0.0f64, 0.0f32, f32::INFINITY);
@@ -646,14 +644,7 @@ mod tests {
         // every area kept from the walks of the pixels before).
         fn areas<'s>(w: &mut Walk<'s>, lod: &'s LodScene, c: &Cone, pixel: Vec3) -> Vec<f32> {
             let settings = TraceSettings::default();
-            w.fill(
-                lod,
-                c,
-                &Lights::constant(Vec3::ONE),
-                &settings,
-                0.5,
-                Some(pixel),
-            );
+            w.fill(lod, c, &Lights::constant(Vec3::ONE), &settings, 0.5, pixel);
             w.list.iter().map(|h| h.exact_area).collect()
         }
         let fresh: Vec<Vec<f32>> = cones
@@ -663,7 +654,7 @@ mod tests {
         let mut crossing = 0;
         for (c, a) in cones.iter().zip(&fresh) {
             let w = &mut Walk::default();
-            w.fill(&lod, c, &lights, &settings, 0.5, Some(pixel(c)));
+            w.fill(&lod, c, &lights, &settings, 0.5, pixel(c));
             for (h, &got) in w.list.iter().zip(a) {
                 let (level, block, i) = (h.voxel.data, &h.voxel.block, h.voxel.i);
                 if block.hit[i as usize].area_case == Some(crate::spatial::AreaCase::Crossing) {
