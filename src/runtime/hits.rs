@@ -276,20 +276,10 @@ impl LodScene {
         weights: Weights,
         dither: Option<f32>,
     ) -> Hits<'_> {
-        let inv = cone.dir.recip();
-        let tan_half = half_tan(cone.aperture);
-        let bias = settings.bias_levels();
-        let lod_tan = match dither {
-            Some(u) if super::shade::draws_dither(settings) && u.is_finite() => {
-                tan_half * (u.clamp(0.0, 1.0) - 0.5 + bias).exp2()
-            }
-            _ if bias != 0.0 => tan_half * bias.exp2(),
-            _ => tan_half,
-        };
         let mut h = Hits {
             scene: self,
             cone: *cone,
-            inv,
+            inv: Vec3::ZERO,
             settings: *settings,
             t_end: 0.0,
             t_far: 0.0,
@@ -310,20 +300,69 @@ impl LodScene {
             weights,
             occlusion: Occlusion::default(),
             t_switch: f32::INFINITY,
-            lod_tan,
+            lod_tan: 0.0,
             areas: None,
         };
+        self.restart_hits(&mut h, cone, settings, weights, dither);
+        h
+    }
+
+    /// [`LodScene::hits_weighted`] into a walk's state `h` in place (its [`AreaCache`] kept):
+    /// a pixel's walks reuse one state, and moving a new one into it was 2% of a render.
+    #[inline(always)]
+    pub(crate) fn restart_hits<'a>(
+        &'a self,
+        h: &mut Hits<'a>,
+        cone: &Cone,
+        settings: &TraceSettings,
+        weights: Weights,
+        dither: Option<f32>,
+    ) {
+        let inv = cone.dir.recip();
+        let tan_half = half_tan(cone.aperture);
+        let bias = settings.bias_levels();
+        let lod_tan = match dither {
+            Some(u) if super::shade::draws_dither(settings) && u.is_finite() => {
+                tan_half * (u.clamp(0.0, 1.0) - 0.5 + bias).exp2()
+            }
+            _ if bias != 0.0 => tan_half * bias.exp2(),
+            _ => tan_half,
+        };
+        h.scene = self;
+        h.cone = *cone;
+        h.inv = inv;
+        h.settings = *settings;
+        h.t_end = 0.0;
+        h.t_far = 0.0;
+        h.li = 0;
+        h.level = None;
+        h.ddas = [Dda::IDLE; MAX_GRANULARITY];
+        h.g = 0;
+        h.brick = None;
+        h.block = None;
+        h.t = 0.0;
+        h.entry_axis = 0;
+        h.vb = None;
+        h.entry = (0, IVec3::ZERO, 0);
+        h.primitives = 0;
+        h.steps_left = 0;
+        h.steps_max = 0;
+        h.done = true;
+        h.weights = weights;
+        h.occlusion = Occlusion::default();
+        h.t_switch = f32::INFINITY;
+        h.lod_tan = lod_tan;
         let Some(g0) = self.grids.first().copied() else {
-            return h;
+            return;
         };
         if !(cone.dir.is_finite() && cone.origin.is_finite() && cone.dir != Vec3::ZERO) {
-            return h;
+            return;
         }
         let (lo, hi) = g0.bounds();
         let (c0, c1) = box_interval(lo, hi, cone.origin, inv);
         let (tmin, tmax) = (c0.max(cone.tmin), c1.min(cone.tmax));
         if !(tmin <= tmax) {
-            return h;
+            return;
         }
         // The walk starts where the ray enters the level's clip box (the source's bounds on
         // its voxels), at the level the footprint asks for there.
@@ -338,7 +377,7 @@ impl LodScene {
             }
         }
         let Some((t0, t1)) = span else {
-            return h;
+            return;
         };
         h.t = t0;
         h.t_end = t1;
@@ -352,7 +391,6 @@ impl LodScene {
         h.steps_left = 8 * g0.res + 64;
         h.steps_max = h.steps_left;
         h.done = !h.enter_level(None);
-        h
     }
 }
 
