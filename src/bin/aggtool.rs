@@ -397,9 +397,11 @@ fn run(command: Command, out: &Out) -> Result<Box<dyn Report>> {
             let v = view.request().resolve(|| Ok(scene.bounding_sphere()))?;
             let files = ImageFiles::for_output(&view.output);
             let e = view.exposure;
-            Box::new(render::reference::render_to_files(
-                &scene, input, &v, &files, e, &progress,
-            )?)
+            let report =
+                render::reference::render_to_files(&scene, input, &v, &files, e, &progress)?;
+            // As `render` does (`RenderRequest::exiting`): the process ends with this render.
+            std::mem::forget(scene);
+            Box::new(report)
         }
         Command::Compare { a, b, diff } => {
             Box::new(render::compare::compare_files(&a, &b, diff.as_deref())?)

@@ -509,6 +509,8 @@ impl RenderArgs {
             mesh_below: self.mesh_below,
             level_map: self.level_map.clone(),
             cache_mib: self.cache_mib,
+            // The command ends with this render.
+            exiting: true,
         }
     }
 }
