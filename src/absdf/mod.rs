@@ -584,91 +584,98 @@ impl<'t> Absdf<'t> {
         moments: MomentTable<'t>,
         tables: &'t Tables,
     ) -> Self {
-        let mut ndfs: Vec<NdfLobe> = lobes
-            .iter()
-            .filter(|l| l.weight > 0.0 && l.weight.is_finite() && l.frame.is_finite())
-            .map(|l| NdfLobe {
-                alpha: l.alpha.clamp(Vec2::splat(ALPHA_MIN), Vec2::ONE),
-                ..*l
-            })
-            .collect();
-        if ndfs.is_empty() {
-            // No usable normal information: an isotropic distribution.
-            ndfs.push(NdfLobe {
-                weight: 1.0,
-                frame: Mat3::IDENTITY,
-                alpha: Vec2::ONE,
-            });
-        }
+        // Two allocations a voxel, the lobes and the specular pairs: a shaded voxel's ABSDF is
+        // built once and kept, and the runtime builds one for every voxel a render shades.
+        let usable = |l: &&NdfLobe| l.weight > 0.0 && l.weight.is_finite() && l.frame.is_finite();
+        let clamped = |l: &NdfLobe| NdfLobe {
+            alpha: l.alpha.clamp(Vec2::splat(ALPHA_MIN), Vec2::ONE),
+            ..*l
+        };
+        // Where no lobe is usable (no normal information): an isotropic distribution.
+        const ISOTROPIC: NdfLobe = NdfLobe {
+            weight: 1.0,
+            frame: Mat3::IDENTITY,
+            alpha: Vec2::ONE,
+        };
+        let count = lobes.iter().filter(usable).count();
+        let ndfs = || {
+            let none = (count == 0).then_some(ISOTROPIC);
+            lobes.iter().filter(usable).map(clamped).chain(none)
+        };
         // A lobe's weight is its share of the voxel's area (`estimate`), and every term below
         // takes the lobe unnormalised (σ = 1 along its normal, mass ∫D from 2 for a flat lobe to
         // 4 for a sphere), so the mixture with those shares weighs lobe k by w_k / mass_k. With
         // w_k alone, a rough lobe beside a flat one weighed up to twice its share: the
         // leaf-and-twig case's relative RMSE against Eq. 3 was 0.255, and is 0.157 so.
-        ndfs.iter_mut()
-            .for_each(|l| l.weight /= crate::math::sggx::lobe_shape(l.alpha).mass.max(1e-6));
-        let wsum: f32 = ndfs.iter().map(|l| l.weight).sum();
-        ndfs.iter_mut().for_each(|l| l.weight /= wsum);
-        let lobes: Box<[MacroLobe]> = ndfs
-            .iter()
-            .map(|l| {
-                let shape = crate::math::sggx::lobe_shape(l.alpha);
-                let m = l.frame * Mat3::from_diagonal(shape.second) * l.frame.transpose();
-                // The diffuse sampling lobe at the fixed κ (§7.3, M1).
-                let mut o = [0f32; 3];
-                tables
-                    .m1
-                    .lookup_into(&[l.alpha.x, l.alpha.y, SAMPLING_KAPPA], &mut o);
-                let sampling = lobe_sggx(
-                    l.frame,
-                    Vec2::new(o[0], o[1]).clamp(Vec2::splat(ALPHA_MIN), Vec2::ONE),
-                );
-                MacroLobe {
-                    ndf: *l,
-                    unit: lobe_sggx(l.frame, l.alpha),
-                    inv_mass: 1.0 / shape.mass.max(1e-6),
-                    second: m * (0.25 * shape.mass),
-                    sampling,
-                    sampling_density: sampling.density(),
-                }
-            })
-            .collect();
+        let share = |l: &NdfLobe| l.weight / crate::math::sggx::lobe_shape(l.alpha).mass.max(1e-6);
+        let wsum: f32 = ndfs().map(|l| share(&l)).sum();
+        // Collected at their exact count, so that the boxes are the vectors' one allocation.
+        let mut macros = Vec::with_capacity(count.max(1));
+        macros.extend(ndfs().map(|l| {
+            let l = NdfLobe {
+                weight: share(&l) / wsum,
+                ..l
+            };
+            let shape = crate::math::sggx::lobe_shape(l.alpha);
+            let m = l.frame * Mat3::from_diagonal(shape.second) * l.frame.transpose();
+            // The diffuse sampling lobe at the fixed κ (§7.3, M1).
+            let mut o = [0f32; 3];
+            tables
+                .m1
+                .lookup_into(&[l.alpha.x, l.alpha.y, SAMPLING_KAPPA], &mut o);
+            let sampling = lobe_sggx(
+                l.frame,
+                Vec2::new(o[0], o[1]).clamp(Vec2::splat(ALPHA_MIN), Vec2::ONE),
+            );
+            MacroLobe {
+                ndf: l,
+                unit: lobe_sggx(l.frame, l.alpha),
+                inv_mass: 1.0 / shape.mass.max(1e-6),
+                second: m * (0.25 * shape.mass),
+                sampling,
+                sampling_density: sampling.density(),
+            }
+        }));
+        let lobes = macros.into_boxed_slice();
         // Microfacet lobes of the roughness distribution (Eq. 19, M2).
-        let micro: Vec<(f32, f32)> =
+        let micro: [(f32, f32); 2] =
             match RoughnessDistribution::from_moments(roughness_mean, roughness_variance) {
-                RoughnessDistribution::Constant(a) => vec![(1.0, a.clamp(ALPHA_MIN, 1.0))],
+                RoughnessDistribution::Constant(a) => [(1.0, a.clamp(ALPHA_MIN, 1.0)), (0.0, 1.0)],
                 d => {
                     let mu = d.mean();
                     let nu = d.variance() / (mu * (1.0 - mu)).max(1e-12);
                     let mut q = [0f32; 3];
                     tables.m2.lookup_into(&[mu, nu], &mut q);
-                    vec![
+                    [
                         (q[0].clamp(0.0, 1.0), q[1].clamp(ALPHA_MIN, 1.0)),
                         (1.0 - q[0].clamp(0.0, 1.0), q[2].clamp(ALPHA_MIN, 1.0)),
                     ]
                 }
             };
-        let mut spec = Vec::new();
-        for (k, l) in ndfs.iter().enumerate() {
-            for &(m, a) in &micro {
-                if m <= 0.0 {
-                    continue;
-                }
-                let mut o = [0f32; 3];
-                tables.m3.lookup_into(&[l.alpha.x, l.alpha.y, a], &mut o);
-                let alpha = Vec2::new(o[0], o[1]).clamp(Vec2::splat(ALPHA_MIN), Vec2::ONE);
-                let m5 = tables.m5.lookup1(&[a]);
-                let sggx = lobe_sggx(l.frame, alpha);
-                spec.push(SpecLobe {
-                    weight: l.weight * m * m5 * o[2].max(0.0),
-                    sggx,
-                    density: sggx.density(),
-                    lobe: k as u32,
-                    micro_alpha: a,
-                    lune_coord: LuneTable::alpha_coord(lune_alpha(l.alpha, a)),
-                });
+        let reflects = |&&(m, _): &&(f32, f32)| !(m <= 0.0);
+        let mut spec = Vec::with_capacity(lobes.len() * micro.iter().filter(reflects).count());
+        let pairs = lobes.iter().enumerate().flat_map(|(k, l)| {
+            micro
+                .iter()
+                .filter(reflects)
+                .map(move |&(m, a)| (k, l.ndf, m, a))
+        });
+        spec.extend(pairs.map(|(k, l, m, a)| {
+            let mut o = [0f32; 3];
+            tables.m3.lookup_into(&[l.alpha.x, l.alpha.y, a], &mut o);
+            let alpha = Vec2::new(o[0], o[1]).clamp(Vec2::splat(ALPHA_MIN), Vec2::ONE);
+            let m5 = tables.m5.lookup1(&[a]);
+            let sggx = lobe_sggx(l.frame, alpha);
+            SpecLobe {
+                weight: l.weight * m * m5 * o[2].max(0.0),
+                sggx,
+                density: sggx.density(),
+                lobe: k as u32,
+                micro_alpha: a,
+                lune_coord: LuneTable::alpha_coord(lune_alpha(l.alpha, a)),
             }
-        }
+        }));
+        let spec = spec.into_boxed_slice();
         let spec_total = spec.iter().map(|x| x.weight).sum();
         let diffuse_total = lobes.iter().map(|x| x.ndf.weight).sum();
         // Sampling picks the specular component in proportion to nothing finer than whether
@@ -686,7 +693,7 @@ impl<'t> Absdf<'t> {
         Absdf {
             tables,
             lobes,
-            spec: spec.into_boxed_slice(),
+            spec,
             spec_total,
             diffuse_total,
             spec_probability,
