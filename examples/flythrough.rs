@@ -22,13 +22,15 @@
 //! next (a "jump", |e_k − e_(k−1)|); the camera's own motion does not, since the reference
 //! moves with it. A second reference with another seed, taken as a method, gives the jumps
 //! that the reference's noise alone makes: the LoD pops visibly where its jumps exceed those.
-//! Writes `flythrough.md` (the table and the summary) and `strip.png` (eight frames: the
-//! reference, the continuous LoD and the discrete LoD, one row each) to `--out`.
+//! Writes `flythrough.md` (the table and the summary), `strip.png` (eight frames: the
+//! reference, the continuous LoD and the discrete LoD, one row each) and `bias.png` (e of
+//! each against the footprint's level, where a pop is a step at a whole level) to `--out`.
 
 mod common;
 
 use std::path::{Path, PathBuf};
 
+use aggtool::eval::plot::{line_plot, Series};
 use aggtool::eval::{study_view, tile_png};
 use aggtool::film::Image;
 use aggtool::render::reference::{self, ReferenceSettings};
@@ -264,5 +266,30 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .collect();
     tile_png(&out.join("strip.png"), &strip, size, size)?;
     println!("wrote {}", Path::new(&out).join("strip.png").display());
+
+    // e against the footprint's level: the discrete LoD's steps sit at whole levels.
+    let series: Vec<Series> = [
+        ("reference, seed 1", [150, 150, 150], 1),
+        ("LoD, continuous", [40, 90, 200], 2),
+        ("LoD, discrete", [200, 60, 40], 3),
+    ]
+    .iter()
+    .map(|&(name, color, m)| Series {
+        name: name.into(),
+        color,
+        points: rows.iter().map(|f| (f.level as f64, bias(f, m))).collect(),
+    })
+    .collect();
+    line_plot(
+        &out.join("bias.png"),
+        &format!(
+            "{}: image mean / reference mean - 1 per frame",
+            asset.file_stem().unwrap_or_default().to_string_lossy()
+        ),
+        "footprint level log2(tan(a/2) t / s)",
+        "e",
+        &series,
+    )?;
+    println!("wrote {}", Path::new(&out).join("bias.png").display());
     Ok(())
 }

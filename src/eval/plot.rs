@@ -1,6 +1,7 @@
 //! Plots: the ABSDF's Fig. 4 slices for `aggtool absdf` ([`plot_slices`]) and the Pareto plots
 //! for `aggtool sweep`: error against a cost, one point per setting, the presets
-//! marked, the Pareto front drawn. Shapes and lines are drawn by the `plotters` crate on its
+//! marked, the Pareto front drawn; and line plots ([`line_plot`], the fly-through's bias per
+//! frame). Shapes and lines are drawn by the `plotters` crate on its
 //! bitmap backend (plotters.rs docs: `BitMapBackend::with_buffer`, `ChartBuilder`,
 //! `ChartContext::backend_coord`); text by our own 5×7 font ([`crate::render::label`]), which
 //! keeps plotters' font stack (font-kit or ab_glyph and a font file) out of the build.
@@ -309,6 +310,130 @@ pub fn pareto_plot(
     Ok(())
 }
 
+/// One line of a [`line_plot`]: its name in the legend, its colour, its points (x, y), drawn
+/// left to right in the order given; a non-finite point breaks the line there.
+#[derive(Clone, Debug)]
+pub struct Series {
+    /// Written in the legend.
+    pub name: String,
+    /// The line's colour (sRGB).
+    pub color: [u8; 3],
+    /// The points.
+    pub points: Vec<(f64, f64)>,
+}
+
+/// Writes a line plot of `series` (x: `x_label`, y: `y_label`) with a legend, as a PNG
+/// (atomically): the fly-through's bias per frame, one line per method. Both axes are linear
+/// and span the finite points.
+pub fn line_plot(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[Series],
+) -> Result<()> {
+    let (w, h) = (960u32, 480u32);
+    let (left, right, top, bottom) = (90u32, 190u32, 50u32, 60u32);
+    let finite = || {
+        series
+            .iter()
+            .flat_map(|s| s.points.iter())
+            .filter(|(x, y)| x.is_finite() && y.is_finite())
+    };
+    let span = |v: &mut dyn Iterator<Item = f64>| {
+        let (lo, hi) = v.fold((f64::MAX, f64::MIN), |(a, b), x| (a.min(x), b.max(x)));
+        if lo > hi {
+            (0.0, 1.0)
+        } else {
+            let s = if hi > lo { hi - lo } else { hi.abs().max(1e-3) };
+            (lo - 0.05 * s, hi + 0.05 * s)
+        }
+    };
+    let (x0, x1) = span(&mut finite().map(|p| p.0));
+    let (y0, y1) = span(&mut finite().map(|p| p.1));
+    let err = |e: &dyn std::fmt::Display| anyhow!("plotting {}: {e}", path.display());
+    let light = RGBColor(225, 225, 225);
+    let mut rgb = vec![255u8; (w * h * 3) as usize];
+    let mut texts: Vec<(i32, i32, String, u32, [u8; 3])> = Vec::new();
+    let x_ticks = linear_ticks(x0, x1, 8);
+    let y_ticks = linear_ticks(y0, y1, 6);
+    {
+        let root = BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area();
+        let mut chart = ChartBuilder::on(&root)
+            .margin_left(left)
+            .margin_right(right)
+            .margin_top(top)
+            .margin_bottom(bottom)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(|e| err(&e))?;
+        let grid = x_ticks
+            .iter()
+            .map(|&x| vec![(x, y0), (x, y1)])
+            .chain(y_ticks.iter().map(|&y| vec![(x0, y), (x1, y)]));
+        chart
+            .draw_series(grid.map(|p| PathElement::new(p, light)))
+            .map_err(|e| err(&e))?;
+        chart
+            .draw_series(std::iter::once(Rectangle::new(
+                [(x0, y0), (x1, y1)],
+                BLACK.stroke_width(1),
+            )))
+            .map_err(|e| err(&e))?;
+        let lx = (w - right + 14) as i32;
+        for (i, s) in series.iter().enumerate() {
+            let c = RGBColor(s.color[0], s.color[1], s.color[2]);
+            // Runs of finite points, each its own line.
+            for run in s
+                .points
+                .split(|(x, y)| !(x.is_finite() && y.is_finite()))
+                .filter(|r| !r.is_empty())
+            {
+                chart
+                    .draw_series(LineSeries::new(run.iter().copied(), c.stroke_width(2)))
+                    .map_err(|e| err(&e))?;
+            }
+            let ly = top as i32 + 10 + 20 * i as i32;
+            root.draw(&PathElement::new(
+                vec![(lx, ly + 4), (lx + 14, ly + 4)],
+                c.stroke_width(2),
+            ))
+            .map_err(|e| err(&e))?;
+            texts.push((lx + 20, ly, s.name.clone(), 1, [0, 0, 0]));
+        }
+        for &x in &x_ticks {
+            let (px, py) = chart.backend_coord(&(x, y0));
+            let t = tick_text(x);
+            let tw = text_width(&t, 1) as i32;
+            texts.push((px - tw / 2, py + 6, t, 1, [0, 0, 0]));
+        }
+        for &y in &y_ticks {
+            let (px, py) = chart.backend_coord(&(x0, y));
+            let t = tick_text(y);
+            let tw = text_width(&t, 1) as i32;
+            texts.push((px - tw - 6, py - 3, t, 1, [0, 0, 0]));
+        }
+        root.present().map_err(|e| err(&e))?;
+    }
+    let ts = if text_width(title, 2) + left < w { 2 } else { 1 };
+    texts.push((left as i32, 16, title.to_string(), ts, [0, 0, 0]));
+    let plot_mid = (left + (w - left - right) / 2) as i32;
+    texts.push((
+        plot_mid - text_width(x_label, 2) as i32 / 2,
+        (h - bottom + 24) as i32,
+        x_label.to_string(),
+        2,
+        [0, 0, 0],
+    ));
+    texts.push((8, top as i32 - 18, y_label.to_string(), 2, [0, 0, 0]));
+    for (x, y, t, scale, c) in texts {
+        if x >= 0 && y >= 0 && y + (line_height(scale) as i32) <= h as i32 {
+            draw_text(&mut rgb, w, h, x as u32, y as u32, &t, scale, c);
+        }
+    }
+    write_rgb8_png(path, w, h, &rgb)?;
+    Ok(())
+}
+
 /// Fig. 4 style plot: for 8×8 incident directions (equal-area grid), the outgoing lat-long slice
 /// (`w × w/2` pixels) of f̂; returns linear RGB (width 8w, height 4w) for the ground truth and
 /// for the factored model.
@@ -405,6 +530,40 @@ mod tests {
                 img.pixels().any(|p| p.0 == [200, 60, 40]),
                 "preset square drawn"
             );
+        }
+    }
+
+    /// A line plot is a PNG of the stated size with each series' colour on it; a NaN point
+    /// breaks a line instead of failing, and a single point or no point still draws.
+    #[test]
+    fn line_plot_draws_each_series() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("l.png");
+        let series = vec![
+            Series {
+                name: "a".into(),
+                color: [200, 60, 40],
+                points: vec![(0.0, 0.01), (1.0, f64::NAN), (2.0, 0.03), (3.0, 0.02)],
+            },
+            Series {
+                name: "b".into(),
+                color: [40, 90, 200],
+                points: vec![(0.0, -0.01), (3.0, 0.0)],
+            },
+        ];
+        line_plot(&path, "title", "level", "e", &series).unwrap();
+        let img = ::image::open(&path).unwrap().to_rgb8();
+        assert_eq!(img.dimensions(), (960, 480));
+        for c in [[200, 60, 40], [40, 90, 200]] {
+            assert!(img.pixels().any(|p| p.0 == c), "{c:?} drawn");
+        }
+        for pts in [vec![], vec![(1.0, 1.0)]] {
+            let one = vec![Series {
+                name: "c".into(),
+                color: [30, 150, 70],
+                points: pts,
+            }];
+            line_plot(&path, "title", "x", "y", &one).unwrap();
         }
     }
 }
