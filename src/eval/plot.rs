@@ -414,7 +414,11 @@ pub fn line_plot(
         }
         root.present().map_err(|e| err(&e))?;
     }
-    let ts = if text_width(title, 2) + left < w { 2 } else { 1 };
+    let ts = if text_width(title, 2) + left < w {
+        2
+    } else {
+        1
+    };
     texts.push((left as i32, 16, title.to_string(), ts, [0, 0, 0]));
     let plot_mid = (left + (w - left - right) / 2) as i32;
     texts.push((
