@@ -2,10 +2,12 @@
 //! primitive, the parts of Eq. 30's weights against the mesh.
 //!
 //! ```sh
-//! cargo run --release -p aggtool-tools --bin cone_weights_probe -- ASSET ASSET.agg VIEW.json [N]
+//! cargo run --release -p aggtool-tools --bin cone_weights_probe -- ASSET ASSET.agg VIEW.json [N] [RES]
 //! ```
 //!
-//! N × N cones a pixel (4), each walked with the runtime's default settings. Prints, as means
+//! N × N cones a pixel (4), each walked with the runtime's default settings, or at the level
+//! of resolution RES³ when RES is given (the "finest" level below is then that one: a coarse
+//! level's factors against its own voxels' samples). Prints, as means
 //! over the cones that meet a primitive:
 //! - **background**: the runtime's normalised background weight T / (T + Σw), the ray's own
 //!   escape through the mesh, and the share of rays escaping the mesh from that cone's entry
@@ -94,7 +96,7 @@ impl Sums {
 fn main() -> anyhow::Result<()> {
     let a: Vec<String> = std::env::args().collect();
     if a.len() < 4 {
-        anyhow::bail!("usage: cone_weights_probe ASSET ASSET.agg VIEW.json [N]");
+        anyhow::bail!("usage: cone_weights_probe ASSET ASSET.agg VIEW.json [N] [RES]");
     }
     let scene = aggtool::import::load(std::path::Path::new(&a[1]), Default::default())?;
     let lod = LodScene::open(std::path::Path::new(&a[2]))?;
@@ -102,7 +104,9 @@ fn main() -> anyhow::Result<()> {
     let n: u32 = a.get(4).map_or(Ok(4), |s| s.parse())?;
     let accel = Accel::build(&scene);
     let cam = view.camera();
+    let want: Option<u32> = a.get(5).map(|s| s.parse()).transpose()?;
     let finest = (0..lod.level_count())
+        .filter(|&l| want.map_or(true, |r| lod.grid(l).res == r))
         .max_by_key(|&l| lod.grid(l).res)
         .unwrap_or(0);
     let truth = Truth::new(&accel, lod.grid(finest), finest, 32);
@@ -128,11 +132,16 @@ fn main() -> anyhow::Result<()> {
         .iter()
         .map(|v| (v.key, v.area * v.coverage as f64))
         .collect();
+    let forced = want.map(|_| finest);
     let raw = TraceSettings {
         normalize: false,
+        level: forced,
         ..TraceSettings::default()
     };
-    let normalised = TraceSettings::default();
+    let normalised = TraceSettings {
+        level: forced,
+        ..TraceSettings::default()
+    };
     // The budget's oracle of the entry face's ABV: its reachable points, the cone's direction.
     let face = Oracles {
         abv_part: 1,
