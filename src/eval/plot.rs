@@ -86,6 +86,123 @@ fn tick_text(v: f64) -> String {
     }
 }
 
+/// A text to draw once plotters has let go of the pixel buffer: (x, y, text, scale, colour).
+type Label = (i32, i32, String, u32, [u8; 3]);
+
+/// The chart type both plots draw on.
+type Chart<'a, 'b> = ChartContext<
+    'a,
+    BitMapBackend<'b>,
+    plotters::coord::cartesian::Cartesian2d<
+        plotters::coord::types::RangedCoordf64,
+        plotters::coord::types::RangedCoordf64,
+    >,
+>;
+
+/// A plot's size and margins, and what every plot draws around its data: the frame with grid
+/// lines at the ticks, the tick labels, the title and the axes' names.
+struct Frame {
+    w: u32,
+    h: u32,
+    left: u32,
+    right: u32,
+    top: u32,
+    bottom: u32,
+}
+
+impl Frame {
+    /// The chart over `x0..x1` × `y0..y1` inside the margins of `root`, with a light grid line at
+    /// each tick and the frame drawn.
+    fn chart<'a, 'b>(
+        &self,
+        root: &'a DrawingArea<BitMapBackend<'b>, plotters::coord::Shift>,
+        (x0, x1, y0, y1): (f64, f64, f64, f64),
+        x_ticks: &[(f64, String)],
+        y_ticks: &[(f64, String)],
+        path: &Path,
+    ) -> Result<Chart<'a, 'b>> {
+        let err = |e: &dyn std::fmt::Display| anyhow!("plotting {}: {e}", path.display());
+        let mut chart = ChartBuilder::on(root)
+            .margin_left(self.left)
+            .margin_right(self.right)
+            .margin_top(self.top)
+            .margin_bottom(self.bottom)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(|e| err(&e))?;
+        let light = RGBColor(225, 225, 225);
+        let grid = x_ticks
+            .iter()
+            .map(|(x, _)| vec![(*x, y0), (*x, y1)])
+            .chain(y_ticks.iter().map(|(y, _)| vec![(x0, *y), (x1, *y)]));
+        chart
+            .draw_series(grid.map(|p| PathElement::new(p, light)))
+            .map_err(|e| err(&e))?;
+        chart
+            .draw_series(std::iter::once(Rectangle::new(
+                [(x0, y0), (x1, y1)],
+                BLACK.stroke_width(1),
+            )))
+            .map_err(|e| err(&e))?;
+        Ok(chart)
+    }
+
+    /// The tick labels, below the frame and left of it.
+    fn tick_labels(
+        chart: &Chart,
+        (x0, y0): (f64, f64),
+        x_ticks: &[(f64, String)],
+        y_ticks: &[(f64, String)],
+        labels: &mut Vec<Label>,
+    ) {
+        for (x, t) in x_ticks {
+            let (px, py) = chart.backend_coord(&(*x, y0));
+            let tw = text_width(t, 1) as i32;
+            labels.push((px - tw / 2, py + 6, t.clone(), 1, [0, 0, 0]));
+        }
+        for (y, t) in y_ticks {
+            let (px, py) = chart.backend_coord(&(x0, *y));
+            let tw = text_width(t, 1) as i32;
+            labels.push((px - tw - 6, py - 3, t.clone(), 1, [0, 0, 0]));
+        }
+    }
+
+    /// Adds the title (at twice the size where it fits) and the axes' names to `labels`, draws
+    /// every label into `rgb` and writes the PNG (atomically).
+    fn finish(
+        &self,
+        path: &Path,
+        rgb: &mut [u8],
+        mut labels: Vec<Label>,
+        title: &str,
+        x_label: &str,
+        y_label: &str,
+    ) -> Result<()> {
+        let (w, h) = (self.w, self.h);
+        let ts = if text_width(title, 2) + self.left < w {
+            2
+        } else {
+            1
+        };
+        labels.push((self.left as i32, 16, title.to_string(), ts, [0, 0, 0]));
+        let plot_mid = (self.left + (w - self.left - self.right) / 2) as i32;
+        labels.push((
+            plot_mid - text_width(x_label, 2) as i32 / 2,
+            (h - self.bottom + 24) as i32,
+            x_label.to_string(),
+            2,
+            [0, 0, 0],
+        ));
+        labels.push((8, self.top as i32 - 18, y_label.to_string(), 2, [0, 0, 0]));
+        for (x, y, t, scale, c) in labels {
+            if x >= 0 && y >= 0 && y + (line_height(scale) as i32) <= h as i32 {
+                draw_text(rgb, w, h, x as u32, y as u32, &t, scale, c);
+            }
+        }
+        write_rgb8_png(path, w, h, rgb)?;
+        Ok(())
+    }
+}
+
 /// Writes a scatter plot of `points` (x: `x_label`, y: `y_label`) with the Pareto front as a
 /// line and each point labelled, as a PNG (atomically). The x axis is logarithmic when the
 /// costs span more than a factor of 20.
@@ -96,8 +213,15 @@ pub fn pareto_plot(
     y_label: &str,
     points: &[Point],
 ) -> Result<()> {
-    let (w, h) = (960u32, 640u32);
-    let (left, right, top, bottom) = (90u32, 150u32, 50u32, 60u32);
+    let frame = Frame {
+        w: 960,
+        h: 640,
+        left: 90,
+        right: 150,
+        top: 50,
+        bottom: 60,
+    };
+    let (w, h, right, top) = (frame.w, frame.h, frame.right, frame.top);
     let finite: Vec<&Point> = points
         .iter()
         .filter(|p| p.x.is_finite() && p.y.is_finite())
@@ -142,11 +266,9 @@ pub fn pareto_plot(
     let preset = RGBColor(200, 60, 40);
     let varied = RGBColor(40, 90, 200);
     let grey = RGBColor(150, 150, 150);
-    let light = RGBColor(225, 225, 225);
     let err = |e: &dyn std::fmt::Display| anyhow!("plotting {}: {e}", path.display());
     let mut rgb = vec![255u8; (w * h * 3) as usize];
-    // Texts to draw once plotters has let go of the buffer: (x, y, text, scale, colour).
-    let mut texts: Vec<(i32, i32, String, u32, [u8; 3])> = Vec::new();
+    let mut texts: Vec<Label> = Vec::new();
     let x_ticks: Vec<(f64, String)> = if log_x {
         let (a, b) = (x0.floor() as i32, x1.ceil() as i32);
         (a..=b)
@@ -166,27 +288,7 @@ pub fn pareto_plot(
         .collect();
     {
         let root = BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area();
-        let mut chart = ChartBuilder::on(&root)
-            .margin_left(left)
-            .margin_right(right)
-            .margin_top(top)
-            .margin_bottom(bottom)
-            .build_cartesian_2d(x0..x1, y0..y1)
-            .map_err(|e| err(&e))?;
-        // Grid and frame.
-        let grid = x_ticks
-            .iter()
-            .map(|(x, _)| vec![(*x, y0), (*x, y1)])
-            .chain(y_ticks.iter().map(|(y, _)| vec![(x0, *y), (x1, *y)]));
-        chart
-            .draw_series(grid.map(|p| PathElement::new(p, light)))
-            .map_err(|e| err(&e))?;
-        chart
-            .draw_series(std::iter::once(Rectangle::new(
-                [(x0, y0), (x1, y1)],
-                BLACK.stroke_width(1),
-            )))
-            .map_err(|e| err(&e))?;
+        let mut chart = frame.chart(&root, (x0, x1, y0, y1), &x_ticks, &y_ticks, path)?;
         // The Pareto front, left to right.
         let mut fp: Vec<(f64, f64)> = points
             .iter()
@@ -237,17 +339,7 @@ pub fn pareto_plot(
             let dy = k * line_height(1) as i32;
             texts.push((px + 8, py - 4 + dy, p.label.clone(), 1, c));
         }
-        // Tick labels.
-        for (x, t) in &x_ticks {
-            let (px, py) = chart.backend_coord(&(*x, y0));
-            let tw = text_width(t, 1) as i32;
-            texts.push((px - tw / 2, py + 6, t.clone(), 1, [0, 0, 0]));
-        }
-        for (y, t) in &y_ticks {
-            let (px, py) = chart.backend_coord(&(x0, *y));
-            let tw = text_width(t, 1) as i32;
-            texts.push((px - tw - 6, py - 3, t.clone(), 1, [0, 0, 0]));
-        }
+        Frame::tick_labels(&chart, (x0, y0), &x_ticks, &y_ticks, &mut texts);
         // Legend, right of the plot.
         let lx = (w - right + 14) as i32;
         let ly = top as i32 + 10;
@@ -283,31 +375,8 @@ pub fn pareto_plot(
         }
         root.present().map_err(|e| err(&e))?;
     }
-    // Title and axis names.
-    // The title at twice the size where it fits.
-    let ts = if text_width(title, 2) + left < w {
-        2
-    } else {
-        1
-    };
-    texts.push((left as i32, 16, title.to_string(), ts, [0, 0, 0]));
     let xl = format!("{x_label}{}", if log_x { " (log scale)" } else { "" });
-    let plot_mid = (left + (w - left - right) / 2) as i32;
-    texts.push((
-        plot_mid - text_width(&xl, 2) as i32 / 2,
-        (h - bottom + 24) as i32,
-        xl,
-        2,
-        [0, 0, 0],
-    ));
-    texts.push((8, top as i32 - 18, y_label.to_string(), 2, [0, 0, 0]));
-    for (x, y, t, scale, c) in texts {
-        if x >= 0 && y >= 0 && y + (line_height(scale) as i32) <= h as i32 {
-            draw_text(&mut rgb, w, h, x as u32, y as u32, &t, scale, c);
-        }
-    }
-    write_rgb8_png(path, w, h, &rgb)?;
-    Ok(())
+    frame.finish(path, &mut rgb, texts, title, &xl, y_label)
 }
 
 /// One line of a [`line_plot`]: its name in the legend, its colour, its points (x, y), drawn
@@ -332,8 +401,15 @@ pub fn line_plot(
     y_label: &str,
     series: &[Series],
 ) -> Result<()> {
-    let (w, h) = (960u32, 480u32);
-    let (left, right, top, bottom) = (90u32, 190u32, 50u32, 60u32);
+    let frame = Frame {
+        w: 960,
+        h: 480,
+        left: 90,
+        right: 190,
+        top: 50,
+        bottom: 60,
+    };
+    let (w, h) = (frame.w, frame.h);
     let finite = || {
         series
             .iter()
@@ -352,34 +428,19 @@ pub fn line_plot(
     let (x0, x1) = span(&mut finite().map(|p| p.0));
     let (y0, y1) = span(&mut finite().map(|p| p.1));
     let err = |e: &dyn std::fmt::Display| anyhow!("plotting {}: {e}", path.display());
-    let light = RGBColor(225, 225, 225);
     let mut rgb = vec![255u8; (w * h * 3) as usize];
-    let mut texts: Vec<(i32, i32, String, u32, [u8; 3])> = Vec::new();
-    let x_ticks = linear_ticks(x0, x1, 8);
-    let y_ticks = linear_ticks(y0, y1, 6);
+    let mut texts: Vec<Label> = Vec::new();
+    let ticks = |lo: f64, hi: f64, n: usize| -> Vec<(f64, String)> {
+        linear_ticks(lo, hi, n)
+            .into_iter()
+            .map(|v| (v, tick_text(v)))
+            .collect()
+    };
+    let (x_ticks, y_ticks) = (ticks(x0, x1, 8), ticks(y0, y1, 6));
     {
         let root = BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area();
-        let mut chart = ChartBuilder::on(&root)
-            .margin_left(left)
-            .margin_right(right)
-            .margin_top(top)
-            .margin_bottom(bottom)
-            .build_cartesian_2d(x0..x1, y0..y1)
-            .map_err(|e| err(&e))?;
-        let grid = x_ticks
-            .iter()
-            .map(|&x| vec![(x, y0), (x, y1)])
-            .chain(y_ticks.iter().map(|&y| vec![(x0, y), (x1, y)]));
-        chart
-            .draw_series(grid.map(|p| PathElement::new(p, light)))
-            .map_err(|e| err(&e))?;
-        chart
-            .draw_series(std::iter::once(Rectangle::new(
-                [(x0, y0), (x1, y1)],
-                BLACK.stroke_width(1),
-            )))
-            .map_err(|e| err(&e))?;
-        let lx = (w - right + 14) as i32;
+        let mut chart = frame.chart(&root, (x0, x1, y0, y1), &x_ticks, &y_ticks, path)?;
+        let lx = (w - frame.right + 14) as i32;
         for (i, s) in series.iter().enumerate() {
             let c = RGBColor(s.color[0], s.color[1], s.color[2]);
             // Runs of finite points, each its own line.
@@ -392,7 +453,7 @@ pub fn line_plot(
                     .draw_series(LineSeries::new(run.iter().copied(), c.stroke_width(2)))
                     .map_err(|e| err(&e))?;
             }
-            let ly = top as i32 + 10 + 20 * i as i32;
+            let ly = frame.top as i32 + 10 + 20 * i as i32;
             root.draw(&PathElement::new(
                 vec![(lx, ly + 4), (lx + 14, ly + 4)],
                 c.stroke_width(2),
@@ -400,42 +461,10 @@ pub fn line_plot(
             .map_err(|e| err(&e))?;
             texts.push((lx + 20, ly, s.name.clone(), 1, [0, 0, 0]));
         }
-        for &x in &x_ticks {
-            let (px, py) = chart.backend_coord(&(x, y0));
-            let t = tick_text(x);
-            let tw = text_width(&t, 1) as i32;
-            texts.push((px - tw / 2, py + 6, t, 1, [0, 0, 0]));
-        }
-        for &y in &y_ticks {
-            let (px, py) = chart.backend_coord(&(x0, y));
-            let t = tick_text(y);
-            let tw = text_width(&t, 1) as i32;
-            texts.push((px - tw - 6, py - 3, t, 1, [0, 0, 0]));
-        }
+        Frame::tick_labels(&chart, (x0, y0), &x_ticks, &y_ticks, &mut texts);
         root.present().map_err(|e| err(&e))?;
     }
-    let ts = if text_width(title, 2) + left < w {
-        2
-    } else {
-        1
-    };
-    texts.push((left as i32, 16, title.to_string(), ts, [0, 0, 0]));
-    let plot_mid = (left + (w - left - right) / 2) as i32;
-    texts.push((
-        plot_mid - text_width(x_label, 2) as i32 / 2,
-        (h - bottom + 24) as i32,
-        x_label.to_string(),
-        2,
-        [0, 0, 0],
-    ));
-    texts.push((8, top as i32 - 18, y_label.to_string(), 2, [0, 0, 0]));
-    for (x, y, t, scale, c) in texts {
-        if x >= 0 && y >= 0 && y + (line_height(scale) as i32) <= h as i32 {
-            draw_text(&mut rgb, w, h, x as u32, y as u32, &t, scale, c);
-        }
-    }
-    write_rgb8_png(path, w, h, &rgb)?;
-    Ok(())
+    frame.finish(path, &mut rgb, texts, title, x_label, y_label)
 }
 
 /// Fig. 4 style plot: for 8×8 incident directions (equal-area grid), the outgoing lat-long slice
