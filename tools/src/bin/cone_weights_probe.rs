@@ -105,10 +105,12 @@ fn main() -> anyhow::Result<()> {
     let accel = Accel::build(&scene);
     let cam = view.camera();
     let want: Option<u32> = a.get(5).map(|s| s.parse()).transpose()?;
-    let finest = (0..lod.level_count())
+    let Some(finest) = (0..lod.level_count())
         .filter(|&l| want.map_or(true, |r| lod.grid(l).res == r))
         .max_by_key(|&l| lod.grid(l).res)
-        .unwrap_or(0);
+    else {
+        anyhow::bail!("{}: no {}³ level", a[2], want.unwrap_or(0));
+    };
     let truth = Truth::new(&accel, lod.grid(finest), finest, 32);
     // Per voxel of the finest level: 64 fresh samples' (geometric normal, weight) and the
     // pieces' area; the stored area after cut-outs.
