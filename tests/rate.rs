@@ -261,7 +261,7 @@ fn block_allocation_keeps_the_per_map_error_in_fewer_bytes() {
 /// Black voxels (albedo 0: a black material with its specular reflection switched off) still
 /// have their maps truncated by the block allocation: with weights a·ρ² of 0 a block had no
 /// error to spend and kept every candidate, several times the bytes of the per-map rule
-/// ([`aggtool::bake::rate::ALBEDO_FLOOR`]).
+/// (their maps weigh the cone share's contrast, [`aggtool::bake::rate::SHARE_CONTRAST`]).
 #[test]
 fn black_voxels_are_truncated() {
     let dir = tempfile::tempdir().unwrap();

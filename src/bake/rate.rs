@@ -16,10 +16,13 @@
 //! distortion per detail's bytes reaches λ, the greedy rule for candidates of unequal rates.
 //!
 //! The weight is what a map's error does to radiance, per unit of the level's surface:
-//! - a voxel's AIV scales the light its surfaces reflect, so w = a·ρ² / (A·N²), with a the
-//!   voxel's surface area after cut-outs, ρ its mean albedo (diffuse and specular, Eq. 13
-//!   and 17) but at least [`ALBEDO_FLOOR`], N² the map's cells (the squared error per cell
-//!   is the energy over N²);
+//! - a voxel's AIV plays two parts. Towards the lights it scales the light its surfaces
+//!   reflect (Eq. 25), an error weighing ρ²; towards the viewer it is also the voxel's share
+//!   of a cone (Eq. 30), which decides how much of what lies behind shows through, whatever
+//!   the albedo, an error weighing the contrast between the voxel and what is behind it
+//!   ([`SHARE_CONTRAST`]). So w = a·(ρ² + C²) / (A·N²), with a the voxel's surface area
+//!   after cut-outs, ρ its mean albedo (diffuse and specular, Eq. 13 and 17), C the
+//!   contrast, N² the map's cells (the squared error per cell is the energy over N²);
 //! - a boundary face's ABV scales the light that passes through it from behind; the faces
 //!   are mostly the asset's outer shell, so that light is the environment's, taken as unit
 //!   radiance: w = s² / (A·N²) with s the voxel's side. Measured on the maple's 64³ bake
@@ -92,17 +95,22 @@ pub(crate) struct PendingLevel {
     pub voxel_size: f32,
 }
 
-/// The least albedo a voxel's AIV is weighted by: a dielectric's reflectance at normal
-/// incidence with glTF's default index of refraction, 1.5, so the least of any material
-/// whose specular reflection is not switched off.
+/// The radiance contrast, in units of the environment's, that an error in a voxel's share of
+/// a cone (Eq. 30, its AIV towards the viewer) makes: what lies behind a voxel shows through
+/// where the share is too small, and is hidden where it is too large. Taken as the
+/// environment's unit radiance, as the faces' light is.
 ///
-/// A voxel's AIV towards the viewer (Eq. 25's V̂(ω_o)) is also its share of a cone (Eq. 30),
-/// which decides how much of what lies behind it shows through, whatever its albedo. With
-/// ρ = 0 (a black material without specular reflection, e.g. `aggtool gen foliage
-/// --lambertian` with its colours set to black) every weight of a block was 0, the block had
-/// no error to spend and kept every candidate: the demo's 40,000-triangle tree made black
-/// baked 39.3 MB of AIV trees at 64³ against 7.5 MB with its colours.
-pub const ALBEDO_FLOOR: f64 = 0.04;
+/// Weighted by ρ² alone (at least 0.04, a dielectric's reflectance at normal incidence), the
+/// allocation took the AIV for the light the voxel reflects only: on the dark-leaved maple
+/// (64³, one level's allocation at the per-map truncation's estimated error) it dropped
+/// nearly every AIV detail (3.18 MB of AIV nodes to 0.13 MB) and the RMSE rose 13%, where
+/// with the contrast it keeps 0.86× the bytes at 0.7% less RMSE; at equal bytes from one
+/// bake of every candidate (`aggtool rate --size-mib`), 0.02208 against 0.02267 at 4.9 MB
+/// and 0.02316 against 0.02494 at 3.6 MB; on the chandelier (metal, bright) 0.01085 against
+/// 0.01094 (`docs/src/studies/2026-12-07-rate-control-tables.md`). It also keeps a black
+/// material's maps (ρ = 0) weighing something: with weights of 0 a block had no error to
+/// spend and kept every candidate.
+pub const SHARE_CONTRAST: f64 = 1.0;
 
 /// The mean albedo of a voxel's materials: diffuse plus specular reflectance (Eq. 13, 17),
 /// averaged over colour channels and, for directional moments, over the grid's cells.
@@ -232,9 +240,9 @@ pub fn map_weights<'a>(
 ) -> (Vec<f64>, f64) {
     let raw_voxel = |v: &VoxelData| {
         let cells = (v.aiv.n as f64).powi(2).max(1.0);
-        let rho = albedo(&v.appearance.moments).clamp(ALBEDO_FLOOR, 1.0);
+        let rho = albedo(&v.appearance.moments).clamp(0.0, 1.0);
         let a = surface(v);
-        (a * rho * rho / cells, a)
+        (a * (rho * rho + SHARE_CONTRAST * SHARE_CONTRAST) / cells, a)
     };
     let s2 = (voxel_size as f64).powi(2);
     let face_count = faces.clone().count();

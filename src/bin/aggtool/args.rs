@@ -368,7 +368,8 @@ pub struct BakeArgs {
     pub compression_level: Option<i32>,
     /// Rate control: the whole file's size in MiB. The bake keeps every visibility detail
     /// that survives the noise shrinkage as a candidate and spends the budget on those that
-    /// matter most to radiance (surface area × albedo² for a voxel's interior visibility, the
+    /// matter most to radiance (surface area × (albedo² + 1) for a voxel's interior
+    /// visibility, which scales both the light it reflects and its share of a cone, the
     /// face's area for boundary visibility; one Lagrange multiplier for the file), landing
     /// within 3% under it; --keep and --energy then do nothing. Holds the bake's levels in
     /// memory until the end [default: none].
